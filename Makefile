@@ -1,0 +1,31 @@
+# One task runner, used by CI and by people alike.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+
+.PHONY: setup repro test lint bench clean
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[dev]"
+	touch $@
+
+repro: setup          ## install, then run the whole pipeline on the built-in simulated rig
+	$(BIN)/dvc repro
+
+test: setup           ## lint and run the test suite
+	$(BIN)/ruff check .
+	$(BIN)/pytest -q
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+bench: setup          ## throughput and dvc repro timings
+	$(BIN)/python benchmarks/bench_data.py
+
+clean:                ## generated data and reports (never data/raw)
+	rm -rf data/simulated data/interim data/processed reports/ingest reports/resample
