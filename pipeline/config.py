@@ -38,7 +38,6 @@ class EffectScales(Section):
     batch_variation: float = Field(1.0, ge=0)
     gravity: float = Field(1.0, ge=0)
     part_variation: float = Field(1.0, ge=0)
-    contact_loss: bool = True
     viscoelasticity: float = Field(1.0, ge=0)
     fsr_threshold: bool = True
     hysteresis: float = Field(1.0, ge=0)
