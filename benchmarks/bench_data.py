@@ -1,0 +1,110 @@
+"""Data-half benchmark: ingest + validate + resample throughput, and `dvc repro` wall times.
+
+Run with `make bench` (or `.venv/bin/python benchmarks/bench_data.py`). Prints medians of
+repeated runs measured in this one process, on the default simulated data (params.yaml's
+`simulate` section): the machine is shared and noisy, so compare figures of one run.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import yaml
+
+from pipeline import ingest, resample, simulate
+from pipeline.config import IngestParams, ResampleParams, SimulateParams, load_section
+
+REPO = Path(__file__).resolve().parents[1]
+REPEATS = 3
+
+
+def timed(fn: Callable[[], object], repeats: int = REPEATS) -> list[float]:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def raw_rows(root: Path) -> int:
+    """Data rows (not headers) in every CSV of every batch."""
+    return sum(sum(1 for _ in p.open()) - 1 for p in root.rglob("*.csv"))
+
+
+def dvc(root: Path, *args: str) -> float:
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    t0 = time.perf_counter()
+    subprocess.run(["dvc", *args], cwd=root, env=env, check=True, capture_output=True)
+    return time.perf_counter() - t0
+
+
+def bench_stages(tmp: Path) -> None:
+    params = REPO / "params.yaml"
+    sim_params = load_section(SimulateParams, "simulate", params)
+    sim = tmp / "simulated"
+    t_sim = timed(lambda: simulate.run(sim_params, sim), 1)[0]
+    rows = raw_rows(sim)
+    print(f"simulate (default params): {t_sim:.2f} s, {rows} raw rows")
+
+    ingest_params = load_section(IngestParams, "ingest", params)
+    empty_raw = tmp / "raw"
+    empty_raw.mkdir()
+    out = tmp / "ingested"
+
+    def run_ingest() -> None:
+        result = ingest.ingest_batches([empty_raw, sim], out, ingest_params, log=lambda _: None)
+        ingest.write_reports(result, tmp / "reports-ingest")
+
+    def cold_ingest() -> None:
+        shutil.rmtree(out, ignore_errors=True)
+        run_ingest()
+
+    t_ingest = timed(cold_ingest)
+    t_reuse = timed(run_ingest)
+    resample_params = load_section(ResampleParams, "resample", params)
+    t_resample = timed(
+        lambda: resample.run(out, tmp / "resampled", tmp / "reports-resample", resample_params)
+    )
+
+    med_i, med_r, med_u = (statistics.median(t) for t in (t_ingest, t_resample, t_reuse))
+    print(f"ingest + validate (cold): median {med_i:.2f} s of {REPEATS} -> {rows / med_i:,.0f} raw rows/s")
+    print(f"ingest, unchanged (cache): median {med_u:.2f} s -> {med_i / med_u:.0f}x faster than cold")
+    print(f"resample: median {med_r:.2f} s of {REPEATS} -> {rows / med_r:,.0f} raw rows/s")
+    print(f"ingest + validate + resample: {rows / (med_i + med_r):,.0f} raw rows/s")
+
+
+def bench_dvc(tmp: Path) -> None:
+    root = tmp / "project"
+    root.mkdir()
+    for name in ("dvc.yaml", "params.yaml", ".dvcignore"):
+        if (REPO / name).exists():
+            shutil.copy(REPO / name, root / name)
+    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    (root / "data" / "raw").mkdir(parents=True)
+    dvc(root, "init", "--no-scm", "-q")
+    dvc(root, "config", "core.analytics", "false")
+    stages = [s for s in yaml.safe_load((root / "dvc.yaml").read_text())["stages"]]
+    cold = dvc(root, "repro")
+    noop = timed(lambda: dvc(root, "repro"))
+    print(f"dvc repro, cold ({', '.join(stages)}): {cold:.1f} s")
+    print(f"dvc repro, nothing changed: median {statistics.median(noop):.2f} s of {REPEATS}")
+
+
+def main() -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        bench_stages(Path(tmp))
+    with tempfile.TemporaryDirectory() as tmp:
+        bench_dvc(Path(tmp))
+
+
+if __name__ == "__main__":
+    main()
