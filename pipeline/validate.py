@@ -23,6 +23,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import math
+import re
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -340,6 +341,20 @@ def _ephemeral_context() -> AbstractDataContext:
     return gx.get_context(mode="ephemeral", project_config=config)
 
 
+FIXED_RUN_TIME = dt.datetime(2000, 1, 1, tzinfo=dt.UTC)
+_CACHE_BUSTER = re.compile(r"\?d=\d{8}T\d{6}\.\d+Z")
+
+
+_UUID = re.compile(r"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
+
+
+def _deterministic_html(text: str) -> str:
+    """Drop GX's render-time cache-buster and number its random element ids in page order."""
+    ids: dict[str, str] = {}
+    text = _CACHE_BUSTER.sub("", text)
+    return _UUID.sub(lambda m: ids.setdefault(m.group(0), f"el{len(ids) + 1}"), text)
+
+
 def write_data_docs(
     results: Mapping[str, Mapping[str, Mapping[str, Any]]],
     site_dir: Path,
@@ -380,7 +395,9 @@ def write_data_docs(
             "site_index_builder": {"class_name": "DefaultSiteIndexBuilder"},
         },
     )
-    run_id = RunIdentifier(run_name="ingest", run_time=run_time or dt.datetime.now(dt.UTC))
+    # GX needs a run time; a fixed one keeps the site byte-identical for the same data, so
+    # reports/ingest (a DVC output) does not change between identical runs.
+    run_id = RunIdentifier(run_name="ingest", run_time=run_time or FIXED_RUN_TIME)
     for batch_id in sorted(results):
         for kind, stored in sorted(results[batch_id].items()):
             data = json.loads(json.dumps(stored))
@@ -399,6 +416,8 @@ def write_data_docs(
             )
             ctx.validation_results_store.set(key, expectationSuiteValidationResultSchema.load(data))
     ctx.build_data_docs()
+    for page in site_dir.rglob("*.html"):
+        page.write_text(_deterministic_html(page.read_text()))
     index = site_dir / "index.html"
     if not index.exists():  # pragma: no cover - GX behaviour changed; keep the report usable
         index.write_text(_fallback_html(results))

@@ -119,3 +119,9 @@ def test_stored_results_are_deterministic_and_render_as_data_docs(tmp_path):
     assert index == tmp_path / "docs" / "index.html" and index.is_file()
     pages = list(Path(tmp_path / "docs" / "validations").rglob("*.html"))
     assert len(pages) == 1 and "bx.fsr" in index.read_text()
+    # And rendering it again gives the same bytes (no render times or random element ids)
+    again = validate.write_data_docs({"bx": {"fsr": stored}}, tmp_path / "docs2")
+    first = sorted(p.relative_to(tmp_path / "docs") for p in (tmp_path / "docs").rglob("*.html"))
+    assert first == sorted(p.relative_to(again.parent) for p in again.parent.rglob("*.html"))
+    for rel in first:
+        assert (tmp_path / "docs" / rel).read_bytes() == (again.parent / rel).read_bytes(), rel
