@@ -26,8 +26,9 @@ lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-bench: setup          ## throughput and dvc repro timings
+bench: repro          ## throughput, dvc repro timings, the peer comparison
 	$(BIN)/python benchmarks/bench_data.py
+	$(BIN)/python benchmarks/bench_peer.py
 
 clean:                ## generated data and reports (never data/raw)
 	rm -rf data/simulated data/interim data/processed reports/ingest reports/resample

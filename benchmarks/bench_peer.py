@@ -1,0 +1,80 @@
+"""Our FNN against the peer a user would otherwise pick: scikit-learn's MLPRegressor.
+
+Same per-angle splits (data/processed, from `make repro`), same architecture (channels -> 20
+-> 20 -> 3, tanh), same standardisation, early stopping on the validation split for ours and
+MLPRegressor's own `early_stopping` for the peer (it holds out 10 % of the training rows).
+Prints, per angle, the external-set NRMSE (mean over axes) and training wall time of each,
+then medians and the ratios peer/ours, all measured in this one run.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import load_section
+from pipeline.evaluate import nrmse_pct
+from pipeline.models import FNNParams, channels_of, fit
+
+DATA = Path("data/processed")
+TARGETS = ["fx", "fy", "fz"]
+
+
+def peer(train: pd.DataFrame, channels: list[str], p: FNNParams):
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    model = MLPRegressor(
+        hidden_layer_sizes=p.hidden,
+        activation=p.activation,
+        learning_rate_init=p.lr,
+        batch_size=p.batch_size,
+        max_iter=p.max_epochs,
+        n_iter_no_change=p.patience,
+        early_stopping=True,
+        random_state=p.seed,
+    )
+    y_scaler = StandardScaler().fit(train[TARGETS])
+    pipe = make_pipeline(StandardScaler(), model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pipe.fit(train[channels], y_scaler.transform(train[TARGETS]))
+    return lambda frame: y_scaler.inverse_transform(pipe.predict(frame[channels]))
+
+
+def main() -> None:
+    p = load_section(FNNParams, "fnn", Path("params.yaml"))
+    rows = []
+    for angle_dir in sorted(DATA.iterdir(), key=lambda d: (len(d.name), d.name)):
+        if not angle_dir.is_dir():
+            continue
+        train, val, ext = (pd.read_parquet(angle_dir / f"{s}.parquet") for s in ("train", "val", "external"))
+        channels = channels_of(train)
+        t0 = time.perf_counter()
+        ours = fit("fnn", p, train, val).predictor
+        t_ours = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        theirs = peer(train, channels, p)
+        t_peer = time.perf_counter() - t0
+        ref = ext[TARGETS].to_numpy()
+        e_ours = float(np.mean(nrmse_pct(ours.predict(ext), ref)))
+        e_peer = float(np.mean(nrmse_pct(theirs(ext), ref)))
+        rows.append((angle_dir.name, e_ours, e_peer, t_ours, t_peer))
+        print(
+            f"{angle_dir.name:>4}°  NRMSE ours {e_ours:5.2f} %  MLPRegressor {e_peer:5.2f} %   "
+            f"train ours {t_ours:5.2f} s  MLPRegressor {t_peer:5.2f} s"
+        )
+    med = [statistics.median(r[i] for r in rows) for i in range(1, 5)]
+    print(f"median NRMSE (mean of axes, external set): ours {med[0]:.2f} %, MLPRegressor {med[1]:.2f} %")
+    print(f"median training time: ours {med[2]:.2f} s, MLPRegressor {med[3]:.2f} s")
+    print(f"ratios MLPRegressor/ours: error {med[1] / med[0]:.2f}x, training time {med[3] / med[2]:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
