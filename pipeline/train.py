@@ -64,7 +64,9 @@ def run(model: str, data_dir: Path, out_dir: Path, params_path: Path) -> dict[st
 
     out_dir.mkdir(parents=True, exist_ok=True)
     save_checkpoint(result.checkpoint, out_dir / CHECKPOINT_FILE)
-    metrics = {k: _json_safe(v) for k, v in result.metrics.items()}
+    # Wall time goes to the log only: in the DVC output it would change the model folder's hash
+    # on every run although the weights are identical, and rerun `evaluate` for nothing.
+    metrics = {k: _json_safe(v) for k, v in result.metrics.items() if k != "train_seconds"}
     (out_dir / METRICS_FILE).write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     with (out_dir / HISTORY_FILE).open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["epoch", "train_loss", "val_loss"], lineterminator="\n")
