@@ -44,10 +44,18 @@ def raw_rows(root: Path) -> int:
     return sum(sum(1 for _ in p.open()) - 1 for p in root.rglob("*.csv"))
 
 
-def dvc(root: Path, *args: str) -> float:
+def dvc_out(root: Path, *args: str) -> str:
+    """Run dvc in `root` with this venv first on PATH (stage commands call `python`)."""
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    return subprocess.run(
+        ["dvc", *args], cwd=root, env=env, check=True, capture_output=True, text=True
+    ).stdout
+
+
+def dvc(root: Path, *args: str) -> float:
+    """Wall time of one dvc command."""
     t0 = time.perf_counter()
-    subprocess.run(["dvc", *args], cwd=root, env=env, check=True, capture_output=True)
+    dvc_out(root, *args)
     return time.perf_counter() - t0
 
 
@@ -115,11 +123,7 @@ def bench_dvc(tmp: Path) -> None:
 
 def stages_all(root: Path) -> list[str]:
     """Every stage, matrix items expanded, as `dvc stage list` names them."""
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    out = subprocess.run(
-        ["dvc", "stage", "list", "--name-only"], cwd=root, env=env, capture_output=True, text=True
-    )
-    return out.stdout.split()
+    return dvc_out(root, "stage", "list", "--name-only").split()
 
 
 def main() -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from collections.abc import Callable
@@ -15,6 +14,7 @@ import pytest
 from pipeline import ingest
 from pipeline.config import IngestParams
 from pipeline.riglog import BatchMeta
+from tests.helpers import tree_hash
 
 A = "lab-bench-a"
 TRIALS = ["t001", "t002", "t003"]
@@ -22,14 +22,6 @@ CHANNELS = ["left", "right", "top", "bottom"]
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def tree_hash(root: Path) -> dict[str, str]:
-    return {
-        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file()
-    }
 
 
 def run(roots: list[Path], out: Path, params: IngestParams | None = None) -> ingest.IngestResult:

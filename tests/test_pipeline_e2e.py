@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -13,6 +12,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+
+from tests.helpers import tree_hash
 
 REPO = Path(__file__).resolve().parents[1]
 LAB_BATCH = REPO / "tests" / "fixtures" / "rig-log" / "lab-bench-a"
@@ -52,14 +53,6 @@ def run(root: Path, *cmd: str) -> str:
     done = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, f"{' '.join(cmd)} failed:\n{done.stdout}\n{done.stderr}"
     return done.stdout + done.stderr
-
-
-def tree_hash(root: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(root)).encode() + p.read_bytes())
-    return h.hexdigest()
 
 
 def test_repro_builds_per_angle_datasets_then_does_nothing(tmp_path):

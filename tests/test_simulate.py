@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
-from pathlib import Path
-
 import pandas as pd
 import pytest
 import yaml
@@ -12,17 +9,9 @@ import yaml
 from pipeline import simulate
 from pipeline.config import SimulateParams
 from pipeline.riglog import BatchMeta
+from tests.helpers import tree_hash
 
 SMALL = SimulateParams(angles_deg=(15, 45), train_batches=1, trials_per_angle=2, heldout_trials_per_angle=1)
-
-
-def tree_hash(root: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
-    return h.hexdigest()
 
 
 def test_writes_one_training_cast_and_a_heldout_batch_per_angle(tmp_path):
