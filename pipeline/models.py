@@ -83,6 +83,7 @@ class FNNParams(Section):
     batch_size: int = Field(256, ge=1)
     max_epochs: int = Field(300, ge=1)
     patience: int = Field(25, ge=1, description="epochs without a better validation loss before stopping")
+    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
     seed: int = 0
 
 
@@ -97,6 +98,7 @@ class LSTMParams(Section):
     batch_size: int = Field(128, ge=1)
     max_epochs: int = Field(60, ge=1)
     patience: int = Field(10, ge=1, description="epochs without a better validation loss before stopping")
+    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
     seed: int = 0
 
 
@@ -538,7 +540,13 @@ def _fit_network(
         gen = torch.Generator().manual_seed(params.seed)
         opt = Adam(net.parameters(), lr=params.lr, weight_decay=params.weight_decay)
         loss_fn = torch.nn.MSELoss()
-        best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        # The averaged copy is what gets validated and saved: it smooths the step-to-step noise of
+        # the SGD iterate, so the early-stopping choice depends less on where one epoch happened to end.
+        avg = build_network(cfg) if params.ema > 0 else net
+        if params.ema > 0:
+            avg.load_state_dict(net.state_dict())
+            pairs = list(zip(avg.parameters(), net.parameters(), strict=True))
+        best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
         best_val, best_epoch, epoch = math.inf, 0, 0
         for epoch in range(1, params.max_epochs + 1):
             net.train()
@@ -550,17 +558,21 @@ def _fit_network(
                 loss = loss_fn(net(x_tr[idx]), y_tr[idx])
                 loss.backward()
                 opt.step()
+                if params.ema > 0:
+                    with torch.no_grad():
+                        for a, w in pairs:
+                            a.lerp_(w, 1 - params.ema)
                 total += loss.detach() * len(idx)
             train_loss = float(total) / n
             val_loss = math.nan
             if has_val:
-                net.eval()
+                avg.eval()
                 with torch.no_grad():
-                    val_loss = float(loss_fn(net(x_va), y_va))
+                    val_loss = float(loss_fn(avg(x_va), y_va))
             history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss})
             if not has_val or val_loss < best_val:
                 best_val, best_epoch = val_loss, epoch
-                best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+                best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
             if epoch % every == 0:
                 log(f"epoch {epoch:4d}  train loss {train_loss:.5f}  val loss {val_loss:.5f}")
             if has_val and epoch - best_epoch >= params.patience:

@@ -68,6 +68,25 @@ def test_training_is_deterministic_and_seed_sensitive(kind: str, train_val) -> N
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
+@pytest.mark.parametrize("kind", ["fnn", "lstm"])
+def test_weight_averaging_saves_the_running_average(kind: str, train_val) -> None:
+    # given: the same training without averaging, with a tiny averaging step, and with the usual one
+    train, val = train_val
+    no_val = val.iloc[:0]  # all epochs run, so each variant saves its last weights
+    base = FAST[kind].model_copy(update={"max_epochs": 3})
+    raw = m.fit(kind, base, train, no_val).checkpoint["state_dict"]
+    frozen = m.fit(kind, base.model_copy(update={"ema": 1 - 1e-9}), train, no_val).checkpoint["state_dict"]
+    usual = m.fit(kind, base.model_copy(update={"ema": 0.9}), train, no_val).checkpoint["state_dict"]
+    init = m.fit(kind, base.model_copy(update={"max_epochs": 1, "lr": 1e-12}), train, no_val).checkpoint
+    # then: an average that barely moves keeps the initial weights; a real one is not the last iterate, and
+    # is deterministic like the rest of training
+    for k in raw:
+        torch.testing.assert_close(frozen[k], init["state_dict"][k], rtol=0, atol=1e-6)
+        assert not torch.equal(usual[k], raw[k])
+    again = m.fit(kind, base.model_copy(update={"ema": 0.9}), train, no_val).checkpoint["state_dict"]
+    assert all(torch.equal(usual[k], again[k]) for k in usual)
+
+
 def test_fit_leaves_global_torch_state_alone(train_val) -> None:
     # given: a caller's own torch settings
     train, val = train_val
