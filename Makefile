@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup repro test lint bench clean
+.PHONY: setup repro test lint bench ui clean
 
 setup: $(VENV)/.installed
 
@@ -26,9 +26,14 @@ lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-bench: repro          ## throughput, dvc repro timings, the peer comparison
+bench: repro          ## throughput, dvc repro timings, the peer comparison, the client's latency
 	$(BIN)/python benchmarks/bench_data.py
 	$(BIN)/python benchmarks/bench_peer.py
+	$(BIN)/python benchmarks/bench_client.py
+
+ui: setup             ## the MLflow UI on http://127.0.0.1:5000: runs side by side, registered models, aliases
+	$(BIN)/mlflow ui --backend-store-uri $${MLFLOW_TRACKING_URI:-sqlite:///$(CURDIR)/mlflow.db} \
+		--host 127.0.0.1 --port $${PORT:-5000}
 
 clean:                ## generated data and reports (never data/raw)
 	rm -rf data/simulated data/interim data/processed reports/ingest reports/resample

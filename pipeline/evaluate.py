@@ -1226,6 +1226,9 @@ def run(
     plot_gaps(eval_sets, preds, models, [float(g) for g in params.gaps_deg], fig_dir / FIGURES[1])
     plot_gap_matrix(metrics, models, fig_dir / FIGURES[2])
     report = render_report(metrics, [f"figures/{f}" for f in FIGURES])
+    cues = reports_dir / "cues" / "summary.md"  # the cues stage's section, links relative to reports/
+    if cues.is_file():
+        report = report.rstrip("\n") + "\n\n" + cues.read_text().strip("\n") + "\n"
     (reports_dir / "report.md").write_text(report)
     elapsed = time.perf_counter() - start
     log(f"evaluate: {len(preds.loaded)} models on {len(eval_sets)} angles in {elapsed:.1f} s")

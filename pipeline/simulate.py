@@ -195,6 +195,21 @@ def run(p: SimulateParams, out_dir: Path) -> list[str]:
     return written
 
 
+def write_new_batch(
+    p: SimulateParams, raw_dir: Path, batch_id: str, angles_deg: tuple[float, ...], trials_per_angle: int
+) -> int:
+    """One more simulated tissue cast, as a lab would drop it into `raw_dir`: a new batch folder
+    (refused if it exists), recorded with the same estimator unit, its cast and tissue points
+    seeded by its id. Returns the number of estimator samples written."""
+    if (raw_dir / batch_id).exists():
+        raise FileExistsError(f"{raw_dir / batch_id} exists: choose a new batch id")
+    # numbers 1..1000 are plan_batches' own casts; an id-derived number above them is a new cast
+    number = 1000 + zlib.crc32(batch_id.encode()) % 1_000_000
+    plan = BatchPlan(batch_id, number, tuple(angles_deg), trials_per_angle)
+    raw_dir.mkdir(parents=True, exist_ok=True)
+    return write_batch(p, plan, raw_dir)
+
+
 def main(out_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Write the simulated rig-log/1 batches configured in params.yaml's `simulate` section."""
     run(load_section(SimulateParams, "simulate", params), out_dir)

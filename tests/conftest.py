@@ -1,8 +1,10 @@
-"""Shared fixtures: the hand-made rig-log/1 batch and a writable copy of it."""
+"""Shared fixtures: MLflow in a temp folder, the hand-made rig-log/1 batch and a writable copy of it."""
 
 from __future__ import annotations
 
 import shutil
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -22,3 +24,17 @@ def raw_dir(tmp_path: Path) -> Path:
     raw = tmp_path / "raw"
     shutil.copytree(LAB_BENCH_A, raw / "lab-bench-a")
     return raw
+
+
+@pytest.fixture(autouse=True)
+def mlflow_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
+    """Every test's MLflow store is a fresh sqlite file in a temp folder, never the project's mlflow.db."""
+    uri = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.setenv("MLFLOW_REGISTRY_URI", uri)
+    yield uri
+    # registry.connect() sets MLflow's process-wide URIs, which win over the environment: forget them
+    if "mlflow" in sys.modules:
+        mlflow = sys.modules["mlflow"]
+        mlflow.set_tracking_uri(None)
+        mlflow.set_registry_uri(None)

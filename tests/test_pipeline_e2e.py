@@ -1,4 +1,4 @@
-"""End to end: `dvc repro` of simulate -> ingest -> resample -> split in a temporary copy."""
+"""End to end: `dvc repro` of the whole pipeline (simulate -> ... -> register) in a temporary copy."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from mlflow import MlflowClient
 
 from tests.helpers import tree_hash
 
@@ -75,9 +76,20 @@ def test_repro_builds_per_angle_datasets_then_does_nothing(tmp_path):
         assert {"fsr1", "fsr2", "fsr3", "fx", "fy", "fz", "phase", "t_s"} <= set(frame.columns)
     assert (root / "reports" / "ingest" / "quarantine.json").exists()
     assert json.loads((root / "reports" / "ingest" / "quarantine.json").read_text()) == []
-    # And a second run has nothing to do
+    # And every angle's best model is registered and champion, in the store MLFLOW_TRACKING_URI names
+    registry = json.loads((root / "reports" / "registry.json").read_text())
+    assert registry["registered"] == registry["promoted"] == ["15", "45"]
+    client = MlflowClient()
+    for angle in ("15", "45"):
+        champion = client.get_model_version_by_alias(f"needle-force-{angle}", "champion")
+        assert int(champion.version) == registry["angles"][angle]["version"] == 1
+    runs = client.search_runs([client.get_experiment_by_name("needle-force").experiment_id])
+    assert len(runs) == 6  # 2 angles x ls, fnn, lstm
+    # And a second run has nothing to do and registers nothing
     again = run(root, "dvc", "repro")
     assert "Data and pipelines are up to date" in again, again
+    for angle in ("15", "45"):
+        assert len(client.search_model_versions(f"name = 'needle-force-{angle}'")) == 1
 
 
 def test_a_lab_folder_goes_through_with_params_only(tmp_path):
@@ -133,8 +145,8 @@ def test_changing_one_models_params_reruns_only_that_model(tmp_path):
     # When only the LSTM's settings change
     params["lstm"]["hidden"] = params["lstm"]["hidden"] + 1
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    # Then only the LSTM stages are out of date (evaluate follows once they rerun)
+    # Then only the LSTM stages are out of date (the stages that read every model follow once they rerun)
     assert changed_stages(root) == {"train@15-lstm", "train@45-lstm"}
     out = run(root, "dvc", "repro")
     reran = {line.split("'")[1] for line in out.splitlines() if line.startswith("Running stage")}
-    assert reran == {"train@15-lstm", "train@45-lstm", "evaluate"}, out
+    assert reran == {"train@15-lstm", "train@45-lstm", "cues", "evaluate", "register"}, out

@@ -1,0 +1,329 @@
+"""`needlecue retrain`: follow new tissue batches without a person in the loop (cron, systemd, CI).
+
+One run: take the lock; find the batches under `data.raw_dir` that are new or changed since the
+last ingest; check them (a bad batch is reported and set aside by the pipeline, the rest goes on);
+`dvc repro` (only what the new data touches reruns; `register` registers and promotes by the
+champion rule); write a retrain report. Nothing new: nothing runs, nothing is registered.
+
+Exit codes (also in the README):
+  0  nothing new: nothing ran, nothing was registered
+  1  failed: `dvc repro` or a check failed; the report says where. The registry changes only in
+     the last stage, so a failure before it leaves every alias as it was; the next run resumes.
+  2  retrained: new models trained, tracked and registered (champions moved only where better)
+  3  retrained, but some new or changed batch was set aside (see the report)
+  4  busy: another retrain holds the lock; this one did nothing
+
+A run killed half way leaves `data/raw` untouched (the pipeline never writes there), the
+registry as it was unless `register` had started (it is idempotent and finishes an interrupted
+decision next time), and DVC's outputs consistent with `dvc.lock` stage by stage, so the next
+run picks up where it stopped. The lock is an OS file lock: it dies with its process.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import fcntl
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.config import DataParams, IngestParams, load_section
+
+EXIT_NOTHING, EXIT_FAILED, EXIT_RETRAINED, EXIT_SET_ASIDE, EXIT_BUSY = 0, 1, 2, 3, 4
+LOCK_FILE = Path(".dvc/tmp/needlecue-retrain.lock")
+INGESTED = Path("data/interim/ingested")
+REPORT_DIR = Path("reports/retrain")
+Log = Callable[[str], None]
+
+
+def _stderr(msg: str) -> None:
+    print(f"retrain: {msg}", file=sys.stderr, flush=True)
+
+
+class Busy(RuntimeError):
+    """Another retrain holds the lock."""
+
+
+@contextmanager
+def lock(path: Path) -> Iterator[None]:
+    """An exclusive, non-blocking OS lock on `path` (released when the process ends, even killed).
+    Raises `Busy` naming the holder when another process has it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = Path(path).read_text().strip() or "unknown process"
+            raise Busy(f"another retrain is running ({holder}; lock {path}): nothing done") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}, started {_now()}".encode())
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+@dataclass(frozen=True)
+class Pending:
+    """A batch folder the last ingest has not seen in this form."""
+
+    batch_id: str
+    path: str
+    status: str  # "new" | "changed"
+    problems: list[str] = field(default_factory=list)  # from the check, before the pipeline runs
+
+
+def pending_batches(raw_dir: Path, ingested: Path, params: IngestParams) -> list[Pending]:
+    """New or changed batch folders of `raw_dir`, by the ingest stage's own fingerprints."""
+    from pipeline.ingest import FINGERPRINT, fingerprint
+    from pipeline.riglog import batch_dirs
+
+    out = []
+    for batch in batch_dirs(raw_dir):
+        stored = ingested / batch.name / FINGERPRINT
+        if not stored.is_file():
+            out.append(Pending(batch.name, str(batch), "new"))
+            continue
+        try:
+            known = json.loads(stored.read_text()).get("fingerprint")
+        except (OSError, ValueError):
+            known = None
+        if known != fingerprint(batch, params)["fingerprint"]:
+            out.append(Pending(batch.name, str(batch), "changed"))
+    return out
+
+
+def check_pending(pending: list[Pending], params: IngestParams) -> list[Pending]:
+    """Each pending batch with the problems `needlecue check` finds in it (empty: fine)."""
+    from pipeline.ingest import check_folders
+
+    return [
+        Pending(p.batch_id, p.path, p.status, [str(x) for x in check_folders([Path(p.path)], params)])
+        for p in pending
+    ]
+
+
+def _env() -> dict[str, str]:
+    """Stage commands call `python`: put this interpreter's folder first on PATH."""
+    return dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+
+
+def dvc_changed(root: Path) -> list[str]:
+    """Stages `dvc status` reports as out of date."""
+    done = subprocess.run(
+        ["dvc", "status", "--json"], cwd=root, env=_env(), capture_output=True, text=True, check=False
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"dvc status failed in {root}: {done.stderr.strip() or done.stdout.strip()}")
+    text = done.stdout
+    return sorted(json.loads(text[text.index("{") :])) if "{" in text else []
+
+
+def dvc_repro(root: Path, log: Log) -> tuple[int, list[str], list[str]]:
+    """`dvc repro`, its output streamed to `log`: (exit code, stages run, last lines of output)."""
+    proc = subprocess.Popen(
+        ["dvc", "repro"],
+        cwd=root,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        bufsize=1,
+    )
+    ran, tail = [], []
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        line = line.rstrip("\n")
+        if line.startswith("Running stage '"):
+            ran.append(line.split("'")[1])
+            log(f"dvc: {line}")
+        elif line.startswith(("ERROR", "ingest [", "register:", "cues: error", "train: error")):
+            log(f"dvc: {line}")
+        tail = [*tail[-39:], line]
+    return proc.wait(), ran, tail
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _mean_nrmse(metrics: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """{angle: {model: external NRMSE, mean of axes}} from metrics.json's within_angle."""
+    out: dict[str, dict[str, float]] = {}
+    for model, angles in (metrics.get("within_angle") or {}).items():
+        for angle, axes in angles.items():
+            values = [a["nrmse_pct"] for a in axes.values() if a.get("nrmse_pct") is not None]
+            if values:
+                out.setdefault(angle, {})[model] = round(sum(values) / len(values), 4)
+    return out
+
+
+def summarise(
+    pending: list[Pending],
+    ran: list[str],
+    before: dict[str, Any],
+    after: dict[str, Any],
+    registry: dict[str, Any],
+    quarantine: list[dict[str, Any]],
+) -> dict[str, Any]:
+    """The retrain report's content (pure: tests call it directly)."""
+    retrained = sorted(
+        {s.split("@", 1)[1].split("-", 1)[0] for s in ran if s.startswith("train@")}, key=float
+    )
+    nrmse_before, nrmse_after = _mean_nrmse(before), _mean_nrmse(after)
+    new_ids = {p.batch_id for p in pending}
+    set_aside = sorted(
+        {q["batch_id"] for q in quarantine if q.get("batch_id") in new_ids and not q.get("trial_id")}
+    )
+    trials_set_aside = [q for q in quarantine if q.get("batch_id") in new_ids and q.get("trial_id")]
+    registered = registry.get("angles", {}) if "register" in ran else {}
+    return {
+        "batches": [asdict(p) for p in pending],
+        "batches_set_aside": set_aside,
+        "trials_set_aside": trials_set_aside,
+        "stages_run": ran,
+        "angles_retrained": retrained,
+        "metrics": {
+            a: {"before": nrmse_before.get(a, {}), "after": nrmse_after.get(a, {})} for a in retrained
+        },
+        "registered": {a: e for a, e in registered.items() if e.get("action") == "registered"},
+        "promoted": [
+            a for a, e in registered.items() if e.get("action") == "registered" and "champion" in e["aliases"]
+        ],
+    }
+
+
+def _pct(x: float | None) -> str:
+    return "—" if x is None else f"{x:.2f}"
+
+
+def render(report: dict[str, Any]) -> str:
+    """The retrain report as Markdown."""
+    lines = [
+        f"# Retrain {report['started']}",
+        "",
+        f"Outcome: **{report['outcome']}** (exit {report['exit_code']})",
+        "",
+    ]
+    if report.get("error"):
+        lines += ["```", report["error"], "```", ""]
+    lines += ["## New or changed batches", ""]
+    if not report["batches"]:
+        lines.append("None.")
+    for b in report["batches"]:
+        status = "set aside" if b["batch_id"] in report["batches_set_aside"] else "used"
+        lines.append(f"- `{b['batch_id']}` ({b['status']}, {status}): {b['path']}")
+        lines += [f"  - {p}" for p in b["problems"][:20]]
+    if report["trials_set_aside"]:
+        lines += ["", "Trials set aside in them:", ""]
+        lines += [
+            f"- `{q['batch_id']}/{q['trial_id']}`: {q['reason']}" for q in report["trials_set_aside"][:50]
+        ]
+    lines += ["", "## Angles retrained", ""]
+    if not report["angles_retrained"]:
+        lines.append("None.")
+    else:
+        lines += ["| angle | model | external NRMSE before (%) | after (%) |", "|---|---|---|---|"]
+        for angle in report["angles_retrained"]:
+            m = report["metrics"][angle]
+            for model in sorted(set(m["before"]) | set(m["after"])):
+                b, a = (_pct(m[when].get(model)) for when in ("before", "after"))
+                lines.append(f"| {angle}° | {model} | {b} | {a} |")
+    lines += ["", "## Registry", ""]
+    if not report["registered"]:
+        lines.append("Nothing registered.")
+    for e in report["registered"].values():
+        aliases = ", ".join(e["aliases"])
+        lines.append(f"- `{e['model']}` v{e['version']} ({e['kind']}) → {aliases}: {e.get('reason', '')}")
+    lines += ["", f"Stages run: {', '.join(report['stages_run']) or 'none'}.", ""]
+    return "\n".join(lines)
+
+
+def write_report(root: Path, report: dict[str, Any]) -> Path:
+    """reports/retrain/<started>.{json,md} and latest.{json,md}; returns the .md path."""
+    folder = root / REPORT_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    stamp = report["started"].replace(":", "").replace("-", "")
+    md, js = render(report), json.dumps(report, indent=2, sort_keys=True) + "\n"
+    for name in (stamp, "latest"):
+        (folder / f"{name}.md").write_text(md)
+        (folder / f"{name}.json").write_text(js)
+    return folder / f"{stamp}.md"
+
+
+def retrain(
+    root: Path, params_path: Path = Path("params.yaml"), log: Log = _stderr
+) -> tuple[int, dict[str, Any]]:
+    """One retrain of the project at `root`: (exit code, report). See the module docstring."""
+    started = _now()
+    try:
+        with lock(root / LOCK_FILE):
+            return _retrain_locked(root, params_path, started, log)
+    except Busy as e:
+        log(str(e))
+        return EXIT_BUSY, {"started": started, "outcome": "busy", "exit_code": EXIT_BUSY, "error": str(e)}
+
+
+def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tuple[int, dict[str, Any]]:
+    t0 = time.perf_counter()
+    params_file = root / params_path
+    raw_dir = root / load_section(DataParams, "data", params_file).raw_dir
+    ingest_params = load_section(IngestParams, "ingest", params_file)
+    pending = pending_batches(raw_dir, root / INGESTED, ingest_params)
+    changed = dvc_changed(root)
+    if not pending and not changed:
+        log(f"nothing new in {raw_dir} and every stage is up to date: nothing to do")
+        return EXIT_NOTHING, {"started": started, "outcome": "nothing new", "exit_code": EXIT_NOTHING}
+    log(f"{len(pending)} new or changed batch(es): {', '.join(p.batch_id for p in pending) or 'none'}")
+    pending = check_pending(pending, ingest_params)
+    for p in pending:
+        state = (
+            f"{len(p.problems)} problem(s), the pipeline will set aside what they touch"
+            if p.problems
+            else "ok"
+        )
+        log(f"checked {p.batch_id} ({p.status}): {state}")
+        for problem in p.problems[:5]:
+            log(f"    {problem}")
+    before = _read_json(root / "reports" / "metrics.json")
+    log(f"dvc repro ({len(changed)} stage(s) out of date)")
+    code, ran, tail = dvc_repro(root, log)
+    report = summarise(
+        pending,
+        ran,
+        before,
+        _read_json(root / "reports" / "metrics.json"),
+        _read_json(root / "reports" / "registry.json"),
+        _read_json(root / "reports" / "ingest" / "quarantine.json") or [],  # type: ignore[arg-type]
+    )
+    report["started"] = started
+    report["seconds"] = round(time.perf_counter() - t0, 1)
+    if code != 0:
+        report |= {"outcome": "failed", "exit_code": EXIT_FAILED, "error": "\n".join(tail)}
+        exit_code = EXIT_FAILED
+    elif report["batches_set_aside"] or report["trials_set_aside"]:
+        exit_code = EXIT_SET_ASIDE
+        report |= {"outcome": "retrained, some new data set aside", "exit_code": exit_code}
+    else:
+        exit_code = EXIT_RETRAINED
+        report |= {"outcome": "retrained", "exit_code": exit_code}
+    path = write_report(root, report)
+    log(
+        f"{report['outcome']} in {report['seconds']:.0f} s: angles {report['angles_retrained'] or 'none'}, "
+        f"promoted {report['promoted'] or 'none'}; report {path}"
+    )
+    return exit_code, report

@@ -1,0 +1,165 @@
+"""`needlecue retrain`: the lock, pending batches, the report, and end to end on a small project."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from mlflow import MlflowClient
+
+from pipeline import retrain
+from pipeline.config import IngestParams
+from tests.test_pipeline_e2e import LAB_BATCH, SMALL_SIM, TINY_MODELS, make_project, run
+
+
+def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> None:
+    # given: one holder of the lock
+    path = tmp_path / "lock"
+    busy = pytest.raises(retrain.Busy, match=rf"another retrain is running \(pid {os.getpid()}, started")
+    # when: a second one tries (a second file descriptor, as another process would have)
+    with retrain.lock(path), busy, retrain.lock(path):
+        pass
+    # then: once released it can be taken again
+    with retrain.lock(path):
+        pass
+
+
+def test_pending_batches_are_the_new_and_the_changed(tmp_path: Path) -> None:
+    # given: a raw folder with one batch the last ingest has seen, and an ingest record of it
+    from pipeline.ingest import ingest_batches
+
+    raw, ingested = tmp_path / "raw", tmp_path / "ingested"
+    shutil.copytree(LAB_BATCH, raw / "lab-bench-a")
+    params = IngestParams()
+    ingest_batches([raw], ingested, params, log=lambda _m: None)
+    assert retrain.pending_batches(raw, ingested, params) == []
+    # when: a batch arrives and the known one changes
+    shutil.copytree(LAB_BATCH, raw / "lab-bench-b")
+    with (raw / "lab-bench-a" / "trials.csv").open("a") as f:
+        f.write("\n")
+    # then
+    pending = retrain.pending_batches(raw, ingested, params)
+    assert [(p.batch_id, p.status) for p in pending] == [("lab-bench-a", "changed"), ("lab-bench-b", "new")]
+
+
+def test_summary_lists_retrained_angles_metrics_and_promotions() -> None:
+    # given: a run that retrained 15° and registered a better model there
+    pending = [
+        retrain.Pending("cast-7", "data/raw/cast-7", "new"),
+        retrain.Pending("bad", "data/raw/bad", "new"),
+    ]
+    ran = ["ingest", "resample", "split", "train@15-ls", "train@15-fnn", "cues", "evaluate", "register"]
+    before = {"within_angle": {"fnn": {"15": {"fx": {"nrmse_pct": 6.0}, "fy": {"nrmse_pct": 4.0}}}}}
+    after = {"within_angle": {"fnn": {"15": {"fx": {"nrmse_pct": 5.0}, "fy": {"nrmse_pct": 3.0}}}}}
+    entry = {
+        "model": "needle-force-15",
+        "version": 2,
+        "kind": "fnn",
+        "aliases": ["champion"],
+        "action": "registered",
+    }
+    registry = {"angles": {"15": entry, "45": {**entry, "action": "unchanged"}}}
+    quarantine = [{"batch_id": "bad", "trial_id": None, "reason": "no batch.yaml"}]
+    # when
+    report = retrain.summarise(pending, ran, before, after, registry, quarantine)
+    # then
+    assert report["angles_retrained"] == ["15"]
+    assert report["metrics"] == {"15": {"before": {"fnn": 5.0}, "after": {"fnn": 4.0}}}
+    assert report["batches_set_aside"] == ["bad"]
+    assert list(report["registered"]) == ["15"] and report["promoted"] == ["15"]
+    text = retrain.render(
+        {**report, "started": "2026-11-23T12:00:00Z", "outcome": "retrained", "exit_code": 3}
+    )
+    assert "| 15° | fnn | 5.00 | 4.00 |" in text and "`needle-force-15` v2 (fnn) → champion" in text
+
+
+def retrain_cli(root: Path) -> subprocess.CompletedProcess[str]:
+    """`needlecue retrain` in the project copy, as cron would run it."""
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "retrain"],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+
+
+@pytest.mark.slow
+def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
+    # Given a small project trained and registered end to end (few epochs: the DAG, not accuracy)
+    root = make_project(tmp_path / "proj", SMALL_SIM)
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    for model, update in TINY_MODELS.items():
+        params[model].update(update)
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    run(root, "dvc", "repro")
+    client = MlflowClient()
+    champion_15 = client.get_model_version_by_alias("needle-force-15", "champion")
+
+    # When nothing is new, retrain does nothing and registers nothing
+    idle = retrain_cli(root)
+    assert idle.returncode == retrain.EXIT_NOTHING, idle.stderr
+    assert "nothing to do" in idle.stderr
+
+    # When a new 15° cast and a broken batch arrive
+    run(
+        root,
+        sys.executable,
+        "-m",
+        "pipeline.cli",
+        "simulate-batch",
+        "data/raw",
+        "cast-7",
+        "--angles",
+        "15",
+        "--trials",
+        "4",
+    )
+    (root / "data" / "raw" / "broken").mkdir()
+    (root / "data" / "raw" / "broken" / "batch.yaml").write_text("format: rig-log/1\nbatch_id: [\n")
+    done = retrain_cli(root)
+
+    # Then it retrained, with the broken batch set aside and reported (exit 3)
+    assert done.returncode == retrain.EXIT_SET_ASIDE, done.stderr
+    report = json.loads((root / "reports" / "retrain" / "latest.json").read_text())
+    assert sorted(b["batch_id"] for b in report["batches"]) == ["broken", "cast-7"]
+    assert report["batches_set_aside"] == ["broken"]
+    # only the new batches were parsed; the known ones came from the ingest cache
+    ingest_lines = [line for line in done.stderr.splitlines() if "dvc: ingest [" in line]
+    assert len(ingest_lines) == 5, done.stderr  # 3 simulated batches + the two new ones
+    for line in ingest_lines:
+        assert (": parsed" in line) == ("cast-7" in line or "broken" in line), line
+    # only the angle with new data retrained
+    assert report["angles_retrained"] == ["15"]
+    assert {s for s in report["stages_run"] if s.startswith("train@")} == {
+        "train@15-ls",
+        "train@15-fnn",
+        "train@15-lstm",
+    }
+    # a new version of needle-force-15 is registered; 45° has none
+    assert [a for a in report["registered"]] == ["15"]
+    entry = report["registered"]["15"]
+    assert entry["version"] == 2
+    assert len(client.search_model_versions("name = 'needle-force-45'")) == 1
+    # the champion moved only if the new version beat it on the external set
+    champion_now = client.get_model_version_by_alias("needle-force-15", "champion")
+    old_score = entry["previous_champion"]["external_nrmse_pct_mean"]
+    if entry["external_nrmse_pct_mean"] < old_score:
+        assert int(champion_now.version) == 2 and report["promoted"] == ["15"]
+    else:
+        assert champion_now.version == champion_15.version and entry["aliases"] == ["challenger"]
+    assert (root / "reports" / "retrain" / "latest.md").read_text().startswith("# Retrain")
+
+    # When a second retrain starts while one holds the lock, it exits cleanly and does nothing
+    with retrain.lock(root / retrain.LOCK_FILE):
+        busy = retrain_cli(root)
+    assert busy.returncode == retrain.EXIT_BUSY
+    assert "another retrain is running" in busy.stderr
