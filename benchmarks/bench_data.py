@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import os
 import shutil
 import statistics
@@ -128,9 +129,34 @@ def bench_dvc(tmp: Path) -> None:
         f"dvc repro, the rest: {rest:.1f} s (" + ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()) + ")"
     )
     print(f"dvc repro, whole pipeline cold: {cold + rest:.1f} s")
+    # A lab drops one new tissue cast (one angle) and the scheduled retrain follows it.
+    t_retrain, report = retrain_after_new_batch(root)
+    print(
+        f"needlecue retrain after one new batch (15°, 7 trials): {t_retrain:.1f} s = "
+        f"{t_retrain / (cold + rest):.2f}x the cold pipeline; stages run: {len(report['stages_run'])} "
+        f"({', '.join(report['stages_run'])}); exit {report['exit_code']}"
+    )
     print(
         f"dvc repro, whole pipeline, nothing changed: median {statistics.median(noop_all):.2f} s of {REPEATS}"
     )
+
+
+def retrain_after_new_batch(root: Path) -> tuple[float, dict]:
+    """Wall time of `needlecue retrain` after `needlecue simulate-batch` adds one cast; its report."""
+    env = dict(
+        os.environ,
+        PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+        MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
+    )
+    cli = [sys.executable, "-m", "pipeline.cli"]
+    new_batch = [*cli, "simulate-batch", "data/raw", "bench-cast-1", "--angles", "15", "--trials", "7"]
+    subprocess.run(new_batch, cwd=root, env=env, check=True, capture_output=True)
+    t0 = time.perf_counter()
+    done = subprocess.run([*cli, "retrain"], cwd=root, env=env, capture_output=True, text=True)
+    seconds = time.perf_counter() - t0
+    if done.returncode not in (2, 3):
+        raise RuntimeError(f"needlecue retrain exited {done.returncode}:\n{done.stderr[-3000:]}")
+    return seconds, json.loads((root / "reports" / "retrain" / "latest.json").read_text())
 
 
 def stages_all(root: Path) -> list[str]:

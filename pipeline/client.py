@@ -6,9 +6,13 @@
     frame = client.step([0.61, 0.58, 0.70], t_s=0.0)  # one 30 Hz sample -> Frame(t_s, force_n, cue)
 
 `fetch` keeps one copy per (model, alias) under the cache folder and falls back to it, with a warning,
-when the registry cannot be reached, so a simulator keeps working offline. The model is the ONNX graph
-of `pipeline.export` run by onnxruntime; nothing is unpickled. mlflow, onnxruntime and the cue tracker
-are imported inside the functions that need them.
+when the registry cannot be reached, so a simulator keeps working offline. A client made by
+`from_registry` follows its alias: `reset()` asks the registry where the alias points at most once every
+`poll_s` seconds and, if it moved, swaps in the new version between insertions (`refresh()` does it on
+demand); `step()` never talks to the registry.
+
+The model is the ONNX graph of `pipeline.export` run by onnxruntime; nothing is unpickled. mlflow,
+onnxruntime and the cue tracker are imported inside the functions that need them.
 """
 
 from __future__ import annotations
@@ -43,6 +47,10 @@ log = logging.getLogger(__name__)
 DEFAULT_CACHE = Path("~/.cache/needlecue/models").expanduser()
 CACHE_ENV = "NEEDLECUE_MODEL_CACHE"
 VERSION_FILE = "version.json"
+DEFAULT_POLL_S = 60.0
+# A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
+# gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
+_POLL_HTTP_ENV = {"MLFLOW_HTTP_REQUEST_TIMEOUT": "2", "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
 
 
 class StreamMismatch(ValueError):
@@ -92,18 +100,28 @@ def _read_metadata(model_dir: Path) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _quiet_downloads() -> Iterator[None]:
-    """No tqdm progress bar per download (it would spam a simulator's console); env restored after."""
-    key = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
-    before = os.environ.get(key)
-    os.environ[key] = "false"
+def _env(values: dict[str, str]) -> Iterator[None]:
+    """Set environment variables for the block; each restored (or removed) after it."""
+    before = {key: os.environ.get(key) for key in values}
+    os.environ.update(values)
     try:
         yield
     finally:
-        if before is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = before
+        for key, value in before.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def _quiet_downloads() -> contextlib.AbstractContextManager[None]:
+    """No tqdm progress bar per download (it would spam a simulator's console); env restored after."""
+    return _env({"MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"})
+
+
+def _monotonic() -> float:
+    """The clock of the alias polls (a function of its own, so that tests can move it)."""
+    return time.monotonic()
 
 
 def fetch(
@@ -253,18 +271,34 @@ class Frame:
     cue: CueState | None
 
 
+@dataclass(slots=True)
+class _Follow:
+    """How a registry client was fetched, and when it next asks the registry where its alias points."""
+
+    angle_deg: float
+    alias: str
+    fetch_kwargs: dict[str, Any]  # cache_dir and tracking_uri, fixed when the client was made
+    poll_s: float | None
+    next_poll: float  # on the `_monotonic` clock; inf: no automatic polls
+    refused: tuple[str, Any] | None = None  # (version, source) refused: not tried again until the alias moves
+    failing: bool = False  # the last poll could not reach the registry (it was warned about once)
+
+
 class ForceClient:
     """One registered force model, run sample by sample on the live estimator stream.
 
     Attributes: `angle_deg` (the preset angle the model was trained at), `kind`, `channels` (the order
     `step` takes volts in), `targets`, `rate_hz`, `window` (samples of history, 1 for ls/fnn),
     `version` (version.json of a fetched folder: name, version, alias, run_id, ...; None for a bare
-    folder), `metadata` (the whole `needlecue` block), `model_dir`.
+    folder; it changes when `reset` or `refresh` swaps in a new version of the alias), `metadata` (the
+    whole `needlecue` block), `model_dir`.
     """
 
     def __init__(self, model_dir: Path) -> None:
         import onnxruntime as ort
 
+        self._follow: _Follow | None = None  # set by from_registry
+        self._stream: tuple[tuple[str, ...], float, float] | None = None  # the last stream checked
         self.model_dir = Path(model_dir)
         self.metadata: dict[str, Any] = _read_metadata(self.model_dir)
         meta = self.metadata
@@ -322,10 +356,30 @@ class ForceClient:
 
     @classmethod
     def from_registry(
-        cls, angle_deg: float, alias: str = registry.CHAMPION, **fetch_kwargs: Any
+        cls,
+        angle_deg: float,
+        alias: str = registry.CHAMPION,
+        *,
+        poll_s: float | None = DEFAULT_POLL_S,
+        **fetch_kwargs: Any,
     ) -> ForceClient:
-        """Fetch (or reuse the cached) `models:/needle-force-<angle>@<alias>` and load it."""
-        return cls(fetch(angle_deg, alias, **fetch_kwargs))
+        """Fetch (or reuse the cached) `models:/needle-force-<angle>@<alias>` and load it.
+
+        The client follows the alias: `reset()` asks the registry where it points at most once every
+        `poll_s` seconds (None or 0: never by itself; `refresh(force=True)` still does) and swaps in a
+        new version (see `refresh`). It polls and fetches from the store and cache of this first fetch
+        (`tracking_uri`, `cache_dir`: the defaults are read now).
+        """
+        if poll_s is not None and not poll_s >= 0:
+            raise ValueError(f"poll_s is seconds >= 0 or None, got {poll_s!r}")
+        kwargs = dict(fetch_kwargs)
+        kwargs["tracking_uri"] = kwargs.get("tracking_uri") or registry.tracking_uri()
+        kwargs["cache_dir"] = Path(kwargs.get("cache_dir") or default_cache_dir()).expanduser()
+        client = cls(fetch(angle_deg, alias, **kwargs))
+        client._follow = _Follow(
+            angle_deg, alias, kwargs, poll_s or None, _monotonic() + poll_s if poll_s else math.inf
+        )
+        return client
 
     @property
     def name(self) -> str:
@@ -365,9 +419,127 @@ class ForceClient:
             raise StreamMismatch(
                 f"stream does not fit {self.name}, angle {self.angle_deg:g}°: " + "; ".join(problems)
             )
+        self._stream = (tuple(channels), float(rate_hz), rel_tol)  # a new version must fit it too
+
+    def refresh(self, force: bool = False) -> bool:
+        """Ask the registry where the alias points now and, if it moved, fetch that version and swap it
+        in; True if a new model was loaded (`version`, `kind`, `window`, ... are then the new one's).
+
+        Without `force` only once `poll_s` has passed since the last poll (`reset()` calls it so); with
+        it, now, whatever the interval (which restarts). A swap starts a fresh insertion: call it between
+        insertions. Never raises for the registry or the new model: False, the current model kept and
+        - an unreachable registry (or a vanished alias): a warning, once until a poll succeeds again;
+        - a new version that does not fit the stream checked with `check_stream` (without one: this
+          model's channels and rate), is for other targets, or cannot be loaded: an error; it is not
+          tried again until the alias moves (or `force`).
+        A client made from a folder has nothing to follow: always False.
+        """
+        follow = self._follow
+        if follow is None:
+            return False
+        now = _monotonic()
+        if not force and now < follow.next_poll:
+            return False
+        follow.next_poll = now + follow.poll_s if follow.poll_s else math.inf
+        name = registry.model_name(follow.angle_deg)
+        store = follow.fetch_kwargs["tracking_uri"]
+        try:
+            with _env(_POLL_HTTP_ENV):  # one quick metadata request: no retries, short timeout
+                mv = _resolve(registry.connect(store), name, follow.alias, store)
+        except (registry.RegistryUnreachable, ModelNotFound) as e:
+            self._poll_failed(e)
+            return False
+        if follow.failing:
+            log.info("%s@%s: the registry answers again", name, follow.alias)
+            follow.failing = False
+        found = (str(mv.version), mv.source)
+        if found == self._version_key() or (found == follow.refused and not force):
+            return False
+        return self._swap(found)
+
+    def _version_key(self) -> tuple[str, Any] | None:
+        """(version, source) of the loaded model: source tells two stores' "v1" apart."""
+        v = self.version
+        return None if v is None else (str(v.get("version")), v.get("source"))
+
+    def _poll_failed(self, error: Exception) -> None:
+        follow = self._follow
+        assert follow is not None
+        when = f"next try in {follow.poll_s:g} s" if follow.poll_s else "no automatic polls"
+        level = logging.DEBUG if follow.failing else logging.WARNING
+        log.log(
+            level,
+            "%s@%s: cannot poll the registry (%s); keeping %s, %s",
+            registry.model_name(follow.angle_deg),
+            follow.alias,
+            error,
+            self.name,
+            when,
+        )
+        follow.failing = True
+
+    def _swap(self, found: tuple[str, Any]) -> bool:
+        """Fetch the alias's version `found`, check it like the first and take its place (see refresh)."""
+        follow = self._follow
+        assert follow is not None
+        name = registry.model_name(follow.angle_deg)
+        before = (self.version or {}).get("version")
+        try:
+            new = type(self)(fetch(follow.angle_deg, follow.alias, **follow.fetch_kwargs))
+        except (registry.RegistryUnreachable, ModelNotFound) as e:
+            self._poll_failed(e)
+            return False
+        except Exception as e:  # a broken new version must not stop the simulator: keep the one that works
+            follow.refused = found
+            log.error(
+                "%s: %s v%s cannot be loaded, keeping v%s: %s: %s",
+                name,
+                follow.alias,
+                found[0],
+                before,
+                type(e).__name__,
+                e,
+            )
+            return False
+        key = new._version_key()
+        if key == self._version_key():  # fetch fell back to the cached copy, or the alias moved back
+            return False
+        problem = self._misfit(new)
+        if problem is not None:
+            follow.refused = key
+            log.error(
+                "%s: %s v%s refused, keeping v%s: %s", name, follow.alias, key and key[0], before, problem
+            )
+            return False
+        keep = {"_follow": follow, "_stream": self._stream}
+        vars(self).update(vars(new))
+        vars(self).update(keep)
+        follow.refused = None
+        log.info("%s: %s v%s -> v%s", name, follow.alias, before, key and key[0])
+        return True
+
+    def _misfit(self, new: ForceClient) -> str | None:
+        """Why `new` cannot take this model's place on the same stream (None if it can)."""
+        if new.angle_deg != self.angle_deg or new.targets != self.targets:
+            return (
+                f"it is for {new.angle_deg:g}° and gives {list(new.targets)}, "
+                f"this client {self.angle_deg:g}° and {list(self.targets)}"
+            )
+        # the stream the caller checked, else the one it has been feeding: this model's channels and rate
+        channels, rate_hz, rel_tol = self._stream or (self.channels, self.rate_hz, 0.05)
+        try:
+            new.check_stream(channels, new.rate_hz if rate_hz is None else rate_hz, rel_tol)
+        except StreamMismatch as e:
+            return str(e)
+        return None
 
     def reset(self) -> None:
-        """Start a new insertion: forget the window's history and the cue state."""
+        """Start a new insertion: forget the window's history and the cue state. A client made by
+        `from_registry` first polls its alias if `poll_s` has passed (see `refresh`): a new version is
+        swapped in here, never mid-insertion."""
+        follow = self._follow
+        if follow is not None and _monotonic() >= follow.next_poll:
+            self.refresh()
         self._frames = 0
         self._last_t = math.nan
         if self._tracker is not None:

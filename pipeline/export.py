@@ -123,16 +123,8 @@ def to_onnx(checkpoint: dict[str, Any]) -> bytes:
         )
     proto = onnx.load_from_string(buffer.getvalue())
     # The graph alone says what it is: whoever finds a bare model.onnx can still feed it correctly.
-    info = {
-        "format": DEPLOY_FORMAT,
-        "kind": checkpoint["kind"],
-        "angle_deg": _json_float(checkpoint["angle_deg"]),
-        "channels": list(checkpoint["channels"]),
-        "targets": list(checkpoint["targets"]),
-        "rate_hz": _json_float(checkpoint["rate_hz"]),
-        "window": cfg.window,
-        "checkpoint_sha256": checkpoint_sha256(checkpoint),
-    }
+    keys = ("format", "kind", "angle_deg", "channels", "targets", "rate_hz", "window", "checkpoint_sha256")
+    info = {k: v for k, v in deploy_metadata(checkpoint, None).items() if k in keys}
     del proto.metadata_props[:]
     proto.metadata_props.add(key="needlecue", value=json.dumps(info, sort_keys=True))
     proto.producer_name, proto.doc_string = "needlecue", ""

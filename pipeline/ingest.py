@@ -746,8 +746,11 @@ def _code_sha256() -> str:
     return h.hexdigest()
 
 
-def fingerprint(batch_dir: Path, params: IngestParams) -> dict[str, Any]:
-    """What a batch's outputs depend on: its files' names and bytes, params, code, library versions."""
+def fingerprint(batch_dir: Path, params: IngestParams, source_dir: str | None = None) -> dict[str, Any]:
+    """What a batch's outputs depend on: its files' names and bytes, params, code, library versions.
+
+    `source_dir` is the folder's name as the ingest stage gives it (default `str(batch_dir)`), so a
+    caller reading the same folder by another path (absolute, say) gets the same fingerprint."""
     h = hashlib.sha256()
     files = sorted(
         (p for p in batch_dir.rglob("*") if p.is_file()), key=lambda p: p.relative_to(batch_dir).as_posix()
@@ -760,7 +763,7 @@ def fingerprint(batch_dir: Path, params: IngestParams) -> dict[str, Any]:
         h.update(b"\0")
     parts: dict[str, Any] = {
         "output_version": OUTPUT_VERSION,
-        "source_dir": str(batch_dir),
+        "source_dir": str(batch_dir) if source_dir is None else source_dir,
         "files_sha256": h.hexdigest(),
         "n_files": len(files),
         "params": params.model_dump(mode="json"),

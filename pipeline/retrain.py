@@ -84,8 +84,11 @@ class Pending:
     problems: list[str] = field(default_factory=list)  # from the check, before the pipeline runs
 
 
-def pending_batches(raw_dir: Path, ingested: Path, params: IngestParams) -> list[Pending]:
-    """New or changed batch folders of `raw_dir`, by the ingest stage's own fingerprints."""
+def pending_batches(
+    raw_dir: Path, ingested: Path, params: IngestParams, stage_raw_dir: Path | None = None
+) -> list[Pending]:
+    """New or changed batch folders of `raw_dir`, by the ingest stage's own fingerprints;
+    `stage_raw_dir` is `raw_dir` as the stage names it (`data.raw_dir`, relative to the project)."""
     from pipeline.ingest import FINGERPRINT, fingerprint
     from pipeline.riglog import batch_dirs
 
@@ -99,7 +102,8 @@ def pending_batches(raw_dir: Path, ingested: Path, params: IngestParams) -> list
             known = json.loads(stored.read_text()).get("fingerprint")
         except (OSError, ValueError):
             known = None
-        if known != fingerprint(batch, params)["fingerprint"]:
+        name = str((stage_raw_dir or raw_dir) / batch.name)
+        if known != fingerprint(batch, params, source_dir=name)["fingerprint"]:
             out.append(Pending(batch.name, str(batch), "changed"))
     return out
 
@@ -117,6 +121,55 @@ def check_pending(pending: list[Pending], params: IngestParams) -> list[Pending]
 def _env() -> dict[str, str]:
     """Stage commands call `python`: put this interpreter's folder first on PATH."""
     return dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+
+
+def clear_dead_dvc_locks(root: Path, log: Log) -> int:
+    """Drop the entries of dead processes from DVC's `.dvc/tmp/rwlock`; returns how many.
+
+    DVC removes entries whose PID no longer exists, but a killed `dvc repro` whose parent died too
+    stays a zombie where nothing reaps orphans (a container without an init), and DVC then waits
+    for it forever. Only done while no DVC command holds the repo lock, so no live entry is touched.
+    """
+    import psutil
+
+    tmp = root / ".dvc" / "tmp"
+    rwlock = tmp / "rwlock"
+    if not rwlock.is_file():
+        return 0
+
+    def dead(info: dict[str, Any]) -> bool:
+        try:
+            return psutil.Process(int(info["pid"])).status() == psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return True
+
+    fd = os.open(tmp / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the lock DVC commands hold (zc.lockfile)
+        except BlockingIOError:
+            return 0  # a DVC command runs: leave its lock file alone
+        try:
+            data = json.loads(rwlock.read_text())
+        except (OSError, ValueError):
+            return 0
+        removed = 0
+        for mode in ("read", "write"):
+            entries = data.get(mode) or {}
+            for path in list(entries):
+                infos = entries[path] if isinstance(entries[path], list) else [entries[path]]
+                keep = [i for i in infos if not dead(i)]
+                removed += len(infos) - len(keep)
+                if not keep:
+                    del entries[path]
+                elif isinstance(entries[path], list):
+                    entries[path] = keep
+        if removed:
+            rwlock.write_text(json.dumps(data))
+            log(f"removed {removed} stale DVC lock entr{'y' if removed == 1 else 'ies'} of a killed run")
+        return removed
+    finally:
+        os.close(fd)
 
 
 def dvc_changed(root: Path) -> list[str]:
@@ -281,9 +334,11 @@ def retrain(
 def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tuple[int, dict[str, Any]]:
     t0 = time.perf_counter()
     params_file = root / params_path
-    raw_dir = root / load_section(DataParams, "data", params_file).raw_dir
+    stage_raw_dir = load_section(DataParams, "data", params_file).raw_dir
+    raw_dir = root / stage_raw_dir
     ingest_params = load_section(IngestParams, "ingest", params_file)
-    pending = pending_batches(raw_dir, root / INGESTED, ingest_params)
+    pending = pending_batches(raw_dir, root / INGESTED, ingest_params, stage_raw_dir)
+    clear_dead_dvc_locks(root, log)
     changed = dvc_changed(root)
     if not pending and not changed:
         log(f"nothing new in {raw_dir} and every stage is up to date: nothing to do")

@@ -15,6 +15,7 @@ import pytest
 
 from pipeline import export
 from pipeline import models as m
+from tests.test_models import make_frame
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
 TINY = {
@@ -24,39 +25,10 @@ TINY = {
 }
 
 
-def synthetic_trials(n_trials: int = 3, n: int = 60, seed: int = 0, batch_id: str = "b1") -> pd.DataFrame:
-    """Processed-split rows: trials on a 30 Hz grid, three volt channels around 0.6 V, a force that
-    depends on them and on the previous sample (so the LSTM's history matters)."""
-    rng = np.random.default_rng(seed)
-    parts = []
-    for k in range(n_trials):
-        t = np.arange(n) / 30.0
-        v = 0.6 + 0.2 * np.sin(t[:, None] * (1 + np.arange(3)) + k + seed) + 0.01 * rng.normal(size=(n, 3))
-        lag = np.vstack([v[:1], v[:-1]])
-        f = np.column_stack([np.tanh(v[:, 0] - v[:, 1]), v[:, 2] ** 2, lag[:, 0] + lag[:, 2]])
-        parts.append(
-            pd.DataFrame(
-                {
-                    "batch_id": batch_id,
-                    "trial_id": f"t{k:02d}",
-                    "angle_deg": 30.0,
-                    "tissue_point": "p1",
-                    "t_s": t,
-                    "phase": "insertion",
-                    **{c: v[:, i] for i, c in enumerate(CHANNELS)},
-                    "fx": f[:, 0],
-                    "fy": f[:, 1],
-                    "fz": f[:, 2],
-                }
-            )
-        )
-    return pd.concat(parts, ignore_index=True)
-
-
 @pytest.fixture(scope="module")
 def checkpoints() -> dict[str, dict]:
     """One tiny trained checkpoint per kind (a few hundred synthetic rows)."""
-    train, val = synthetic_trials(4, seed=0), synthetic_trials(1, seed=1, batch_id="b2")
+    train, val = make_frame(4, seed=0), make_frame(1, seed=1, batch_id="b2")
     return {kind: m.fit(kind, params, train, val).checkpoint for kind, params in TINY.items()}
 
 
@@ -84,7 +56,7 @@ def run_onnx(model: bytes, x: np.ndarray) -> np.ndarray:
 def test_onnx_graph_computes_what_the_predictor_computes(kind: str, checkpoints) -> None:
     # given: a trained checkpoint and two unseen trials
     checkpoint = checkpoints[kind]
-    frame = synthetic_trials(2, seed=7, batch_id="b9")
+    frame = make_frame(2, seed=7, batch_id="b9")
     expected = m.Predictor(checkpoint).predict(frame)
     # when: the graph runs on raw volts, all rows at once and one row at a time
     model = export.to_onnx(checkpoint)
@@ -142,7 +114,7 @@ def test_onnx_bytes_are_the_same_in_another_process(checkpoints, tmp_path: Path)
 def test_deploy_metadata_identifies_the_model_and_carries_the_cue_pack(checkpoints) -> None:
     # given: the FNN checkpoint, a retrained identical one and one trained with another seed
     ck = checkpoints["fnn"]
-    train, val = synthetic_trials(4, seed=0), synthetic_trials(1, seed=1, batch_id="b2")
+    train, val = make_frame(4, seed=0), make_frame(1, seed=1, batch_id="b2")
     same = m.fit("fnn", TINY["fnn"], train, val).checkpoint
     other = m.fit("fnn", TINY["fnn"].model_copy(update={"seed": 1}), train, val).checkpoint
     pack = {"format": "test-pack", "thresholds": [0.1, 0.2]}

@@ -132,13 +132,20 @@ def changed_stages(root: Path) -> set[str]:
     return set(json.loads(out[out.index("{") :]))
 
 
-def test_changing_one_models_params_reruns_only_that_model(tmp_path):
-    # Given a small project trained end to end (few epochs: this is about the DAG, not accuracy)
-    root = make_project(tmp_path / "proj", SMALL_SIM)
+def make_tiny_project(root: Path) -> tuple[Path, dict]:
+    """make_project on the small rig with few-epoch networks (for tests of the DAG, not of accuracy);
+    returns the folder and its params."""
+    root = make_project(root, SMALL_SIM)
     params = yaml.safe_load((root / "params.yaml").read_text())
     for model, update in TINY_MODELS.items():
         params[model].update(update)
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    return root, params
+
+
+def test_changing_one_models_params_reruns_only_that_model(tmp_path):
+    # Given a small project trained end to end
+    root, params = make_tiny_project(tmp_path / "proj")
     run(root, "dvc", "repro")
     assert (root / "reports" / "metrics.json").is_file()
     assert changed_stages(root) == set()

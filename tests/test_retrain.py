@@ -5,17 +5,18 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-import yaml
 from mlflow import MlflowClient
 
 from pipeline import retrain
 from pipeline.config import IngestParams
-from tests.test_pipeline_e2e import LAB_BATCH, SMALL_SIM, TINY_MODELS, make_project, run
+from tests.helpers import tree_hash
+from tests.test_pipeline_e2e import LAB_BATCH, make_tiny_project, run
 
 
 def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> None:
@@ -79,27 +80,32 @@ def test_summary_lists_retrained_angles_metrics_and_promotions() -> None:
     assert "| 15° | fnn | 5.00 | 4.00 |" in text and "`needle-force-15` v2 (fnn) → champion" in text
 
 
+def retrain_env() -> dict[str, str]:
+    return dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+
+
 def retrain_cli(root: Path) -> subprocess.CompletedProcess[str]:
     """`needlecue retrain` in the project copy, as cron would run it."""
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
     return subprocess.run(
         [sys.executable, "-m", "pipeline.cli", "retrain"],
         cwd=root,
-        env=env,
+        env=retrain_env(),
         capture_output=True,
         text=True,
         timeout=900,
     )
 
 
+def new_cast(root: Path, batch_id: str, angle: int) -> None:
+    """A lab drops one new simulated tissue cast (4 trials at one angle) into data/raw."""
+    cli = [sys.executable, "-m", "pipeline.cli", "simulate-batch", "data/raw", batch_id]
+    run(root, *cli, "--angles", str(angle), "--trials", "4")
+
+
 @pytest.mark.slow
 def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
-    # Given a small project trained and registered end to end (few epochs: the DAG, not accuracy)
-    root = make_project(tmp_path / "proj", SMALL_SIM)
-    params = yaml.safe_load((root / "params.yaml").read_text())
-    for model, update in TINY_MODELS.items():
-        params[model].update(update)
-    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    # Given a small project trained and registered end to end
+    root, _params = make_tiny_project(tmp_path / "proj")
     run(root, "dvc", "repro")
     client = MlflowClient()
     champion_15 = client.get_model_version_by_alias("needle-force-15", "champion")
@@ -110,19 +116,7 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
     assert "nothing to do" in idle.stderr
 
     # When a new 15° cast and a broken batch arrive
-    run(
-        root,
-        sys.executable,
-        "-m",
-        "pipeline.cli",
-        "simulate-batch",
-        "data/raw",
-        "cast-7",
-        "--angles",
-        "15",
-        "--trials",
-        "4",
-    )
+    new_cast(root, "cast-7", 15)
     (root / "data" / "raw" / "broken").mkdir()
     (root / "data" / "raw" / "broken" / "batch.yaml").write_text("format: rig-log/1\nbatch_id: [\n")
     done = retrain_cli(root)
@@ -163,3 +157,31 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
         busy = retrain_cli(root)
     assert busy.returncode == retrain.EXIT_BUSY
     assert "another retrain is running" in busy.stderr
+
+    # When a retrain for a new 45° cast is killed half way (during training)
+    new_cast(root, "cast-8", 45)
+    raw_before = tree_hash(root / "data" / "raw")
+    killed = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.cli", "retrain"],
+        cwd=root,
+        env=retrain_env(),
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    assert killed.stderr is not None
+    for line in killed.stderr:
+        if "Running stage 'train@45" in line:
+            os.killpg(killed.pid, signal.SIGKILL)
+            break
+    killed.wait(timeout=60)
+    # Then the registry and the raw data are as they were
+    assert killed.returncode == -signal.SIGKILL
+    assert len(client.search_model_versions("name = 'needle-force-45'")) == 1
+    assert tree_hash(root / "data" / "raw") == raw_before
+    # And the next run completes the job
+    resumed = retrain_cli(root)
+    assert resumed.returncode == retrain.EXIT_RETRAINED, resumed.stderr
+    report = json.loads((root / "reports" / "retrain" / "latest.json").read_text())
+    assert report["angles_retrained"] == ["45"] and list(report["registered"]) == ["45"]
+    assert len(client.search_model_versions("name = 'needle-force-45'")) == 2
