@@ -144,7 +144,7 @@ def fetch(
     store = tracking_uri or registry.tracking_uri()
     cached = _read_version(target)
     try:
-        client = registry.connect(store)
+        client = registry.connect(store, must_exist=True)
         mv = _resolve(client, name, alias, store)
     except registry.RegistryUnreachable as e:
         return _offline_copy(target, cached, uri, e)
@@ -445,7 +445,7 @@ class ForceClient:
         store = follow.fetch_kwargs["tracking_uri"]
         try:
             with _env(_POLL_HTTP_ENV):  # one quick metadata request: no retries, short timeout
-                mv = _resolve(registry.connect(store), name, follow.alias, store)
+                mv = _resolve(registry.connect(store, must_exist=True), name, follow.alias, store)
         except (registry.RegistryUnreachable, ModelNotFound) as e:
             self._poll_failed(e)
             return False

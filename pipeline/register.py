@@ -335,39 +335,51 @@ def best_per_angle(trained: list[Trained], candidates: tuple[str, ...]) -> dict[
 
 
 def _versions(client: MlflowClient, name: str) -> list[Any]:
-    from mlflow.exceptions import MlflowException
-
-    try:
-        return list(client.search_model_versions(f"name = '{name}'"))
-    except MlflowException:
-        return []
+    """Every version of `name` ([] for an unknown name); any other registry error propagates, so a
+    hiccup of the store is never read as "no versions"."""
+    return list(client.search_model_versions(f"name = '{name}'"))
 
 
 def _alias_version(client: MlflowClient, name: str, alias: str) -> Any | None:
+    """The version `name@alias` points to; None only when the model or the alias does not exist."""
     from mlflow.exceptions import MlflowException
 
     try:
         return client.get_model_version_by_alias(name, alias)
-    except MlflowException:
-        return None
+    except MlflowException as e:
+        if e.error_code in ("RESOURCE_DOES_NOT_EXIST", "INVALID_PARAMETER_VALUE"):
+            return None
+        raise
+
+
+def _create_registered_model(client: MlflowClient, name: str, description: str) -> None:
+    """Create `name`; one left empty by an interrupted run is fine as it is."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        client.create_registered_model(name, description=description)
+    except MlflowException as e:
+        if e.error_code != "RESOURCE_ALREADY_EXISTS":
+            raise
 
 
 def rescore_version(client: MlflowClient, version: Any, external: pd.DataFrame) -> float | None:
-    """Mean external NRMSE of a registered version's checkpoint on today's external set (None if the
-    checkpoint is missing or cannot read this data: then it cannot defend its title)."""
+    """Mean external NRMSE of a registered version's checkpoint on today's external set; None if its
+    model cannot read this data (other channels, say): then it cannot defend its title. A checkpoint
+    that cannot be fetched is an error (the stage fails and no alias moves), never a free pass."""
     import mlflow
 
     from pipeline.models import Predictor, load_checkpoint
 
+    with tempfile.TemporaryDirectory() as tmp:
+        path = mlflow.artifacts.download_artifacts(
+            run_id=version.run_id, artifact_path="checkpoint/model.pt", dst_path=tmp
+        )
+        predictor = Predictor(load_checkpoint(Path(path)))
     try:
-        with tempfile.TemporaryDirectory() as tmp:
-            path = mlflow.artifacts.download_artifacts(
-                run_id=version.run_id, artifact_path="checkpoint/model.pt", dst_path=tmp
-            )
-            predictor = Predictor(load_checkpoint(Path(path)))
         scores = _score(predictor, external)
-    except Exception as e:
-        _stderr(f"{version.name} v{version.version}: cannot re-score ({type(e).__name__}: {e})")
+    except (KeyError, ValueError) as e:
+        _stderr(f"{version.name} v{version.version}: cannot score today's data ({type(e).__name__}: {e})")
         return None
     return float(np.mean([scores[a]["nrmse_pct"] for a in AXES]))
 
@@ -397,13 +409,14 @@ def register_angle(
     if mv is not None:
         # search results may leave aliases out: ask for the version itself
         aliases = sorted(client.get_model_version(name, str(mv.version)).aliases or [])
-        if aliases:
-            log(f"{name}: this {t.kind} is already version {mv.version} ({', '.join(aliases)})")
+        if aliases or mv.tags.get(f"{TAG}decided"):  # decided once (maybe since rolled back): final
+            log(f"{name}: this {t.kind} is already version {mv.version} ({', '.join(aliases) or 'no alias'})")
             return {**entry, "action": "unchanged", "version": int(mv.version), "aliases": aliases}
         # registered by a run that was stopped before it set an alias: finish that decision now
-        log(f"{name}: version {mv.version} has no alias (an interrupted run?): deciding it now")
+        log(f"{name}: version {mv.version} was never decided (an interrupted run?): deciding it now")
     elif not _versions(client, name):  # the first version creates the registered model: describe it
-        client.create_registered_model(
+        _create_registered_model(
+            client,
             name,
             description=(
                 f"3-D needle force (fx, fy, fz in N) from the estimator's voltages, {t.angle}° insertions. "
@@ -450,6 +463,9 @@ def register_angle(
     else:
         client.set_registered_model_alias(name, CHALLENGER, mv.version)
         alias = CHALLENGER
+    # Marks the decision as made: a later rollback (or a newer challenger) may take the alias away,
+    # and the next run must not mistake that for an interrupted decision and re-promote it.
+    client.set_model_version_tag(name, mv.version, f"{TAG}decided", alias)
     log(f"{name}: registered {t.kind} as version {mv.version} -> {alias} ({reason})")
     out = {**entry, "action": "registered", "version": int(mv.version), "aliases": [alias], "reason": reason}
     if champion is not None:
@@ -564,6 +580,8 @@ def main(
     params: Path = Path("params.yaml"),
 ) -> None:
     """Track every trained model in MLflow and register the best per angle (champion / challenger)."""
+    from mlflow.exceptions import MlflowException
+
     p = load_section(RegisterParams, "register", params)
     try:
         record = run(models_dir, data_dir, reports_dir, out_json, p)
@@ -572,6 +590,9 @@ def main(
         raise typer.Exit(1) from e
     except (FileNotFoundError, ValueError) as e:
         _stderr(f"error: {e}")
+        raise typer.Exit(1) from e
+    except MlflowException as e:  # the store answered, then failed: no alias moved after the failure
+        _stderr(f"error: MLflow registry ({e.error_code}): {e.message}")
         raise typer.Exit(1) from e
     _stderr(
         f"registered {len(record['registered'])} angle(s), promoted {len(record['promoted'])} -> {out_json}"

@@ -85,8 +85,11 @@ def experiment_id(client: MlflowClient, name: str = EXPERIMENT) -> str:
     )
 
 
-def connect(uri: str | None = None) -> MlflowClient:
+def connect(uri: str | None = None, *, must_exist: bool = False) -> MlflowClient:
     """A client on `uri` (default `tracking_uri()`), checked to answer; `RegistryUnreachable` if not.
+
+    `must_exist`: a sqlite store that is not there yet is unreachable too, instead of being created
+    empty (a reader, like the simulator's client run outside the project, wants the real one).
 
     Also sets the fluent API's tracking and registry URI, so `mlflow.start_run` goes to the same store.
     """
@@ -100,6 +103,8 @@ def connect(uri: str | None = None) -> MlflowClient:
         folder = Path(uri.removeprefix("sqlite:///")).parent
         if not folder.is_dir():
             raise RegistryUnreachable(f"MLflow store {uri}: folder {folder} does not exist")
+        if must_exist and not Path(uri.removeprefix("sqlite:///")).is_file():
+            raise RegistryUnreachable(f"MLflow store {uri}: no such database (run `make repro` to create it)")
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     client = MlflowClient(tracking_uri=uri, registry_uri=uri)

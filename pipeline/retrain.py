@@ -8,10 +8,11 @@ champion rule); write a retrain report. Nothing new: nothing runs, nothing is re
 Exit codes (also in the README):
   0  nothing new: nothing ran, nothing was registered
   1  failed: `dvc repro` or a check failed; the report says where. The registry changes only in
-     the last stage, so a failure before it leaves every alias as it was; the next run resumes.
+     the last stage, so a failure before it leaves every alias as it was (one inside `register`
+     keeps the decisions made for the angles before it); the next run resumes.
   2  retrained: new models trained, tracked and registered (champions moved only where better)
   3  retrained, but some new or changed batch was set aside (see the report)
-  4  busy: another retrain holds the lock; this one did nothing
+  4  busy: another retrain (or a DVC command) holds the project; this one did nothing
 
 A run killed half way leaves `data/raw` untouched (the pipeline never writes there), the
 registry as it was unless `register` had started (it is idempotent and finishes an interrupted
@@ -178,7 +179,10 @@ def dvc_changed(root: Path) -> list[str]:
         ["dvc", "status", "--json"], cwd=root, env=_env(), capture_output=True, text=True, check=False
     )
     if done.returncode != 0:
-        raise RuntimeError(f"dvc status failed in {root}: {done.stderr.strip() or done.stdout.strip()}")
+        message = done.stderr.strip() or done.stdout.strip()
+        if "Unable to acquire lock" in message or "is busy" in message:
+            raise Busy(f"another DVC command is running in {root}: nothing done ({message.splitlines()[0]})")
+        raise RuntimeError(f"dvc status failed in {root}: {message}")
     text = done.stdout
     return sorted(json.loads(text[text.index("{") :])) if "{" in text else []
 
@@ -260,6 +264,18 @@ def summarise(
     }
 
 
+EMPTY_REPORT: dict[str, Any] = {
+    "batches": [],
+    "batches_set_aside": [],
+    "trials_set_aside": [],
+    "stages_run": [],
+    "angles_retrained": [],
+    "metrics": {},
+    "registered": {},
+    "promoted": [],
+}
+
+
 def _pct(x: float | None) -> str:
     return "—" if x is None else f"{x:.2f}"
 
@@ -325,7 +341,15 @@ def retrain(
     started = _now()
     try:
         with lock(root / LOCK_FILE):
-            return _retrain_locked(root, params_path, started, log)
+            try:
+                return _retrain_locked(root, params_path, started, log)
+            except Busy:
+                raise
+            except Exception as e:  # a failure before or around `dvc repro`: still leave a report
+                report = {**EMPTY_REPORT, "started": started, "outcome": "failed", "exit_code": EXIT_FAILED}
+                report["error"] = f"{type(e).__name__}: {e}"
+                log(f"failed: {report['error']}; report {write_report(root, report)}")
+                return EXIT_FAILED, report
     except Busy as e:
         log(str(e))
         return EXIT_BUSY, {"started": started, "outcome": "busy", "exit_code": EXIT_BUSY, "error": str(e)}
@@ -340,7 +364,12 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
     pending = pending_batches(raw_dir, root / INGESTED, ingest_params, stage_raw_dir)
     clear_dead_dvc_locks(root, log)
     changed = dvc_changed(root)
-    if not pending and not changed:
+    if not changed:  # DVC decides: a batch "changed" only for the ingest cache (a library upgrade) is not new
+        if pending:
+            log(
+                f"{len(pending)} batch(es) differ from the ingest cache's fingerprints but DVC has nothing "
+                "to rerun (their bytes are the same; code or library versions changed?)"
+            )
         log(f"nothing new in {raw_dir} and every stage is up to date: nothing to do")
         return EXIT_NOTHING, {"started": started, "outcome": "nothing new", "exit_code": EXIT_NOTHING}
     log(f"{len(pending)} new or changed batch(es): {', '.join(p.batch_id for p in pending) or 'none'}")

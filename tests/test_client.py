@@ -372,9 +372,9 @@ def registry_calls(monkeypatch: pytest.MonkeyPatch) -> list[str | None]:
     calls: list[str | None] = []
     real = registry.connect
 
-    def counting(uri: str | None = None) -> object:
+    def counting(uri: str | None = None, **kwargs: bool) -> object:
         calls.append(uri)
-        return real(uri)
+        return real(uri, **kwargs)
 
     monkeypatch.setattr(registry, "connect", counting)
     return calls
@@ -532,3 +532,15 @@ def test_a_new_champion_that_does_not_fit_the_stream_is_refused(
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1, errors
     assert "needle-force-30: champion v2 refused, keeping v1" in errors[0] and "fsr4" in errors[0]
+
+
+def test_a_default_store_that_is_not_there_is_unreachable_not_created(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: the client run outside the project, where no mlflow.db exists, with no local copy
+    store = f"sqlite:///{tmp_path / 'elsewhere' / 'mlflow.db'}"
+    (tmp_path / "elsewhere").mkdir()
+    # when / then: it says the registry cannot be reached, and creates no empty store there
+    with pytest.raises(registry.RegistryUnreachable, match="no such database"):
+        fc.fetch(30, cache_dir=tmp_path / "cache", tracking_uri=store)
+    assert not (tmp_path / "elsewhere" / "mlflow.db").exists()

@@ -178,6 +178,34 @@ def test_stage_command_exits_1_with_the_reason(project: Path, monkeypatch: pytes
     assert "no trained model folders" in result.output
 
 
+def test_a_rollback_survives_the_next_run(project: Path) -> None:
+    # given: v2 promoted over v1, then rolled back to v1
+    bad, good = train_models(project, "bad", BAD), train_models(project, "good", GOOD)
+    run_stage(project, bad)
+    run_stage(project, good)
+    register.rollback(30)
+    # when: the stage runs again on the same models (another angle retrained, say)
+    entry = run_stage(project, good)["angles"]["30"]
+    # then: v2 is left as the rollback left it, and v1 stays champion
+    assert (entry["action"], entry["version"], entry["aliases"]) == ("unchanged", 2, [])
+    assert int(MlflowClient().get_model_version_by_alias(model_name(30), "champion").version) == 1
+
+
+def test_a_champion_whose_checkpoint_cannot_be_fetched_fails_the_stage(
+    project: Path, mlflow_store: str
+) -> None:
+    # given: a champion whose run artifacts are gone, and a worse model arriving
+    good, bad = train_models(project, "good", GOOD), train_models(project, "bad", BAD)
+    run_stage(project, good)
+    artifacts = Path(mlflow_store.removeprefix("sqlite:///")).parent / "mlartifacts"
+    for checkpoint in artifacts.rglob("checkpoint/model.pt"):
+        checkpoint.unlink()
+    # when / then: the stage fails instead of waving the newcomer through, and the champion stays
+    with pytest.raises(Exception, match=r"model\.pt"):
+        run_stage(project, bad)
+    assert int(MlflowClient().get_model_version_by_alias(model_name(30), "champion").version) == 1
+
+
 def test_rollback_command(project: Path) -> None:
     # given: v2 champion over v1
     run_stage(project, train_models(project, "bad", BAD))
@@ -198,6 +226,7 @@ def test_a_version_left_without_alias_by_an_interrupted_run_is_decided_next_time
     run_stage(project, models)
     client = MlflowClient()
     client.delete_registered_model_alias(model_name(30), "champion")
+    client.delete_model_version_tag(model_name(30), "1", "needlecue.decided")
     # when: the stage runs again on the same model
     entry = run_stage(project, models)["angles"]["30"]
     # then: no second version, and the pending one gets the alias the rule gives it
