@@ -45,16 +45,20 @@ def raw_rows(root: Path) -> int:
     return sum(sum(1 for _ in p.open()) - 1 for p in root.rglob("*.csv"))
 
 
-def dvc_out(root: Path, *args: str) -> str:
-    """Run dvc in `root` with this venv first on PATH (stage commands call `python`) and the copy's
-    own MLflow store (never the user's)."""
-    env = dict(
+def copy_env(root: Path) -> dict[str, str]:
+    """For commands in the project copy `root`: this venv first on PATH (stage commands call
+    `python`) and the copy's own MLflow store (never the user's)."""
+    return dict(
         os.environ,
         PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
         MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
     )
+
+
+def dvc_out(root: Path, *args: str) -> str:
+    """Run dvc in the project copy `root`."""
     return subprocess.run(
-        ["dvc", *args], cwd=root, env=env, check=True, capture_output=True, text=True
+        ["dvc", *args], cwd=root, env=copy_env(root), check=True, capture_output=True, text=True
     ).stdout
 
 
@@ -143,11 +147,7 @@ def bench_dvc(tmp: Path) -> None:
 
 def retrain_after_new_batch(root: Path) -> tuple[float, dict]:
     """Wall time of `needlecue retrain` after `needlecue simulate-batch` adds one cast; its report."""
-    env = dict(
-        os.environ,
-        PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
-        MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
-    )
+    env = copy_env(root)
     cli = [sys.executable, "-m", "pipeline.cli"]
     new_batch = [*cli, "simulate-batch", "data/raw", "bench-cast-1", "--angles", "15", "--trials", "7"]
     subprocess.run(new_batch, cwd=root, env=env, check=True, capture_output=True)

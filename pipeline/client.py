@@ -18,7 +18,6 @@ onnxruntime and the cue tracker are imported inside the functions that need them
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import logging
 import math
@@ -37,7 +36,7 @@ import yaml
 
 from pipeline import registry
 from pipeline.export import DEPLOY_FORMAT
-from pipeline.models import TARGETS
+from pipeline.models import TARGETS, file_sha256
 
 if TYPE_CHECKING:
     from pipeline.cues import CueState
@@ -65,10 +64,6 @@ def default_cache_dir() -> Path:
     """`$NEEDLECUE_MODEL_CACHE` if set, else `~/.cache/needlecue/models` (read at call time)."""
     env = os.environ.get(CACHE_ENV)
     return Path(env).expanduser() if env else DEFAULT_CACHE
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _read_version(folder: Path) -> dict[str, Any] | None:
@@ -156,7 +151,7 @@ def fetch(
         # version numbers restart in every store: the source (models:/m-<id>) tells two stores' "v1" apart
         and cached.get("source") == mv.source
         and (target / "model.onnx").is_file()
-        and _sha256(target / "model.onnx") == cached.get("onnx_sha256")
+        and file_sha256([target / "model.onnx"]) == cached.get("onnx_sha256")
     ):
         return target  # already that version, intact: no download
     try:
@@ -231,7 +226,7 @@ def _download(mv: Any, alias: str, target: Path, store: str) -> Path:
             "run_id": mv.run_id,
             "source": mv.source,
             "checkpoint_sha256": meta.get("checkpoint_sha256"),
-            "onnx_sha256": _sha256(tmp / "model.onnx"),
+            "onnx_sha256": file_sha256([tmp / "model.onnx"]),
             "tracking_uri": store,
             "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }

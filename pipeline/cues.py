@@ -69,14 +69,14 @@ import typer
 from pydantic import Field, model_validator
 
 from pipeline.config import Section, load_section
+from pipeline.evaluate import angle_name, load_model
+from pipeline.models import TARGETS, channels_of
 
 FORMAT = "needlecue-cues/1"
 CUES = ("wait", "continue", "correct", "stop")
 VERDICTS = CUES[1:]  # the cues a deviation maps to
 METHODS = ("combined", "paper")
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
-TARGETS = ("fx", "fy", "fz")
-NON_CHANNELS = frozenset({"batch_id", "trial_id", "angle_deg", "tissue_point", "t_s", "phase", *TARGETS})
 REFERENCE = "reference"  # profile thresholds calibrated on the reference force (no model)
 MIN_VOLTS = 1e-3  # floor before taking logs (an unloaded FSR reads a few mV)
 PNG_METADATA: dict[str, Any] = {"Software": None}
@@ -143,10 +143,6 @@ def deviation_group(dev_deg: float) -> str:
     return "0" if d == 0 else "15" if d == 15 else "30" if d == 30 else ">=45"
 
 
-def angle_name(angle: float) -> str:
-    return f"{float(angle):g}"
-
-
 def _sig(x: float, digits: int = 6) -> float:
     """A float rounded to `digits` significant digits (small, stable JSON)."""
     return float(f"{float(x):.{digits}g}") + 0.0
@@ -157,10 +153,6 @@ def _siglist(a: Any, digits: int = 6) -> Any:
     if arr.ndim == 0:
         return _sig(float(arr), digits)
     return [_siglist(x, digits) for x in arr]
-
-
-def channels_of(frame: pd.DataFrame) -> list[str]:
-    return [str(c) for c in frame.columns if c not in NON_CHANNELS]
 
 
 def _floats(x: Any) -> list[float]:
@@ -1147,12 +1139,6 @@ def summarise_runs(
     return result
 
 
-def _load_predictor(model_dir: Path) -> Predictor:
-    from pipeline.models import load_predictor
-
-    return load_predictor(model_dir)
-
-
 def read_split(processed_dir: Path, split: str) -> dict[float, pd.DataFrame]:
     """{angle: frame} of one split over the angle folders of `processed_dir` that have it."""
     if not processed_dir.is_dir():
@@ -1183,7 +1169,7 @@ def evaluate_cues(
 
     Without external trials with an insertion phase there is nothing to score: the result is
     `skipped_evaluation(reason)`. The combined method is scored only with an angle estimator."""
-    loader = loader or _load_predictor
+    loader = loader or load_model
     external = {a: f for a, f in read_split(Path(processed_dir), "external").items() if len(f)}
     if not external:
         return skipped_evaluation("no external trials (no <angle>/external.parquet with rows)", packs, params)
@@ -1263,7 +1249,7 @@ def evaluate_cues(
     for kind in params.kinds:
         for preset, pack in sorted(packs.items()):
             model_dir = Path(models_dir) / kind / angle_name(preset)
-            if not (model_dir / "model.pt").is_file() and loader is _load_predictor:
+            if not (model_dir / "model.pt").is_file() and loader is load_model:
                 log(f"warning: no {model_dir / 'model.pt'}, {kind} at {angle_name(preset)}° skipped")
                 continue
             started = time.perf_counter()
@@ -1753,7 +1739,7 @@ def run(processed_dir: Path, models_dir: Path, out_dir: Path, params: CuesParams
         if path not in cache:
             if not (path / "model.pt").is_file():
                 raise FileNotFoundError(f"no model checkpoint at {path / 'model.pt'}")
-            cache[path] = _load_predictor(path)
+            cache[path] = load_model(path)
         return cache[path]
 
     packs: dict[float, dict[str, Any]] = {}

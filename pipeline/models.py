@@ -224,7 +224,7 @@ def data_sha256(*frames: pd.DataFrame) -> str:
 
 
 def file_sha256(paths: Sequence[Path]) -> str:
-    """SHA-256 of the concatenated bytes of files (the train and val parquet files)."""
+    """SHA-256 of the concatenated bytes of files (the train and val parquet files, a model.onnx)."""
     h = hashlib.sha256()
     for p in paths:
         h.update(Path(p).read_bytes())

@@ -38,6 +38,7 @@ from pydantic import Field
 from pipeline.config import Section, load_section
 from pipeline.evaluate import AXES, axis_scores, gap_of
 from pipeline.export import checkpoint_sha256
+from pipeline.models import KINDS
 from pipeline.registry import (
     CHALLENGER,
     CHAMPION,
@@ -53,7 +54,7 @@ if TYPE_CHECKING:
 
 Log = Callable[[str], None]
 TAG = "needlecue."  # prefix of our own tags on runs and model versions
-SPLITS = ("val", "test", "external")
+SPLITS = ("val", "test", "external")  # what each model is scored on
 
 
 class RegisterParams(Section):
@@ -101,6 +102,31 @@ class Trained:
         return float(np.mean([self.scores[split][a]["nrmse_pct"] for a in AXES]))
 
 
+class Splits:
+    """Each angle's processed split files, each read once: scoring, the runs' dataset inputs and
+    the champion's re-scoring all need them, for every model of the angle."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = data_dir
+        self._frames: dict[tuple[str, str], pd.DataFrame] = {}
+
+    def path(self, angle: str, split: str) -> Path:
+        return self.data_dir / angle / f"{split}.parquet"
+
+    def frame(self, angle: str, split: str) -> pd.DataFrame:
+        if (angle, split) not in self._frames:
+            path = self.path(angle, split)
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: missing (run the split stage first)")
+            self._frames[angle, split] = pd.read_parquet(path)
+        return self._frames[angle, split]
+
+
+def _kind_rank(kind: str) -> int:
+    """ls, fnn, lstm (simplest first), then any other kind."""
+    return KINDS.index(kind) if kind in KINDS else len(KINDS)
+
+
 def _score(predictor: Any, frame: pd.DataFrame) -> dict[str, dict[str, float]]:
     if frame.empty:
         return {a: {"rmse": float("nan"), "nrmse_pct": float("nan")} for a in AXES}
@@ -108,7 +134,7 @@ def _score(predictor: Any, frame: pd.DataFrame) -> dict[str, dict[str, float]]:
 
 
 def collect(
-    models_dir: Path, data_dir: Path, candidates: tuple[str, ...], log: Log = _stderr
+    models_dir: Path, splits: Splits, candidates: tuple[str, ...], log: Log = _stderr
 ) -> list[Trained]:
     """Every `models_dir/<kind>/<angle>` folder with a checkpoint, scored on its angle's splits."""
     from pipeline.models import Predictor, load_checkpoint
@@ -118,12 +144,7 @@ def collect(
         for folder in sorted((p for p in kind_dir.iterdir() if p.is_dir()), key=lambda p: float(p.name)):
             checkpoint = load_checkpoint(folder)
             predictor = Predictor(checkpoint)
-            scores = {}
-            for split in SPLITS:
-                path = data_dir / folder.name / f"{split}.parquet"
-                if not path.is_file():
-                    raise FileNotFoundError(f"{path}: missing (run the split stage first)")
-                scores[split] = _score(predictor, pd.read_parquet(path))
+            scores = {split: _score(predictor, splits.frame(folder.name, split)) for split in SPLITS}
             metrics_file = folder / "train_metrics.json"
             train_metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
             out.append(
@@ -242,7 +263,8 @@ def find_run(client: MlflowClient, exp_id: str, sha: str) -> Any | None:
 def track(
     client: MlflowClient,
     t: Trained,
-    data_dir: Path,
+    exp_id: str,
+    splits: Splits,
     metrics: Mapping[str, Any],
     cue_pack: dict[str, Any] | None,
     figures: list[Path],
@@ -256,7 +278,6 @@ def track(
 
     from pipeline.export import log_onnx_model
 
-    exp_id = experiment_id(client)
     existing = find_run(client, exp_id, t.model_sha256)
     if existing is not None and existing.data.tags.get(f"{TAG}model_uri"):
         return existing.info.run_id, existing.data.tags[f"{TAG}model_uri"], False
@@ -282,13 +303,14 @@ def track(
             ("test", "test"),
             ("external", "external"),
         ):
-            path = data_dir / t.angle / f"{split}.parquet"
-            frame = pd.read_parquet(path)
+            frame = splits.frame(t.angle, split)
             if frame.empty:  # nothing to describe (and MLflow cannot digest an empty frame)
                 continue
             with warnings.catch_warnings():  # MLflow registers its local-file source twice, then warns
                 warnings.filterwarnings("ignore", message="The specified dataset source can be interpreted")
-                dataset = mlflow.data.from_pandas(frame, source=str(path), name=f"{t.angle}°-{split}")
+                dataset = mlflow.data.from_pandas(
+                    frame, source=str(splits.path(t.angle, split)), name=f"{t.angle}°-{split}"
+                )
             mlflow.log_input(dataset, context=context)
         mlflow.log_metrics(run_metrics(t, metrics))
         history = t.folder / "history.csv"
@@ -323,13 +345,12 @@ def track(
 def best_per_angle(trained: list[Trained], candidates: tuple[str, ...]) -> dict[str, Trained]:
     """The champion rule's first half: per angle, the candidate with the lowest mean external NRMSE
     (ties go to the simpler model, in the order ls, fnn, lstm)."""
-    order = {"ls": 0, "fnn": 1, "lstm": 2}
     best: dict[str, Trained] = {}
     for t in trained:
         if t.kind not in candidates or t.judged_on is None:
             continue
         cur = best.get(t.angle)
-        if cur is None or (t.mean_nrmse(), order[t.kind]) < (cur.mean_nrmse(), order[cur.kind]):
+        if cur is None or (t.mean_nrmse(), _kind_rank(t.kind)) < (cur.mean_nrmse(), _kind_rank(cur.kind)):
             best[t.angle] = t
     return dict(sorted(best.items(), key=lambda kv: float(kv[0])))
 
@@ -517,19 +538,20 @@ def run(
     metrics_path = reports_dir / "metrics.json"
     metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
     figures = sorted((reports_dir / "figures").glob("*.png"))
-    trained = collect(models_dir, data_dir, params.candidates, log)
+    splits = Splits(data_dir)
+    trained = collect(models_dir, splits, params.candidates, log)
     commit = git_commit(Path.cwd())
 
     logged: dict[tuple[str, str], tuple[str, str]] = {}
     n_new = 0
     # Logged from the last angle and kind to the first, so the UI's newest-first list reads 0°-ls,
     # 0°-fnn, 0°-lstm, 15°-ls, ... from the top.
-    order = {"ls": 0, "fnn": 1, "lstm": 2}
-    trained.sort(key=lambda t: (float(t.angle), order.get(t.kind, 3), t.kind), reverse=True)
+    trained.sort(key=lambda t: (float(t.angle), _kind_rank(t.kind), t.kind), reverse=True)
+    exp_id = experiment_id(client)
     for i, t in enumerate(trained, start=1):
         pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
         pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
-        run_id, uri, new = track(client, t, data_dir, metrics, pack, figures, commit, log)
+        run_id, uri, new = track(client, t, exp_id, splits, metrics, pack, figures, commit, log)
         logged[(t.kind, t.angle)] = (run_id, uri)
         n_new += new
         if not new:
@@ -548,9 +570,8 @@ def run(
             "reason": reason,
         }
     for angle, t in best.items():
-        frame = pd.read_parquet(data_dir / angle / f"{t.judged_on}.parquet")
         run_id, uri = logged[(t.kind, t.angle)]
-        angles[angle] = register_angle(client, t, uri, run_id, frame, params, log)
+        angles[angle] = register_angle(client, t, uri, run_id, splits.frame(angle, t.judged_on), params, log)
     angles = dict(sorted(angles.items(), key=lambda kv: float(kv[0])))
     record = {
         "experiment": EXPERIMENT,

@@ -69,6 +69,11 @@ def tracking_uri(start: Path | None = None) -> str:
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{project_root(start) / 'mlflow.db'}"
 
 
+def sqlite_file(uri: str) -> Path | None:
+    """The database file of a `sqlite:///` store URI, None for any other kind of store."""
+    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+
+
 def experiment_id(client: MlflowClient, name: str = EXPERIMENT) -> str:
     """The experiment's id, creating it if needed. With a sqlite store its artifacts go to
     `mlartifacts/` beside the database file: MLflow's own default is `./mlruns` under the cwd,
@@ -77,9 +82,9 @@ def experiment_id(client: MlflowClient, name: str = EXPERIMENT) -> str:
     if found is not None:
         return str(found.experiment_id)
     location = None
-    uri = client.tracking_uri
-    if uri.startswith("sqlite:///"):
-        location = (Path(uri.removeprefix("sqlite:///")).parent / "mlartifacts").as_uri()
+    db = sqlite_file(client.tracking_uri)
+    if db is not None:
+        location = (db.parent / "mlartifacts").as_uri()
     return str(
         client.create_experiment(name, artifact_location=location, tags={"mlflow.note.content": ABOUT})
     )
@@ -99,11 +104,11 @@ def connect(uri: str | None = None, *, must_exist: bool = False) -> MlflowClient
     from mlflow import MlflowClient
 
     uri = uri or tracking_uri()
-    if uri.startswith("sqlite:///"):
-        folder = Path(uri.removeprefix("sqlite:///")).parent
-        if not folder.is_dir():
-            raise RegistryUnreachable(f"MLflow store {uri}: folder {folder} does not exist")
-        if must_exist and not Path(uri.removeprefix("sqlite:///")).is_file():
+    db = sqlite_file(uri)
+    if db is not None:
+        if not db.parent.is_dir():
+            raise RegistryUnreachable(f"MLflow store {uri}: folder {db.parent} does not exist")
+        if must_exist and not db.is_file():
             raise RegistryUnreachable(f"MLflow store {uri}: no such database (run `make repro` to create it)")
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
