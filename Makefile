@@ -36,4 +36,4 @@ ui: setup             ## the MLflow UI on http://127.0.0.1:5000: runs side by si
 		--host 127.0.0.1 --port $${PORT:-5000}
 
 clean:                ## generated data and reports (never data/raw)
-	rm -rf data/simulated data/interim data/processed reports/ingest reports/resample
+	rm -rf data/simulated data/interim data/processed data/predictions reports/ingest reports/resample

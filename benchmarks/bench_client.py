@@ -1,6 +1,6 @@
 """Per-frame latency of the simulator's client against the bare model, for every angle's champion.
 
-For each `needle-force-<angle>@champion` in the project's MLflow store (pipeline.registry.tracking_uri()),
+For each `needle-force-<angle>@champion` in the project's MLflow store (`store.tracking_uri()`),
 loaded through `ForceClient.from_registry` (fetched into a temp cache), this streams FRAMES samples of
 that angle's external trials (data/processed/<angle>/external.parquet, reset at each trial start, after
 WARMUP frames) through `client.step` (ONNX forward pass, window ring buffer, cues) and prints p50 and p99
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline import registry
+from pipeline.registry import store
 
 FRAMES = 3000
 WARMUP = 300
@@ -64,16 +64,18 @@ def _champions(client: object) -> dict[int, str]:
     found = {}
     for rm in client.search_registered_models(filter_string="name LIKE 'needle-force-%'"):  # type: ignore[attr-defined]
         suffix = rm.name.removeprefix("needle-force-")
-        if suffix.isdigit() and registry.CHAMPION in (rm.aliases or {}):
-            found[int(suffix)] = str(rm.aliases[registry.CHAMPION])
+        if suffix.isdigit() and store.CHAMPION in (rm.aliases or {}):
+            found[int(suffix)] = str(rm.aliases[store.CHAMPION])
     return dict(sorted(found.items()))
 
 
 def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, object] | None:
     import onnxruntime as ort
 
-    from pipeline import export, models
     from pipeline.client import ForceClient
+    from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
+    from pipeline.modelling.inputs import window_index
+    from pipeline.modelling.predict import Predictor
 
     client = ForceClient.from_registry(angle, tracking_uri=uri, cache_dir=cache)
     ext_file = root / "data" / "processed" / str(angle) / "external.parquet"
@@ -96,7 +98,7 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
     starts = np.cumsum([f for f, _, _ in frames]) - 1
     start_pos = np.flatnonzero([f for f, _, _ in frames])[starts]
     if client.window > 1:
-        x = volts[models.window_index(start_pos, client.window)].astype(np.float32)
+        x = volts[window_index(start_pos, client.window)].astype(np.float32)
     else:
         x = volts.astype(np.float32)
     opts = ort.SessionOptions()
@@ -108,11 +110,11 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
     bare_ns = _time(lambda i: session.run(None, {name: x[i : i + 1]}), FRAMES, WARMUP)
 
     torch_ns = None
-    ckpt = root / "models" / client.kind / str(angle) / models.CHECKPOINT_FILE
+    ckpt = root / "models" / client.kind / str(angle) / CHECKPOINT_FILE
     if ckpt.is_file():
-        checkpoint = models.load_checkpoint(ckpt)
-        if export.checkpoint_sha256(checkpoint) == client.metadata["checkpoint_sha256"]:
-            predictor = models.Predictor(checkpoint)
+        checkpoint = load_checkpoint(ckpt)
+        if checkpoint_sha256(checkpoint) == client.metadata["checkpoint_sha256"]:
+            predictor = Predictor(checkpoint)
             w = client.window
 
             def torch_frame(i: int) -> object:
@@ -131,13 +133,13 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
 
 
 def main() -> int:
-    uri = registry.tracking_uri()
+    uri = store.tracking_uri()
     try:
-        store = registry.connect(uri)
-    except registry.RegistryUnreachable as e:
+        registry = store.connect(uri)
+    except store.RegistryUnreachable as e:
         print(f"{e}\nno registry: run `make repro` first")
         return 1
-    champions = _champions(store)
+    champions = _champions(registry)
     if not champions:
         print(f"no needle-force-<angle>@champion in {uri}: run `make repro` first")
         return 1
@@ -157,7 +159,7 @@ def main() -> int:
     results = []
     with tempfile.TemporaryDirectory(prefix="needlecue-bench-") as cache:
         for angle in champions:
-            r = bench_angle(angle, uri, Path(cache), registry.project_root())
+            r = bench_angle(angle, uri, Path(cache), store.project_root())
             if r is None:
                 continue
             results.append(r)

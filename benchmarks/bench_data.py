@@ -22,8 +22,12 @@ from pathlib import Path
 
 import yaml
 
-from pipeline import ingest, resample, simulate
 from pipeline.config import IngestParams, ResampleParams, SimulateParams, load_section
+from pipeline.reporting import ingest as ingest_report
+from pipeline.reporting import resample as resample_report
+from pipeline.rig import ingest
+from pipeline.signals import resample
+from pipeline.sim import rig as simulate
 
 REPO = Path(__file__).resolve().parents[1]
 REPEATS = 3
@@ -84,7 +88,7 @@ def bench_stages(tmp: Path) -> None:
 
     def run_ingest() -> None:
         result = ingest.ingest_batches([empty_raw, sim], out, ingest_params, log=lambda _: None)
-        ingest.write_reports(result, tmp / "reports-ingest")
+        ingest_report.write_reports(result, tmp / "reports-ingest")
 
     def cold_ingest() -> None:
         shutil.rmtree(out, ignore_errors=True)
@@ -94,7 +98,12 @@ def bench_stages(tmp: Path) -> None:
     t_reuse = timed(run_ingest)
     resample_params = load_section(ResampleParams, "resample", params)
     t_resample = timed(
-        lambda: resample.run(out, tmp / "resampled", tmp / "reports-resample", resample_params)
+        lambda: resample_report.write_reports(
+            resample.run(out, tmp / "resampled", resample_params),
+            tmp / "resampled",
+            tmp / "reports-resample",
+            resample_params,
+        )
     )
 
     med_i, med_r, med_u = (statistics.median(t) for t in (t_ingest, t_resample, t_reuse))
@@ -125,7 +134,7 @@ def bench_dvc(tmp: Path) -> None:
     n_train = sum(name.startswith("train@") for name in stages_all(root))
     parts = {
         f"train x{n_train}": dvc(root, "repro", "--glob", "train@*"),
-        **{name: dvc(root, "repro", name) for name in ("cues", "evaluate", "register")},
+        **{name: dvc(root, "repro", name) for name in ("predict", "cues", "evaluate", "report", "register")},
     }
     rest = sum(parts.values())
     noop_all = timed(lambda: dvc(root, "repro"))

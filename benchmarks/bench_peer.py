@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.config import load_section
-from pipeline.evaluate import nrmse_pct
-from pipeline.models import FNNParams, channels_of, fit
+from pipeline.config import FNNParams, load_section
+from pipeline.metrics.scores import nrmse_pct
+from pipeline.modelling.fit import fit
+from pipeline.vocab import channels_of
 
 DATA = Path("data/processed")
 TARGETS = ["fx", "fy", "fz"]

@@ -18,8 +18,8 @@ def simulate(
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Write simulated rig-log/1 batches, as configured in params.yaml's `simulate` section."""
-    from pipeline import simulate as stage
     from pipeline.config import SimulateParams, load_section
+    from pipeline.sim import rig as stage
 
     p = load_section(SimulateParams, "simulate", params) if params.exists() else SimulateParams()
     try:
@@ -39,8 +39,8 @@ def simulate_batch(
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Simulate one new tissue cast recorded with the same estimator, as a lab would deliver it."""
-    from pipeline import simulate as stage
     from pipeline.config import SimulateParams, load_section
+    from pipeline.sim import rig as stage
 
     p = load_section(SimulateParams, "simulate", params) if params.exists() else SimulateParams()
     try:
@@ -77,7 +77,7 @@ def check(
 ) -> None:
     """Check rig-log/1 folders without running the pipeline; exit 1 if anything would be set aside."""
     from pipeline.config import IngestParams, load_section
-    from pipeline.ingest import check_folders
+    from pipeline.rig.ingest import check_folders
 
     p = load_section(IngestParams, "ingest", params) if params.exists() else IngestParams()
     missing = [d for d in raw_dirs if not d.is_dir()]
@@ -117,9 +117,10 @@ def replay(
     """
     import pandas as pd
 
-    from pipeline import client as fc
-    from pipeline.models import channels_of
-    from pipeline.registry import RegistryUnreachable
+    from pipeline.client import ForceClient
+    from pipeline.client import replay as rp
+    from pipeline.registry.store import RegistryUnreachable
+    from pipeline.vocab import channels_of, rate_hz
 
     def fail(message: str, code: int = 1) -> typer.Exit:
         typer.echo(f"error: {message}", err=True)
@@ -144,31 +145,31 @@ def replay(
 
     try:
         if model_dir is not None:
-            client = fc.ForceClient.from_dir(model_dir)
+            client = ForceClient.from_dir(model_dir)
             if angle is not None and client.angle_deg != angle:
                 raise fail(f"--angle {angle:g} but the model in {model_dir} is for {client.angle_deg:g}°")
         else:
             assert angle is not None
-            client = fc.ForceClient.from_registry(angle, alias)
-        client.check_stream(channels_of(rows), fc.stream_rate_hz(rows["t_s"].to_numpy()))
-        result = fc.replay(rows, client)
+            client = ForceClient.from_registry(angle, alias)
+        client.check_stream(channels_of(rows), rate_hz(rows["t_s"].to_numpy()))
+        result = rp.replay(rows, client)
     except RegistryUnreachable as e:
         raise fail(str(e), 2) from e
     except (FileNotFoundError, ValueError, LookupError) as e:  # incl. StreamMismatch, ModelNotFound
         raise fail(str(e)) from e
 
     typer.echo(f"{key}: {len(result)} samples through {client.name}, preset angle {client.angle_deg:g}°")
-    changes = fc.cue_changes(result)
+    changes = rp.cue_changes(result)
     if changes.empty:
         typer.echo("no cues: the model was registered without a cue pack")
     for row in changes.itertuples(index=False):
         est = "     -" if pd.isna(row.angle_est_deg) else f"{row.angle_est_deg:5.0f}°"
         typer.echo(f"{row.t_s:8.2f} s  {row.cue:<8}  angle {est}  {row.reason}")
-    errors = fc.rmse(result)
+    errors = rp.rmse(result)
     summary = ", ".join(f"{c} {v:.4f} N" for c, v in errors.items()) if errors else "no reference force"
     typer.echo(f"RMSE vs reference: {summary}")
     png = out or Path(f"replay-{batch}-{tid}.png")
-    fc.plot_replay(result, png, f"{key} through {client.name}, preset {client.angle_deg:g}°")
+    rp.plot_replay(result, png, f"{key} through {client.name}, preset {client.angle_deg:g}°")
     typer.echo(f"wrote {png}")
 
 
@@ -180,8 +181,8 @@ def rollback(
     ] = None,
 ) -> None:
     """Move `needle-force-<angle>@champion` back to an earlier version (exit 1: refused, 2: offline)."""
-    from pipeline.register import rollback as do_rollback
-    from pipeline.registry import RegistryUnreachable, model_name
+    from pipeline.registry.store import RegistryUnreachable, model_name
+    from pipeline.registry.versions import rollback as do_rollback
 
     try:
         old, new = do_rollback(angle, to)

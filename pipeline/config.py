@@ -6,11 +6,12 @@ stage starts, instead of silently falling back to a default.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
-from typing import TypeVar
+from typing import Annotated, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 DEFAULT_PARAMS = Path("params.yaml")
 
@@ -31,7 +32,7 @@ class EffectScales(Section):
     """`simulate.effects`: each physical effect of the rig simulator, 1 = as measured, 0 = off.
 
     Tests switch effects off one at a time to isolate them; nobody tunes them to flatter a
-    model. Where each default comes from is documented in `pipeline/physics.py`.
+    model. Where each default comes from is documented in `docs/physics.md` and `pipeline/sim/physics.py`.
     """
 
     tissue_inhomogeneity: float = Field(1.0, ge=0)
@@ -91,6 +92,109 @@ class SplitParams(Section):
     val_fraction: float = Field(0.05, ge=0, lt=1)
     test_fraction: float = Field(0.10, ge=0, lt=1)
     external_batches: tuple[str, ...] = ("*heldout*",)
+
+
+class TrainParams(Section):
+    """`train`: the matrix of per-angle models (dvc.yaml: train@<angle>-<model>)."""
+
+    angles: tuple[float, ...] = (0, 15, 30, 45, 60, 75)
+    models: tuple[str, ...] = ("ls", "fnn", "lstm")
+
+
+class EvaluateParams(Section):
+    """`evaluate`: which angle gaps are summarised as in the paper's Table II."""
+
+    gaps_deg: tuple[float, ...] = Field((15, 30), min_length=1)
+
+
+class LSParams(Section):
+    """`ls`: the calibration matrix of eq. (1)-(2)."""
+
+    fit_intercept: bool = False  # the paper's F = C v has none; zero volts -> zero force
+
+
+class FNNParams(Section):
+    """`fnn`: the paper's feed-forward network on the current voltages."""
+
+    hidden: tuple[Annotated[int, Field(ge=1)], ...] = (20, 20)
+    activation: Literal["tanh", "relu"] = "tanh"
+    lr: float = Field(0.003, gt=0)
+    weight_decay: float = Field(0.0, ge=0)
+    batch_size: int = Field(256, ge=1)
+    max_epochs: int = Field(300, ge=1)
+    patience: int = Field(25, ge=1, description="epochs without a better validation loss before stopping")
+    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
+    seed: int = 0
+
+
+class LSTMParams(Section):
+    """`lstm`: an LSTM on a window of the estimator's own recent voltages."""
+
+    window: int = Field(15, ge=1, description="samples, including the current one")
+    hidden: int = Field(24, ge=1)
+    layers: int = Field(1, ge=1)
+    lr: float = Field(0.005, gt=0)
+    weight_decay: float = Field(0.0, ge=0)
+    batch_size: int = Field(128, ge=1)
+    max_epochs: int = Field(60, ge=1)
+    patience: int = Field(10, ge=1, description="epochs without a better validation loss before stopping")
+    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
+    seed: int = 0
+
+
+PARAMS_MODELS: dict[str, type[Section]] = {"ls": LSParams, "fnn": FNNParams, "lstm": LSTMParams}
+
+
+class CuesParams(Section):
+    """`cues`: the simulator's angle cues (pipeline/cues/)."""
+
+    kinds: tuple[Literal["ls", "fnn", "lstm"], ...] = Field(("ls", "fnn", "lstm"), min_length=1)
+    # deviation bands: |angle - preset| below continue_below_deg -> continue, from stop_from_deg -> stop
+    continue_below_deg: float = Field(7.5, gt=0)
+    stop_from_deg: float = Field(22.5, gt=0)
+    # contact: any channel's |log(v / rest mean)| above contact_threshold for contact_samples frames
+    contact_threshold: float = Field(0.02, gt=0)
+    contact_samples: int = Field(2, ge=1)
+    min_rest_s: float = Field(0.3, ge=0, description="rest reading needed before a contact or a cue")
+    # angle estimator: one LDA per evidence stage (rest, then each loading level reached)
+    evidence_levels: tuple[float, ...] = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
+    lda_shrinkage: Literal["auto"] | float = "auto"
+    calibrate_temperature: bool = True
+    min_stage: int = Field(0, ge=0, description="evidence stage needed to leave wait (0: rest reading)")
+    min_confidence: float = Field(0.7, ge=0, le=1)
+    switch_margin: float = Field(0.1, ge=0, le=1)
+    debounce_s: float = Field(0.2, ge=0)
+    # the paper's standard profile and its comparison
+    profile_dt_s: float = Field(0.1, gt=0)
+    profile_horizon_s: float = Field(10.0, gt=0)
+    profile_floor_n: float = Field(0.05, gt=0, description="added in quadrature to the profile's spread")
+    min_profile_s: float = Field(1.0, ge=0, description="seconds after contact before the profile cues")
+    profile_hysteresis: float = Field(0.05, ge=0, lt=1)
+    # force in range (combined method)
+    force_check: bool = True
+    force_margin: float = Field(1.5, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> CuesParams:
+        if self.stop_from_deg <= self.continue_below_deg:
+            raise ValueError("stop_from_deg must exceed continue_below_deg")
+        lv = self.evidence_levels
+        if any(x <= 0 for x in lv) or any(b <= a for a, b in itertools.pairwise(lv)):
+            raise ValueError(f"evidence_levels must be positive and increasing, got {list(lv)}")
+        if isinstance(self.lda_shrinkage, float) and not 0 <= self.lda_shrinkage <= 1:
+            raise ValueError("lda_shrinkage is 'auto' or a float in [0, 1]")
+        if self.min_stage > len(lv):
+            raise ValueError(f"min_stage {self.min_stage} exceeds the {len(lv)} evidence levels")
+        return self
+
+
+class RegisterParams(Section):
+    """`register`: which models may be deployed and how a champion is chosen."""
+
+    candidates: tuple[Literal["ls", "fnn", "lstm"], ...] = Field(("ls", "fnn", "lstm"), min_length=1)
+    min_improvement_pct: float = Field(
+        0.0, ge=0, description="NRMSE points (mean of axes) a new version must beat the champion by"
+    )
 
 
 S = TypeVar("S", bound=Section)

@@ -90,8 +90,8 @@ def pending_batches(
 ) -> list[Pending]:
     """New or changed batch folders of `raw_dir`, by the ingest stage's own fingerprints;
     `stage_raw_dir` is `raw_dir` as the stage names it (`data.raw_dir`, relative to the project)."""
-    from pipeline.ingest import FINGERPRINT, fingerprint
-    from pipeline.riglog import batch_dirs
+    from pipeline.rig.format import batch_dirs
+    from pipeline.rig.ingest import FINGERPRINT, fingerprint
 
     out = []
     for batch in batch_dirs(raw_dir):
@@ -111,7 +111,7 @@ def pending_batches(
 
 def check_pending(pending: list[Pending], params: IngestParams) -> list[Pending]:
     """Each pending batch with the problems `needlecue check` finds in it (empty: fine)."""
-    from pipeline.ingest import check_folders
+    from pipeline.rig.ingest import check_folders
 
     return [
         Pending(p.batch_id, p.path, p.status, [str(x) for x in check_folders([Path(p.path)], params)])
@@ -205,7 +205,7 @@ def dvc_repro(root: Path, log: Log) -> tuple[int, list[str], list[str]]:
         if line.startswith("Running stage '"):
             ran.append(line.split("'")[1])
             log(f"dvc: {line}")
-        elif line.startswith(("ERROR", "ingest [", "register:", "cues: error", "train: error")):
+        elif line.startswith(("ERROR", "ingest [", "register:")) or ": error:" in line:
             log(f"dvc: {line}")
         tail = [*tail[-39:], line]
     return proc.wait(), ran, tail

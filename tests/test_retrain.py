@@ -33,7 +33,7 @@ def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> Non
 
 def test_pending_batches_are_the_new_and_the_changed(tmp_path: Path) -> None:
     # given: a raw folder with one batch the last ingest has seen, and an ingest record of it
-    from pipeline.ingest import ingest_batches
+    from pipeline.rig.ingest import ingest_batches
 
     raw, ingested = tmp_path / "raw", tmp_path / "ingested"
     shutil.copytree(LAB_BATCH, raw / "lab-bench-a")

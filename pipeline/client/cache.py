@@ -1,0 +1,245 @@
+"""Fetching a registered force model into the simulator's local cache.
+
+`fetch` resolves `models:/needle-force-<angle>@<alias>` in the registry and keeps one copy per (model,
+alias) under the cache folder: `<cache>/needle-force-<angle>/<alias>/` holding MLmodel, model.onnx and
+version.json (what was fetched, from where and when). A copy is downloaded only when the alias points
+elsewhere, into a temp sibling swapped in by renames, so a reader never sees half a model. When the
+registry cannot be reached the cached copy is used with a warning, so a simulator keeps working
+offline. `poll_alias` is the quick "where does the alias point now" request of a client that follows
+its alias. mlflow is imported inside the functions that talk to the registry.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pipeline.registry import store
+from pipeline.vocab import DEPLOY_FORMAT, file_sha256
+
+# One logger for the whole client, named as before it was split into modules (log configs keep working).
+log = logging.getLogger("pipeline.client")
+
+DEFAULT_CACHE = Path("~/.cache/needlecue/models").expanduser()
+CACHE_ENV = "NEEDLECUE_MODEL_CACHE"
+VERSION_FILE = "version.json"
+# A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
+# gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
+_POLL_HTTP_ENV = {"MLFLOW_HTTP_REQUEST_TIMEOUT": "2", "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
+
+
+class ModelNotFound(LookupError):
+    """The registry answered, but holds no model version under that name and alias."""
+
+
+def default_cache_dir() -> Path:
+    """`$NEEDLECUE_MODEL_CACHE` if set, else `~/.cache/needlecue/models` (read at call time)."""
+    env = os.environ.get(CACHE_ENV)
+    return Path(env).expanduser() if env else DEFAULT_CACHE
+
+
+def read_version(folder: Path) -> dict[str, Any] | None:
+    """The folder's version.json, or None if it is missing or unreadable (then it is no usable copy)."""
+    try:
+        info = json.loads((folder / VERSION_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return info if isinstance(info, dict) else None
+
+
+def read_metadata(model_dir: Path) -> dict[str, Any]:
+    """The `needlecue` block of a model folder's MLmodel (plain YAML: no mlflow import, no pickle)."""
+    mlmodel = model_dir / "MLmodel"
+    if not mlmodel.is_file():
+        raise FileNotFoundError(f"{model_dir} is not a fetched model folder: it has no MLmodel file")
+    try:
+        spec = yaml.safe_load(mlmodel.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ValueError(f"{mlmodel}: not valid YAML: {e}") from e
+    meta = (spec.get("metadata") or {}).get("needlecue")
+    if not isinstance(meta, dict) or meta.get("format") != DEPLOY_FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else None
+        raise ValueError(
+            f"{mlmodel}: no {DEPLOY_FORMAT} block under metadata.needlecue (found format {found!r}); "
+            "was this model logged with pipeline.modelling.export.log_onnx_model?"
+        )
+    return meta
+
+
+@contextlib.contextmanager
+def _env(values: dict[str, str]) -> Iterator[None]:
+    """Set environment variables for the block; each restored (or removed) after it."""
+    before = {key: os.environ.get(key) for key in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for key, value in before.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def _quiet_downloads() -> contextlib.AbstractContextManager[None]:
+    """No tqdm progress bar per download (it would spam a simulator's console); env restored after."""
+    return _env({"MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"})
+
+
+def fetch(
+    angle_deg: float,
+    alias: str = store.CHAMPION,
+    *,
+    cache_dir: Path | None = None,
+    tracking_uri: str | None = None,
+) -> Path:
+    """The local folder of `models:/needle-force-<angle>@<alias>`: `<cache_dir>/needle-force-<angle>/<alias>/`
+    (MLmodel, model.onnx, version.json), downloaded unless the cached copy is already that version.
+
+    Unreachable registry: the cached copy is used with a warning, or `RegistryUnreachable` is raised
+    naming the URI and the cache path if there is none. `ModelNotFound` if the registry has no such
+    alias. `cache_dir` defaults to `default_cache_dir()`.
+    """
+    name = store.model_name(angle_deg)
+    uri = store.model_uri(angle_deg, alias)
+    target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
+    registry_uri = tracking_uri or store.tracking_uri()
+    cached = read_version(target)
+    try:
+        client = store.connect(registry_uri, must_exist=True)
+        mv = _resolve(client, name, alias, registry_uri)
+    except store.RegistryUnreachable as e:
+        return _offline_copy(target, cached, uri, e)
+
+    if (
+        cached is not None
+        and cached.get("name") == name
+        and str(cached.get("version")) == str(mv.version)
+        # version numbers restart in every store: the source (models:/m-<id>) tells two stores' "v1" apart
+        and cached.get("source") == mv.source
+        and (target / "model.onnx").is_file()
+        and file_sha256([target / "model.onnx"]) == cached.get("onnx_sha256")
+    ):
+        return target  # already that version, intact: no download
+    try:
+        return _download(mv, alias, target, registry_uri)
+    except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
+        return _offline_copy(target, cached, uri, e)
+
+
+def poll_alias(name: str, alias: str, tracking_uri: str) -> Any:
+    """The ModelVersion `name@alias` points to now, asked in one quick request (short timeout, no
+    retries over HTTP). `RegistryUnreachable` or `ModelNotFound` as for `fetch`."""
+    with _env(_POLL_HTTP_ENV):
+        return _resolve(store.connect(tracking_uri, must_exist=True), name, alias, tracking_uri)
+
+
+def _resolve(client: Any, name: str, alias: str, registry_uri: str) -> Any:
+    """The ModelVersion behind `name@alias`; `ModelNotFound` if the registry has none, and
+    `RegistryUnreachable` for any other failure of the registry."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        mv = store.alias_version(client, name, alias)
+    except MlflowException as e:
+        raise store.RegistryUnreachable(
+            f"registry at {registry_uri} failed to resolve {name}@{alias}: {e}"
+        ) from e
+    except Exception as e:  # e.g. a connection dropped after connect() succeeded
+        raise store.RegistryUnreachable(f"registry at {registry_uri}: {type(e).__name__}: {e}") from e
+    if mv is None:
+        raise ModelNotFound(
+            f"the registry at {registry_uri} has no version of {name!r} with the alias {alias!r}; "
+            "run `make repro` to train and register the models"
+        )
+    return mv
+
+
+def _offline_copy(target: Path, cached: dict[str, Any] | None, uri: str, error: Exception) -> Path:
+    """The cached copy, with a warning, when the registry cannot be used; else a clear error."""
+    if cached is None:
+        raise store.RegistryUnreachable(
+            f"cannot fetch {uri}: {error}; and there is no local copy at {target}"
+        ) from error
+    log.warning(
+        "offline: %s; using the local copy of %s (version %s, fetched %s) at %s",
+        error,
+        uri,
+        cached.get("version"),
+        cached.get("fetched_utc"),
+        target,
+    )
+    return target
+
+
+def _download(mv: Any, alias: str, target: Path, registry_uri: str) -> Path:
+    """Download a model version into a temp sibling of `target`, then swap it in (never a partial copy)."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{alias}-download-", dir=target.parent))
+    tmp.chmod(0o755)  # mkdtemp's 0700 would hide a shared cache's copy from other users
+    try:
+        with _quiet_downloads():
+            # by version, not alias: the alias may move between resolving it and downloading
+            try:
+                mlflow.artifacts.download_artifacts(
+                    artifact_uri=f"models:/{mv.name}/{mv.version}",
+                    dst_path=str(tmp),
+                    tracking_uri=registry_uri,
+                )
+            except MlflowException as e:
+                raise store.RegistryUnreachable(
+                    f"downloading {mv.name} version {mv.version} from {registry_uri} failed: {e}"
+                ) from e
+        missing = [f for f in ("MLmodel", "model.onnx") if not (tmp / f).is_file()]
+        if missing:  # a broken registered model is an error, not a reason to go offline
+            raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
+        meta = read_metadata(tmp)
+        info = {
+            "name": mv.name,
+            "version": str(mv.version),
+            "alias": alias,
+            "run_id": mv.run_id,
+            "source": mv.source,
+            "checkpoint_sha256": meta.get("checkpoint_sha256"),
+            "onnx_sha256": file_sha256([tmp / "model.onnx"]),
+            "tracking_uri": registry_uri,
+            "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        (tmp / VERSION_FILE).write_text(json.dumps(info, indent=2) + "\n")
+        _swap_in(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+def _swap_in(new: Path, target: Path) -> None:
+    """Replace folder `target` by `new` with renames (atomic per rename; a reader sees old or new)."""
+    old = None
+    if target.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{target.name}-old-", dir=target.parent))
+        os.replace(target, old / "copy")
+    try:
+        os.replace(new, target)
+    except OSError:
+        # another process swapped in its own download meanwhile: keep theirs, it is as fresh as ours
+        if read_version(target) is None:
+            if old is not None and not target.exists():
+                os.replace(old / "copy", target)  # put the previous copy back rather than none
+            raise
+        shutil.rmtree(new, ignore_errors=True)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

@@ -1,0 +1,360 @@
+"""Scoring the cues: for every preset angle A and every held-out (external) trial of every true
+angle B, a tracker fed the preset model's stored predictions frame by frame, scored against the
+truth (|B - A| = 0 -> continue, 15 -> correct, >= 30 -> stop): confusion matrices (at the end of
+the insertion and per frame during it), accuracy, and the seconds into the insertion until the cue
+is right and stays right to the end. The insertion's start and end come from the `phase` column
+(labelled from the reference force), for scoring only; the tracker never sees them.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import CuesParams
+from pipeline.cues.tracker import CUES, METHODS, REFERENCE, VERDICTS, CueTracker, cue_for_deviation
+from pipeline.cues.trials import Trial, trials_of
+from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
+
+DEVIATION_GROUPS = ("0", "15", "30", ">=45")
+T = TypeVar("T")
+# The tracker is pure Python, one frame at a time: scoring ~1M frames is the stage's work, so it
+# runs on both cores of the 2-core machines this project targets.
+WORKERS = min(2, os.cpu_count() or 1)
+DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages
+Log = Callable[[str], None]
+# (kind, preset angle, true angle) -> the preset model's forces on that angle's external frame
+ForcesOf = Callable[[str, float, float], np.ndarray | None]
+
+
+def deviation_group(dev_deg: float) -> str:
+    d = round(abs(dev_deg), 6)
+    return "0" if d == 0 else "15" if d == 15 else "30" if d == 30 else ">=45"
+
+
+@dataclass
+class Run:
+    """One tracker run on one trial: the shown cue per frame (codes into CUES)."""
+
+    kind: str
+    method: str
+    preset: float
+    true_angle: float
+    t: np.ndarray
+    codes: np.ndarray
+    ins_start: int
+    ins_end: int
+    angle_est: float | None = None
+    alarm: bool = False
+
+
+def _pct(values: Sequence[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+def time_to_cue(t: np.ndarray, right: np.ndarray, start: int, end: int) -> float | None:
+    """Seconds from frame `start` until the cue is right and stays right through frame `end`
+    (0 if right throughout; None if wrong at `end`)."""
+    ok = right[start : end + 1]
+    if not len(ok) or not ok[-1]:
+        return None
+    wrong = np.flatnonzero(~ok)
+    return 0.0 if not len(wrong) else float(t[start + wrong[-1] + 1] - t[start])
+
+
+def summarise_runs(
+    runs: Sequence[Run], continue_below: float = 7.5, stop_from: float = 22.5
+) -> dict[str, Any]:
+    """Confusion matrices, accuracy and time to cue of tracker runs, per (kind, method)."""
+    out: dict[str, Any] = {}
+    for run in runs:
+        true = VERDICTS.index(cue_for_deviation(run.true_angle - run.preset, continue_below, stop_from)) + 1
+        d = out.setdefault(run.kind, {}).setdefault(
+            run.method,
+            {
+                "final": np.zeros((3, 4), dtype=np.int64),
+                "frames": np.zeros((3, 4), dtype=np.int64),
+                "ttc": {g: [] for g in DEVIATION_GROUPS},
+                "n": {g: 0 for g in DEVIATION_GROUPS},
+                "right_final": {g: 0 for g in DEVIATION_GROUPS},
+                "alarms": 0,
+            },
+        )
+        seg = run.codes[run.ins_start : run.ins_end + 1]
+        d["final"][true - 1, run.codes[run.ins_end]] += 1
+        d["frames"][true - 1] += np.bincount(seg, minlength=4)
+        g = deviation_group(run.true_angle - run.preset)
+        d["n"][g] += 1
+        d["right_final"][g] += int(run.codes[run.ins_end] == true)
+        d["alarms"] += int(run.alarm)
+        ttc = time_to_cue(run.t, run.codes == true, run.ins_start, run.ins_end)
+        d["ttc"][g].append(ttc)
+    result: dict[str, Any] = {}
+    for kind, methods in out.items():
+        for method, d in methods.items():
+            fin, frm = d["final"], d["frames"]
+            ttc = {}
+            for g in DEVIATION_GROUPS:
+                vals = [v for v in d["ttc"][g] if v is not None]
+                ttc[g] = {
+                    "trials": d["n"][g],
+                    "right_at_end": d["right_final"][g],
+                    "never_right": d["n"][g] - len(vals),
+                    "median_s": _pct(vals, 50),
+                    "p90_s": _pct(vals, 90),
+                    "seconds": sorted(vals),
+                }
+            per_class = {
+                c: (float(fin[i, i + 1] / fin[i].sum()) if fin[i].sum() else None)
+                for i, c in enumerate(VERDICTS)
+            }
+            result.setdefault(kind, {})[method] = {
+                "confusion_final": {
+                    "rows_true": list(VERDICTS),
+                    "cols_cue": list(CUES),
+                    "counts": fin.tolist(),
+                },
+                "confusion_frames": {
+                    "rows_true": list(VERDICTS),
+                    "cols_cue": list(CUES),
+                    "counts": frm.tolist(),
+                },
+                "accuracy_final": float(np.trace(fin[:, 1:]) / fin.sum()) if fin.sum() else None,
+                "accuracy_frames": float(np.trace(frm[:, 1:]) / frm.sum()) if frm.sum() else None,
+                "recall_final": per_class,
+                "time_to_cue": ttc,
+                "force_alarm_trials": d["alarms"] if method == "combined" else None,
+            }
+    return result
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One model kind at one preset, tracked on every external trial it has forces for."""
+
+    kind: str
+    preset: float
+    pack: Mapping[str, Any]
+    methods: tuple[str, ...]
+    on: list[tuple[float, list[Trial], list[np.ndarray]]]  # (true angle, its trials, forces per trial)
+    with_estimator: bool
+    count_estimates: bool  # the angle-estimate matrix is counted once: reference force, first preset
+
+
+def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]:
+    """Feed every trial of `job` frame by frame through a fresh tracker: (runs, angle estimates at
+    the insertion end, tracker updates, seconds spent in them)."""
+    runs: list[Run] = []
+    estimates: list[tuple[float, float]] = []
+    n_updates, seconds = 0, 0.0
+    kinds = job.pack["thresholds"]["profile"]
+    for a, trials, forces in job.on:
+        for tr, f in zip(trials, forces, strict=True):
+            tracker = CueTracker(job.pack, job.preset, model_kind=job.kind if job.kind in kinds else None)
+            n = tr.ins_end + 1
+            codes = {m: np.zeros(n, dtype=np.int64) for m in METHODS}
+            alarm = False
+            t0 = time.perf_counter()
+            for i in range(n):
+                tracker.update(tr.t[i], tr.volts[i], f[i])
+                st = tracker.states
+                codes["combined"][i] = CUES.index(st["combined"].cue)
+                codes["paper"][i] = CUES.index(st["paper"].cue)
+                alarm |= tracker.force_alarm
+            seconds += time.perf_counter() - t0
+            n_updates += n
+            est = tracker.states["combined"].angle_est_deg
+            for m in job.methods:
+                if m == "combined" and not job.with_estimator:
+                    continue
+                combined = m == "combined"
+                runs.append(
+                    Run(
+                        job.kind,
+                        m,
+                        job.preset,
+                        a,
+                        tr.t,
+                        codes[m],
+                        tr.ins_start,
+                        tr.ins_end,
+                        est if combined else None,
+                        alarm and combined,
+                    )
+                )
+            if job.count_estimates and job.with_estimator:
+                estimates.append((a, est if est is not None else math.nan))
+    return runs, estimates, n_updates, seconds
+
+
+def _map(fn: Callable[[_Job], T], jobs: Sequence[_Job]) -> list[T]:
+    """`fn` over `jobs` in order, on WORKERS processes (fresh interpreters: nothing inherited but the
+    jobs themselves); the results do not depend on how many."""
+    if WORKERS < 2 or len(jobs) < 2:
+        return [fn(job) for job in jobs]
+    with ProcessPoolExecutor(WORKERS, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return list(pool.map(fn, jobs))
+
+
+def evaluate_cues(
+    external: Mapping[float, pd.DataFrame],
+    params: CuesParams,
+    packs: Mapping[float, Mapping[str, Any]],
+    forces_of: ForcesOf,
+    *,
+    log: Log,
+) -> dict[str, Any]:
+    """Cue quality on the external trials of every angle, for every preset angle with a pack.
+
+    `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
+    angle's `kind` model's forces on that frame, rows in frame order (None: no such model).
+    Without external trials with an insertion phase there is nothing to score: the result is
+    `skipped_evaluation(reason)`. The combined method is scored only with an angle estimator."""
+    external = {float(a): f for a, f in external.items() if len(f)}
+    if not external:
+        return skipped_evaluation("no external trials (no <angle>/external.parquet with rows)", packs, params)
+    if not packs:
+        return skipped_evaluation("no cue pack", packs, params)
+    first = next(iter(packs.values()))
+    channels = list(first["channels"])
+    trials: dict[float, list[Trial]] = {}
+    for a, f in external.items():
+        missing = [c for c in channels if c not in f.columns]
+        if missing:
+            raise ValueError(f"the {angle_name(a)}° external set lacks channel(s) {missing}")
+        keep = [tr for tr in trials_of(f, channels, a) if tr.ins_start >= 0]
+        if len(keep) < f.groupby(list(TRIAL_KEY)).ngroups:
+            log(f"warning: {angle_name(a)}°: trials without an insertion phase skipped")
+        trials[a] = keep
+    if not any(trials.values()):
+        return skipped_evaluation(
+            "no external trial has frames labelled 'insertion' (nothing to score)", packs, params
+        )
+    with_estimator = all(p.get("angle_estimator") for p in packs.values())
+    jobs: list[_Job] = []
+    for preset, pack in sorted(packs.items()):
+        # the paper's comparison on the measured force: not deployable, its upper bound
+        on = [(a, trials[a], [tr.force for tr in trials[a]]) for a in external]
+        jobs.append(_Job(REFERENCE, preset, pack, ("paper",), on, with_estimator, preset == min(packs)))
+    for kind in params.kinds:
+        for preset, pack in sorted(packs.items()):
+            on = []
+            for a in external:
+                forces = forces_of(kind, preset, a)
+                if forces is None:
+                    where = f"the {angle_name(preset)}° model on {angle_name(a)}°"
+                    log(f"warning: no {kind} predictions of {where}")
+                    continue
+                on.append((a, trials[a], [forces[tr.rows] for tr in trials[a]]))
+            jobs.append(_Job(kind, preset, pack, METHODS, on, with_estimator, False))
+    runs: list[Run] = []
+    angle_conf: dict[tuple[float, float], int] = {}
+    n_updates, seconds = 0, 0.0
+    for job, (job_runs, estimates, n, busy) in zip(jobs, _map(_track, jobs), strict=True):
+        runs += job_runs
+        for key in estimates:
+            angle_conf[key] = angle_conf.get(key, 0) + 1
+        n_updates, seconds = n_updates + n, seconds + busy
+        if job.kind != REFERENCE:
+            trials_seen = sum(len(tr) for _, tr, _ in job.on)
+            log(f"{job.kind} at {angle_name(job.preset)}°: {trials_seen} trials ({busy:.1f} s)")
+    if n_updates:
+        log(
+            f"{n_updates} tracker updates, {1e6 * seconds / n_updates:.1f} µs each on average "
+            f"(including the evaluation loop; {WORKERS} worker process(es))"
+        )
+    summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg)
+    classes = sorted(external)
+    out = {
+        "format": "needlecue-cues-eval/1",
+        "kinds": [k for k in params.kinds if k in summary],
+        "reference": "results.reference.paper: the profile comparison on the measured reference force "
+        "instead of a model's prediction (not deployable: the upper bound of the paper's method)",
+        "presets_deg": sorted(float(a) for a in packs),
+        "true_angles_deg": classes,
+        "external_trials": {angle_name(a): len(trials[a]) for a in classes},
+        "truth": f"|true - preset| < {params.continue_below_deg:g}° continue, < {params.stop_from_deg:g}° "
+        "correct, else stop; scored from the first to the last frame labelled 'insertion'",
+        "angle_estimate_at_insertion_end": _angle_matrix(classes, packs, angle_conf)
+        if with_estimator
+        else None,
+        "results": summary,
+    }
+    unavailable = _unavailable(packs)
+    if unavailable:
+        out["unavailable"] = unavailable
+    return out
+
+
+def _angle_matrix(
+    classes: Sequence[float], packs: Mapping[float, Mapping[str, Any]], angle_conf: Mapping[tuple, int]
+) -> dict[str, Any]:
+    est_classes = sorted({float(c) for p in packs.values() for c in p["angle_estimator"]["classes_deg"]})
+    angle_matrix = [[angle_conf.get((a, e), 0) for e in est_classes] for a in classes]
+    return {
+        "rows_true_deg": list(classes),
+        "cols_estimated_deg": est_classes,
+        "counts": angle_matrix,
+        "exact": _ratio(
+            sum(
+                angle_matrix[i][j] for i, a in enumerate(classes) for j, e in enumerate(est_classes) if a == e
+            ),
+            angle_matrix,
+        ),
+        "within_15": _ratio(
+            sum(
+                angle_matrix[i][j]
+                for i, a in enumerate(classes)
+                for j, e in enumerate(est_classes)
+                if abs(a - e) <= 15 + 1e-9
+            ),
+            angle_matrix,
+        ),
+    }
+
+
+def _unavailable(packs: Mapping[float, Mapping[str, Any]]) -> dict[str, dict[str, str]]:
+    """{preset angle: {what: why}} over the packs that lack something."""
+    return {angle_name(a): dict(p["unavailable"]) for a, p in sorted(packs.items()) if p.get("unavailable")}
+
+
+def skipped_evaluation(
+    reason: str, packs: Mapping[float, Mapping[str, Any]], params: CuesParams
+) -> dict[str, Any]:
+    """The evaluation.json of a stage that could not score the cues, saying why."""
+    out: dict[str, Any] = {
+        "format": "needlecue-cues-eval/1",
+        "skipped": reason,
+        "kinds": [],
+        "presets_deg": sorted(float(a) for a in packs),
+        "model_kinds_asked": list(params.kinds),
+        "results": {},
+    }
+    unavailable = _unavailable(packs)
+    if unavailable:
+        out["unavailable"] = unavailable
+    return out
+
+
+def _ratio(num: int, matrix: list[list[int]]) -> float | None:
+    total = sum(map(sum, matrix))
+    return num / total if total else None
+
+
+# ---------------------------------------------------------------------------------------------
+# Outputs
+# ---------------------------------------------------------------------------------------------
+
+
+def evaluation_json(evaluation: Mapping[str, Any]) -> str:
+    """Deterministic text of evaluation.json."""
+    return dump_json(evaluation, DIGITS, indent=1)

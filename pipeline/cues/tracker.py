@@ -1,0 +1,461 @@
+"""The cue tracker that runs live in the simulator: one frame at a time, strictly causal.
+
+The paper ends with two rules for the simulator: at the preset angle with the force in range,
+tell the trainee to *continue*; off the preset angle, tell them to *correct* (about 15° off) or
+to *stop* (30° or more), judged from the predicted force profile. The tracker computes both cue
+methods every frame from a *cue pack* (`pipeline.cues.fit.build_cue_pack`):
+
+- **paper** (profile comparison alone): a running, spread-normalised RMS distance between the
+  predicted force and the preset angle's *standard profile*, cut by two calibrated thresholds;
+- **combined** (ours): the estimator's own volts say at which angle it is held (the needle's weight
+  at rest, then the direction the voltages move as the load builds), through one linear
+  discriminant per evidence stage, plus the profile's "force in range" check.
+
+Both are debounced (a new cue must hold `debounce_s` before it is shown) with hysteresis. Numpy and
+the params model only: the simulator's client imports this module and nothing of the training code.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pipeline.config import CuesParams
+
+FORMAT = "needlecue-cues/1"
+CUES = ("wait", "continue", "correct", "stop")
+VERDICTS = CUES[1:]  # the cues a deviation maps to
+METHODS = ("combined", "paper")
+DEVIATION_GROUPS = ("0", "15", "30", ">=45")
+REFERENCE = "reference"  # profile thresholds calibrated on the reference force (no model)
+MIN_VOLTS = 1e-3  # floor before taking logs (an unloaded FSR reads a few mV)
+
+
+def cue_for_deviation(dev_deg: float, continue_below: float = 7.5, stop_from: float = 22.5) -> str:
+    """continue / correct / stop for an absolute angle deviation in degrees."""
+    d = abs(dev_deg)
+    return "continue" if d < continue_below else ("correct" if d < stop_from else "stop")
+
+
+def _floats(x: Any) -> list[float]:
+    return x.tolist() if isinstance(x, np.ndarray) else [float(v) for v in x]
+
+
+# ---------------------------------------------------------------------------------------------
+# Causal evidence: rest reading, contact, loading snapshots (shared by build and tracker)
+# ---------------------------------------------------------------------------------------------
+
+
+class Evidence:
+    """What the estimator's volts say so far. `push` one frame at a time; True if the features
+    changed (the rest mean moved, or a new loading level was reached)."""
+
+    __slots__ = (
+        "contact_i",
+        "contact_t",
+        "levels",
+        "min_rest_s",
+        "n_ch",
+        "n_confirm",
+        "pending",
+        "rest",
+        "rest_n",
+        "rest_sum",
+        "snaps",
+        "t_first",
+        "thr",
+    )
+
+    def __init__(self, n_ch: int, levels: Sequence[float], thr: float, n_confirm: int, min_rest_s: float):
+        self.n_ch, self.levels, self.thr = n_ch, tuple(levels), thr
+        self.n_confirm, self.min_rest_s = n_confirm, min_rest_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.rest_sum = [0.0] * self.n_ch
+        self.rest_n = 0
+        self.t_first: float | None = None
+        self.pending: list[tuple[float, list[float], Any]] = []
+        self.contact_t: float | None = None
+        self.contact_i = -1  # frame index of contact (counted from reset)
+        self.rest: list[float] | None = None  # rest mean, frozen at contact
+        self.snaps: list[list[float]] = []
+
+    @property
+    def stage(self) -> int:
+        return len(self.snaps)
+
+    def rest_mean(self) -> list[float] | None:
+        if self.rest is not None:
+            return self.rest
+        if self.rest_n == 0:
+            return None
+        n = self.rest_n
+        return [s / n for s in self.rest_sum]
+
+    def rest_ready(self, t: float) -> bool:
+        return self.contact_t is not None or (
+            self.t_first is not None and t - self.t_first >= self.min_rest_s - 1e-9 and self.rest_n > 0
+        )
+
+    def features(self) -> list[float] | None:
+        rest = self.rest_mean()
+        if rest is None:
+            return None
+        out = list(rest)
+        for s in self.snaps:
+            out.extend(s)
+        return out
+
+    def push(self, t: float, v: list[float], extra: Any = None, i: int = -1) -> tuple[bool, list]:
+        """Feed one frame. Returns (features changed, frames that became post-contact now: the
+        confirming run, [(t, v, extra)], empty unless contact was just confirmed or already on)."""
+        v = [x if x > MIN_VOLTS else MIN_VOLTS for x in v]
+        if self.contact_t is not None:
+            return self._snap(v), [(t, v, extra)]
+        if self.t_first is None:
+            self.t_first = t
+        if not self.rest_ready(t):
+            self._add_rest(v)
+            return True, []
+        n = self.rest_n
+        dev = max(abs(math.log(x * n / s)) for x, s in zip(v, self.rest_sum, strict=True))
+        if dev > self.thr:
+            self.pending.append((t, v, extra, i))
+            if len(self.pending) < self.n_confirm:
+                return False, []
+            self.rest = [s / n for s in self.rest_sum]
+            self.contact_t, self.contact_i = self.pending[0][0], self.pending[0][3]
+            changed = False
+            run = []
+            for tp, vp, ep, _ in self.pending:
+                changed |= self._snap(vp)
+                run.append((tp, vp, ep))
+            self.pending = []
+            return changed, run
+        for _, vp, _, _ in self.pending:  # the run broke: those were rest after all
+            self._add_rest(vp)
+        self.pending = []
+        self._add_rest(v)
+        return True, []
+
+    def _add_rest(self, v: list[float]) -> None:
+        rs = self.rest_sum
+        for k, x in enumerate(v):
+            rs[k] += x
+        self.rest_n += 1
+
+    def _snap(self, v: list[float]) -> bool:
+        if len(self.snaps) >= len(self.levels):
+            return False
+        s = [math.log(x / r) for x, r in zip(v, self.rest, strict=True)]  # type: ignore[arg-type]
+        norm = math.sqrt(sum(x * x for x in s))
+        changed = False
+        while len(self.snaps) < len(self.levels) and norm >= self.levels[len(self.snaps)]:
+            self.snaps.append(s)
+            changed = True
+        return changed
+
+
+@dataclass(frozen=True)
+class CueState:
+    cue: str  # "wait" | "continue" | "correct" | "stop"
+    angle_est_deg: float | None
+    reason: str
+
+
+class _Debounce:
+    """A new candidate cue is shown once it has been the candidate for `hold_s` seconds."""
+
+    __slots__ = ("hold", "pending", "shown", "since")
+
+    def __init__(self, hold_s: float) -> None:
+        self.hold = hold_s - 1e-9
+        self.reset()
+
+    def reset(self) -> None:
+        self.shown, self.pending, self.since = 0, -1, 0.0
+
+    def step(self, t: float, candidate: int) -> int:
+        if candidate == self.shown:
+            self.pending = -1
+        elif candidate != self.pending:
+            self.pending, self.since = candidate, t
+        if self.pending >= 0 and t - self.since >= self.hold:
+            self.shown, self.pending = self.pending, -1
+        return self.shown
+
+
+def check_pack(pack: Mapping[str, Any]) -> None:
+    if not isinstance(pack, Mapping) or pack.get("format") != FORMAT:
+        got = pack.get("format") if isinstance(pack, Mapping) else type(pack).__name__
+        raise ValueError(f"not a {FORMAT} cue pack (format {got!r})")
+    for key in (
+        "preset_angle_deg",
+        "channels",
+        "standard_profile",
+        "angle_estimator",
+        "thresholds",
+        "params",
+    ):
+        if key not in pack:
+            raise ValueError(f"the cue pack lacks {key!r}")
+
+
+class CueTracker:
+    """Frame-by-frame cues for one insertion at one preset angle (strictly causal).
+
+    `method`: "combined" (angle estimate + force-in-range check, the default) or "paper"
+    (profile comparison alone). Both are computed every frame; `update` returns the chosen one
+    and `states` holds both. `model_kind` picks the paper-method thresholds calibrated for that
+    model ("ls", "fnn", "lstm"; default: the first of the pack's `kinds` it has thresholds for, else
+    those calibrated on the reference force).
+    Call `reset()` at the start of every insertion, with the needle at rest.
+
+    A pack without an angle estimator (`angle_estimator` null: see `unavailable` in the pack) falls
+    back to the paper method for the "combined" cue too, its reason saying that the angle estimate is
+    unavailable; a pack without a standard profile or profile thresholds has no paper-method cue (it
+    stays on "wait", saying why). `angle_unavailable` / `profile_unavailable` hold those reasons.
+    """
+
+    def __init__(
+        self,
+        pack: Mapping[str, Any],
+        preset_angle_deg: float,
+        *,
+        model_kind: str | None = None,
+        method: str = "combined",
+    ) -> None:
+        check_pack(pack)
+        if abs(float(pack["preset_angle_deg"]) - float(preset_angle_deg)) > 1e-6:
+            raise ValueError(
+                f"this cue pack is for the preset angle {pack['preset_angle_deg']:g}°, "
+                f"not {preset_angle_deg:g}°"
+            )
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        self.method = method
+        self.preset = float(preset_angle_deg)
+        p = CuesParams.model_validate(pack["params"])
+        self.params = p
+        missing = pack.get("unavailable") or {}
+        est = pack["angle_estimator"]
+        if est is not None and not est.get("stages"):
+            est = None
+        self.angle_unavailable: str | None = None
+        if est is None:
+            self.angle_unavailable = "angle estimate unavailable: " + str(
+                missing.get("angle_estimator", "the cue pack has no angle estimator")
+            )
+        self.classes = np.asarray(est["classes_deg"] if est else [], dtype=np.float64)
+        self._classes = [float(a) for a in self.classes]
+        stages = est["stages"] if est else []
+        self._w = [np.asarray(s["coef"], dtype=np.float64) for s in stages]
+        self._b = [np.asarray(s["intercept"], dtype=np.float64) for s in stages]
+        self._temp = [float(s["temperature"]) for s in stages]
+        levels = est["levels"] if est else []
+        th = pack["thresholds"]
+        devcls = [
+            VERDICTS.index(cue_for_deviation(a - self.preset, th["continue_below_deg"], th["stop_from_deg"]))
+            for a in self._classes
+        ]
+        self._to_dev = np.zeros((len(self._classes), 3))
+        self._to_dev[np.arange(len(self._classes)), devcls] = 1.0
+        prof = pack["standard_profile"] or {"mean_n": [], "sd_n": [], "floor_n": 1.0, "dt_s": 1.0}
+        self._mean = [tuple(r) for r in prof["mean_n"]]
+        floor2 = float(prof["floor_n"]) ** 2
+        self._isd = [tuple(1.0 / math.sqrt(s * s + floor2) for s in r) for r in prof["sd_n"]]
+        self._dt = float(prof["dt_s"])
+        self._n_prof = len(self._mean)
+        self._horizon = p.profile_horizon_s + 1e-9
+        kinds = th["profile"] or {}
+        self.profile_unavailable: str | None = None
+        if model_kind is None:
+            model_kind = next((k for k in p.kinds if k in kinds), REFERENCE)  # not dict order: JSON sorts
+        if not self._n_prof:
+            self.profile_unavailable = "standard profile unavailable: " + str(
+                missing.get("standard_profile", "the cue pack has none")
+            )
+        elif not kinds:
+            self.profile_unavailable = "profile thresholds unavailable: " + str(
+                missing.get(f"thresholds.profile.{model_kind}", "the cue pack has none")
+            )
+        elif model_kind not in kinds:
+            raise ValueError(
+                f"the cue pack has no profile thresholds for {model_kind!r} (has {sorted(kinds)})"
+            )
+        self.model_kind = model_kind
+        self._t1 = float(kinds[model_kind]["continue_below"]) if model_kind in kinds else math.inf
+        self._t2 = float(kinds[model_kind]["stop_from"]) if model_kind in kinds else math.inf
+        limit = th.get("force_limit_n")
+        self._force_limit2 = float(limit) ** 2 if p.force_check and limit is not None else math.inf
+        self._ev = Evidence(
+            len(pack["channels"]), levels, p.contact_threshold, p.contact_samples, p.min_rest_s
+        )
+        self._min_stage = min(p.min_stage, len(levels))
+        self._deb = _Debounce(p.debounce_s)
+        self._deb_paper = _Debounce(p.debounce_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self._ev.reset()
+        self._deb.reset()
+        self._deb_paper.reset()
+        self._pdev: list[float] | None = None
+        self._map = -1
+        self._z2, self._nz = 0.0, 0
+        self._score: float | None = None
+        self._alarm = False
+        self._state_key: tuple = ()
+        self._paper_key: tuple = ()
+        self.states: dict[str, CueState] = {
+            m: CueState("wait", None, "reset: waiting for a rest reading") for m in METHODS
+        }
+
+    # -- evidence ----------------------------------------------------------------------------
+    @property
+    def stage(self) -> int:
+        return self._ev.stage
+
+    @property
+    def contact_t(self) -> float | None:
+        return self._ev.contact_t
+
+    @property
+    def force_alarm(self) -> bool:
+        """The last frame's predicted force was above the pack's force limit."""
+        return self._alarm
+
+    @property
+    def profile_score(self) -> float | None:
+        return self._score
+
+    def posterior(self) -> np.ndarray | None:
+        """P(angle) over the pack's trained angles from the evidence so far (None before rest)."""
+        x = self._ev.features()
+        if x is None or not self._w:
+            return None
+        j = min(self._ev.stage, len(self._w) - 1)
+        z = (self._w[j] @ np.asarray(x[: self._w[j].shape[1]])) + self._b[j]
+        z = z / self._temp[j]
+        e = np.exp(z - z.max())
+        return e / e.sum()
+
+    def _accumulate(self, t: float, f: Any) -> None:
+        tau = t - self._ev.contact_t  # type: ignore[operator]
+        if tau > self._horizon:
+            return
+        g = int(tau / self._dt + 0.5)
+        if g >= self._n_prof:
+            g = self._n_prof - 1
+        m, s = self._mean[g], self._isd[g]
+        a, b, c = (f[0] - m[0]) * s[0], (f[1] - m[1]) * s[1], (f[2] - m[2]) * s[2]
+        self._z2 += a * a + b * b + c * c
+        self._nz += 1
+
+    # -- one frame ---------------------------------------------------------------------------
+    def update(self, t_s: float, volts: np.ndarray, force_n: np.ndarray) -> CueState:
+        """Feed one frame (volts in the pack's channel order, the model's predicted force in N)."""
+        t = float(t_s)
+        f = _floats(force_n)
+        ev = self._ev
+        changed, post = ev.push(t, _floats(volts), f)
+        if self._n_prof:
+            for tp, _, fp in post:
+                self._accumulate(tp, fp)
+        if self._nz:
+            self._score = math.sqrt(self._z2 / (3 * self._nz))
+        if changed and ev.rest_n and self._w:
+            p = self.posterior()
+            pd_ = (p @ self._to_dev).tolist()  # type: ignore[operator]
+            self._pdev = pd_
+            self._map = int(np.argmax(p))  # type: ignore[arg-type]
+        self._alarm = f[0] * f[0] + f[1] * f[1] + f[2] * f[2] > self._force_limit2
+
+        # combined: angle estimate -> deviation class, force-in-range check
+        if self.angle_unavailable is None:
+            deb = self._deb
+            shown = deb.shown
+            cand = shown
+            if self._alarm:
+                cand = 3
+            elif self._pdev is not None and ev.rest_ready(t) and ev.stage >= self._min_stage:
+                pdv = self._pdev
+                best = 0 if pdv[0] >= pdv[1] and pdv[0] >= pdv[2] else (1 if pdv[1] >= pdv[2] else 2)
+                pb = pdv[best]
+                if pb >= self.params.min_confidence and (
+                    shown == 0 or best + 1 == shown or pb >= pdv[shown - 1] + self.params.switch_margin
+                ):
+                    cand = best + 1
+            cue = deb.step(t, cand)
+            key = (cue, self._map, ev.stage, self._alarm, ev.contact_t is not None)
+            if key != self._state_key:
+                self._state_key = key
+                self.states["combined"] = self._combined_state(cue)
+
+        # paper: profile distance -> thresholds (with hysteresis)
+        dp = self._deb_paper
+        pc = dp.shown
+        if (
+            self._score is not None
+            and self.profile_unavailable is None
+            and t - ev.contact_t >= self.params.min_profile_s - 1e-9  # type: ignore[operator]
+        ):
+            h = self.params.profile_hysteresis
+            t1 = self._t1 * (1 + h if pc == 1 else 1 - h if pc == 2 else 1)
+            t2 = self._t2 * (1 + h if pc == 2 else 1 - h if pc == 3 else 1)
+            s = self._score
+            pc = 1 if s < t1 else (2 if s < t2 else 3)
+        pcue = dp.step(t, pc)
+        pkey = (pcue, ev.contact_t is not None)
+        if pkey != self._paper_key:
+            self._paper_key = pkey
+            self.states["paper"] = self._paper_state(pcue)
+            if self.angle_unavailable is not None:  # the combined cue falls back to the paper's
+                paper = self.states["paper"]
+                self.states["combined"] = CueState(
+                    paper.cue, None, f"{self.angle_unavailable}; paper method: {paper.reason}"
+                )
+        return self.states[self.method]
+
+    def _combined_state(self, cue: int) -> CueState:
+        ev = self._ev
+        est = self._classes[self._map] if self._map >= 0 else None
+        evidence = "rest reading" + (f" + {ev.stage} loading level(s)" if ev.stage else "")
+        if cue == 0:
+            if not ev.rest_ready(math.inf) or self._pdev is None:
+                why = "collecting the rest reading"
+            else:
+                why = f"not confident yet ({evidence}, best P={max(self._pdev):.2f})"
+            return CueState("wait", est, why)
+        if self._alarm and cue == 3:
+            return CueState("stop", est, "predicted force above the preset angle's range")
+        dev = abs(est - self.preset) if est is not None else math.nan
+        what = {
+            1: "on the preset angle",
+            2: "off the preset angle: correct it",
+            3: "far off the preset angle: stop",
+        }[cue]
+        p = self._pdev[cue - 1] if self._pdev is not None else math.nan
+        return CueState(
+            CUES[cue],
+            est,
+            f"angle ≈ {est:g}° ({dev:g}° from {self.preset:g}°, P={p:.2f}) from {evidence}: {what}",
+        )
+
+    def _paper_state(self, cue: int) -> CueState:
+        if cue == 0:
+            why = "waiting for contact" if self._ev.contact_t is None else "comparing the profile"
+            if self.profile_unavailable is not None:
+                why = f"no cue: {self.profile_unavailable}"
+            return CueState("wait", None, why)
+        return CueState(
+            CUES[cue],
+            None,
+            f"predicted force vs the standard profile of {self.preset:g}°: "
+            f"{['', 'within', 'off', 'far off'][cue]} its range",
+        )

@@ -1,0 +1,74 @@
+"""Processed frames as trials for the cue code: time-ordered volts and forces, insertion span."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.vocab import AXES, TRIAL_KEY, rate_hz
+
+
+@dataclass
+class Trial:
+    angle: float
+    batch: str
+    t: np.ndarray  # (n,)
+    volts: np.ndarray  # (n, channels)
+    force: np.ndarray  # (n, 3) reference
+    ins_start: int  # from the phase labels (-1 if none)
+    ins_end: int
+    rows: np.ndarray  # row positions in the source frame, time order
+
+
+def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> list[Trial]:
+    out = []
+    if frame.empty:
+        return out
+    keys = [c for c in TRIAL_KEY if c in frame.columns]
+    groups = frame.groupby(keys, sort=True).indices if keys else {("",): np.arange(len(frame))}
+    t_all = frame["t_s"].to_numpy(np.float64)
+    v_all = frame[list(channels)].to_numpy(np.float64)
+    f_all = frame[list(AXES)].to_numpy(np.float64) if set(AXES) <= set(frame.columns) else None
+    ph_all = frame["phase"].to_numpy() if "phase" in frame.columns else None
+    for key, idx in groups.items():
+        idx = np.asarray(idx)
+        idx = idx[np.argsort(t_all[idx], kind="stable")]
+        if ph_all is not None:
+            ins = np.flatnonzero(ph_all[idx] == "insertion")
+            s, e = (int(ins[0]), int(ins[-1])) if len(ins) else (-1, -1)
+        else:
+            s = e = -1
+        batch = str(key[0]) if isinstance(key, tuple) else str(key)
+        force = f_all[idx] if f_all is not None else np.full((len(idx), 3), np.nan)
+        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx))
+    return out
+
+
+def read_split(processed_dir: Path, split: str) -> dict[float, pd.DataFrame]:
+    """{angle: frame} of one split over the angle folders of `processed_dir` that have it."""
+    if not processed_dir.is_dir():
+        raise FileNotFoundError(f"{processed_dir}: no such folder (run the split stage first)")
+    out = {}
+    for folder in processed_dir.iterdir():
+        path = folder / f"{split}.parquet"
+        if not path.is_file():
+            continue
+        try:
+            angle = float(folder.name)
+        except ValueError:
+            continue
+        out[angle] = pd.read_parquet(path)
+    return dict(sorted(out.items()))
+
+
+def trials_rate_hz(trials: Sequence[Trial]) -> float:
+    """The sample rate of trials: 1 / the median positive time step within each."""
+    if not trials:
+        return rate_hz([])
+    t = np.concatenate([tr.t for tr in trials])
+    groups = np.concatenate([np.full(len(tr.t), k) for k, tr in enumerate(trials)])
+    return rate_hz(t, groups)

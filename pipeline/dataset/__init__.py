@@ -1,0 +1,1 @@
+"""The processed dataset: its table schema and the per-angle train/val/test/external split."""

@@ -1,0 +1,242 @@
+"""Splitting the resampled trials per angle into train/val/test by trial, with held-out batches
+as the external set.
+
+Input: the resample stage's `IN_DIR/<batch_id>.parquet` + `<batch_id>.json`. Output, per
+angle (folder `vocab.angle_name`): `train.parquet`, `val.parquet`, `test.parquet`,
+`external.parquet` (always all four; empty with the right schema when there is nothing),
+and `OUT_DIR/manifest.json` listing which trial went where.
+
+Rules:
+- trials of batches matching a glob of `split.external_batches` form `external`;
+- the others are split by trial, never by sample (samples of one trial are strongly
+  correlated, so a split by sample would leak), with a generator seeded from
+  (`split.seed`, angle) alone over the sorted trial list: adding data to one angle never
+  changes another angle's files;
+- one angle, one channel list: trials whose channels differ from the majority's are set
+  aside (a model per angle takes one fixed input vector).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import sys
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from fnmatch import fnmatchcase
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from pipeline.config import SplitParams
+from pipeline.dataset.tables import columns_for, table_schema, write_table
+from pipeline.vocab import SPLITS, angle_name, sorted_angles
+
+MANIFEST = "manifest.json"
+
+TrialKey = tuple[str, str]  # (batch_id, trial_id)
+
+Log = Callable[[str], None]
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One resampled trial: its rows and what the split needs to know about it."""
+
+    batch_id: str
+    trial_id: str
+    angle: str  # folder name, vocab.angle_name(angle_deg)
+    channels: tuple[str, ...]
+    table: pa.Table
+
+    @property
+    def key(self) -> TrialKey:
+        return (self.batch_id, self.trial_id)
+
+
+def load_trials(in_dir: Path) -> tuple[list[Trial], float | None]:
+    """Every trial of every resampled batch, and the grid rate they share."""
+    trials: list[Trial] = []
+    rates: set[float] = set()
+    for data_path in sorted(in_dir.glob("*.parquet")):
+        meta_path = data_path.with_suffix(".json")
+        if not meta_path.is_file():
+            raise FileNotFoundError(f"{data_path}: no {meta_path.name} next to it (channels, rate_hz)")
+        meta = json.loads(meta_path.read_text())
+        channels = tuple(str(c) for c in meta["channels"])
+        rates.add(float(meta["rate_hz"]))
+        table = pq.read_table(data_path)
+        missing = [c for c in columns_for(channels) if c not in table.column_names]
+        if missing:
+            raise ValueError(f"{data_path}: columns {missing} missing (channels from {meta_path.name})")
+        table = table.select(columns_for(channels))
+        trials += _split_by_trial(str(meta["batch_id"]), channels, table)
+    if len(rates) > 1:
+        raise ValueError(f"resampled batches disagree on the grid rate: {sorted(rates)} Hz")
+    return sorted(trials, key=lambda t: t.key), (rates.pop() if rates else None)
+
+
+def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table) -> list[Trial]:
+    ids = np.asarray(table.column("trial_id").to_pylist(), dtype=object)
+    if ids.size == 0:
+        return []
+    order = np.argsort(ids.astype(str), kind="stable")
+    sorted_ids = ids[order]
+    cuts = np.flatnonzero(sorted_ids[1:] != sorted_ids[:-1]) + 1
+    out = []
+    for rows in np.split(order, cuts):
+        part = table.take(pa.array(rows))
+        angle = angle_name(part.column("angle_deg")[0].as_py())
+        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part))
+    return out
+
+
+def is_external(batch_id: str, globs: Iterable[str]) -> bool:
+    """Whether a batch is held out (case-sensitive glob match, the same on every OS)."""
+    return any(fnmatchcase(batch_id, g) for g in globs)
+
+
+def angle_rng(seed: int, angle: str) -> np.random.Generator:
+    """Generator from (seed, angle) only, stable across Python runs and platforms."""
+    digest = hashlib.sha256(f"needlecue-split|{seed}|{angle}".encode()).digest()
+    return np.random.default_rng(int.from_bytes(digest[:8], "little"))
+
+
+def split_sizes(n: int, val_fraction: float, test_fraction: float) -> tuple[int, int, int]:
+    """(train, val, test) trial counts: rounded half up, at least one in val and test from 3 trials."""
+    n_val = math.floor(n * val_fraction + 0.5)
+    n_test = math.floor(n * test_fraction + 0.5)
+    if n >= 3:
+        n_val, n_test = max(n_val, 1), max(n_test, 1)
+    # Training always keeps at least one trial when there is any.
+    while n > 0 and n_val + n_test >= n:
+        if n_val >= n_test and n_val > 0:
+            n_val -= 1
+        else:
+            n_test -= 1
+    return n - n_val - n_test, n_val, n_test
+
+
+def assign(keys: list[TrialKey], angle: str, p: SplitParams) -> dict[str, list[TrialKey]]:
+    """Shuffle the sorted internal trials of one angle and cut them into train/val/test."""
+    keys = sorted(keys)
+    _, n_val, n_test = split_sizes(len(keys), p.val_fraction, p.test_fraction)
+    order = angle_rng(p.seed, angle).permutation(len(keys))
+    shuffled = [keys[i] for i in order]
+    return {
+        "test": sorted(shuffled[:n_test]),
+        "val": sorted(shuffled[n_test : n_test + n_val]),
+        "train": sorted(shuffled[n_test + n_val :]),
+    }
+
+
+def majority_channels(trials: list[Trial]) -> tuple[str, ...]:
+    """Channel list of most trials (ties: the alphabetically first list, for determinism)."""
+    counts = Counter(t.channels for t in trials)
+    return min(counts, key=lambda ch: (-counts[ch], ch))
+
+
+@dataclass
+class AngleSplit:
+    """Everything written for one angle."""
+
+    angle: str
+    channels: tuple[str, ...]
+    splits: dict[str, list[Trial]]
+    set_aside: list[dict[str, str]]
+
+
+def plan(trials: list[Trial], p: SplitParams) -> list[AngleSplit]:
+    """Group trials by angle, settle the channel list, and assign every trial a split."""
+    by_angle: dict[str, list[Trial]] = {}
+    for t in trials:
+        by_angle.setdefault(t.angle, []).append(t)
+    out = []
+    for angle in sorted_angles(by_angle):
+        group = by_angle[angle]
+        channels = majority_channels(group)
+        kept = [t for t in group if t.channels == channels]
+        aside = [
+            {
+                "angle": angle,
+                "batch_id": t.batch_id,
+                "trial_id": t.trial_id,
+                "reason": f"channels {list(t.channels)} differ from the channels {list(channels)} "
+                f"of the majority of trials at angle {angle}",
+            }
+            for t in group
+            if t.channels != channels
+        ]
+        external = [t for t in kept if is_external(t.batch_id, p.external_batches)]
+        internal = {t.key: t for t in kept if not is_external(t.batch_id, p.external_batches)}
+        keys = assign(list(internal), angle, p)
+        splits = {name: [internal[k] for k in keys[name]] for name in ("train", "val", "test")}
+        splits["external"] = sorted(external, key=lambda t: t.key)
+        out.append(AngleSplit(angle, channels, splits, aside))
+    return out
+
+
+def split_table(trials: list[Trial], schema: pa.Schema) -> pa.Table:
+    """Rows of the given trials in their (sorted) order, or an empty table of that schema."""
+    if not trials:
+        return schema.empty_table()
+    return pa.concat_tables([t.table.cast(schema) for t in trials])
+
+
+def run(in_dir: Path, out_dir: Path, p: SplitParams, *, log: Log = _stderr) -> dict[str, Any]:
+    """Write every angle's four split files and the manifest; returns the manifest."""
+    trials, rate_hz = load_trials(in_dir)
+    angles = plan(trials, p)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": []}
+    for a in angles:
+        kept = [t for ts in a.splits.values() for t in ts]
+        base = kept[0].table if kept else None
+        schema = (
+            base.select(columns_for(a.channels)).schema.remove_metadata()
+            if base is not None
+            else table_schema(a.channels)
+        )
+        entry: dict[str, Any] = {"channels": list(a.channels), "splits": {}, "n_samples": {}, "n_trials": {}}
+        for name in SPLITS:
+            table = split_table(a.splits[name], schema)
+            write_table(table, out_dir / a.angle / f"{name}.parquet")
+            entry["splits"][name] = [{"batch_id": t.batch_id, "trial_id": t.trial_id} for t in a.splits[name]]
+            entry["n_samples"][name] = table.num_rows
+            entry["n_trials"][name] = len(a.splits[name])
+        manifest["angles"][a.angle] = entry
+        manifest["set_aside"] += a.set_aside
+        log(_angle_table(a.angle, entry, len(a.set_aside)))
+    _remove_stale(out_dir, {a.angle for a in angles})
+    (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    for s in manifest["set_aside"]:
+        log(f"split: set aside {s['batch_id']}/{s['trial_id']}: {s['reason']}")
+    return manifest
+
+
+def _angle_table(angle: str, entry: dict[str, Any], n_aside: int) -> str:
+    """The progress lines of one angle: its channels, then trials and samples per split."""
+    lines = [f"split: angle {angle} (channels {', '.join(entry['channels'])}; {n_aside} trials set aside)"]
+    lines.append(f"  {'split':<9}{'trials':>7}{'samples':>10}")
+    for name in SPLITS:
+        lines.append(f"  {name:<9}{entry['n_trials'][name]:>7}{entry['n_samples'][name]:>10}")
+    return "\n".join(lines)
+
+
+def _remove_stale(out_dir: Path, angles: set[str]) -> None:
+    """Drop angle folders of an earlier run that this run does not write (only our own files)."""
+    ours = {f"{name}.parquet" for name in SPLITS}
+    for d in sorted(out_dir.iterdir()):
+        if d.is_dir() and d.name not in angles and {f.name for f in d.iterdir()} <= ours:
+            for f in d.iterdir():
+                f.unlink()
+            d.rmdir()

@@ -1,0 +1,81 @@
+"""Batch prediction: every model on every processed split of every angle, computed once and
+written to the predictions store (`pipeline.modelling.predictions`) that evaluation, the cue packs,
+the report and the registry read."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from pipeline.modelling.checkpoint import CHECKPOINT_FILE
+from pipeline.modelling.predict import Predictor, load_predictor
+from pipeline.modelling.predictions import SplitFiles, prediction_table, write_predictions
+from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
+
+Log = Callable[[str], None]
+
+
+def predict_frame(predictor: Predictor, frame: pd.DataFrame, what: str) -> np.ndarray:
+    """Forces (n, 3) for a processed frame; the forces are dropped first, so that no model can read
+    the answer, by mistake or otherwise."""
+    out = np.asarray(predictor.predict(frame.drop(columns=[a for a in AXES if a in frame])), dtype=np.float64)
+    if out.shape != (len(frame), len(AXES)):
+        raise ValueError(f"{what}: predict returned shape {out.shape}, expected {(len(frame), len(AXES))}")
+    return out
+
+
+def predict_model(
+    predictor: Predictor, frames: dict[tuple[str, str], pd.DataFrame], label: str, log: Log
+) -> list[pa.Table]:
+    """One model's prediction blocks on every (angle, split) frame that has rows and its channels."""
+    parts: list[pa.Table] = []
+    for (angle, split), frame in frames.items():
+        if frame.empty:
+            continue
+        missing = [c for c in predictor.channels if c not in frame.columns]
+        if missing:
+            log(f"warning: {label} needs {missing}, absent at {angle}° {split}: not predicted there")
+            continue
+        parts.append(
+            prediction_table(angle, split, predict_frame(predictor, frame, f"{label} on {angle}° {split}"))
+        )
+    return parts
+
+
+def predict_all(
+    data_dir: Path,
+    models_dir: Path,
+    out_dir: Path,
+    kinds: Iterable[str],
+    angles: Iterable[float | str],
+    log: Log,
+) -> list[tuple[str, str]]:
+    """Predict every (kind, angle) model that has a checkpoint on every split of every angle and
+    write `out_dir/<kind>/<angle>.parquet`; returns the (kind, angle) pairs predicted."""
+    files = SplitFiles(data_dir)
+    frames = {
+        (angle, split): files.frame(angle, split)
+        for angle in files.angles()
+        for split in SPLITS
+        if files.path(angle, split).is_file()
+    }
+    done = []
+    for kind in kinds:
+        for angle in sorted_angles(angle_name(a) for a in angles):
+            model_dir = Path(models_dir) / kind / angle
+            target = Path(out_dir) / kind / f"{angle}.parquet"
+            target.unlink(missing_ok=True)  # never leave a stale model's predictions behind
+            if not (model_dir / CHECKPOINT_FILE).is_file():
+                log(f"warning: no {model_dir / CHECKPOINT_FILE}, {kind} at {angle}° skipped")
+                continue
+            started = time.perf_counter()
+            blocks = predict_model(load_predictor(model_dir), frames, f"{kind}/{angle}", log)
+            rows = write_predictions(blocks, target)
+            done.append((kind, angle))
+            log(f"{kind}/{angle}: {rows} rows predicted ({time.perf_counter() - started:.1f} s)")
+    return done

@@ -1,0 +1,316 @@
+"""Training the three model kinds, one per insertion angle, on the estimator's voltages only.
+
+- `ls`: the paper's calibration matrix, eq. (1)-(2), F = C v fitted by least squares on raw
+  volts with no intercept (scikit-learn `LinearRegression(fit_intercept=False)`);
+- `fnn`: the paper's feed-forward network, channels -> 20 -> 20 -> 3 (Sec. III-B), on the
+  voltages of the current sample;
+- `lstm`: an LSTM on the last `window` voltage samples of the same trial (Sec. VI), the first
+  samples of a trial padded by repeating its first sample, predicting the force at the last one.
+
+Inputs and targets of the networks are standardised with the training split's statistics only.
+Training is bit-for-bit deterministic: seeded initialisation and shuffling, deterministic
+algorithms, one intra-op thread (`networks.TRAIN_THREADS`). torch and scikit-learn are imported
+inside the functions that need them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import PARAMS_MODELS, FNNParams, LSParams, LSTMParams
+from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
+from pipeline.modelling.inputs import column_stats, inputs_of, trial_codes
+from pipeline.modelling.networks import build_network, deterministic_torch
+from pipeline.modelling.predict import Predictor
+from pipeline.vocab import AXES, KINDS, channels_of, rate_hz
+
+if TYPE_CHECKING:
+    import torch
+
+LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"
+ModelParams = LSParams | FNNParams | LSTMParams
+Log = Callable[[str], None]
+
+
+def _angle_deg(frame: pd.DataFrame) -> float:
+    if "angle_deg" not in frame.columns:
+        return math.nan
+    angles = pd.unique(frame["angle_deg"].dropna())
+    if len(angles) != 1:
+        raise ValueError(f"one model per angle: the training rows hold angles {sorted(angles)}")
+    return float(angles[0])
+
+
+class Adam:
+    """Adam (Kingma & Ba), the arithmetic of torch.optim.Adam's single-tensor CPU path op for op
+    (L2 `weight_decay` added to the gradient, as there); a test checks the two agree bit for bit.
+
+    Why not torch.optim.Adam itself: every torch.optim optimizer imports torch._dynamo on first
+    use (~1 s measured per process, for torch.compile support unused here), and the 12 network
+    stages each pay it; this one needs only tensor ops.
+    """
+
+    def __init__(
+        self,
+        params: Iterator[torch.nn.Parameter] | Sequence[torch.nn.Parameter],
+        lr: float,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+        weight_decay: float = 0.0,
+    ) -> None:
+        import torch
+
+        self.params = list(params)
+        self.lr, (self.beta1, self.beta2), self.eps, self.weight_decay = lr, betas, eps, weight_decay
+        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.steps = 0
+
+    def zero_grad(self) -> None:
+        for p in self.params:
+            p.grad = None
+
+    def step(self) -> None:
+        import torch
+
+        self.steps += 1
+        bias_correction1 = 1 - self.beta1**self.steps
+        bias_correction2_sqrt = (1 - self.beta2**self.steps) ** 0.5
+        step_size = self.lr / bias_correction1
+        with torch.no_grad():
+            for p, exp_avg, exp_avg_sq in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
+                if p.grad is None:
+                    continue
+                grad = p.grad if self.weight_decay == 0 else p.grad.add(p, alpha=self.weight_decay)
+                exp_avg.lerp_(grad, 1 - self.beta1)
+                exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
+                denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(self.eps)
+                p.addcdiv_(exp_avg, denom, value=-step_size)
+
+
+@dataclass
+class TrainResult:
+    """What `fit` returns: the checkpoint dict, the per-epoch history and the summary metrics."""
+
+    checkpoint: dict[str, Any]
+    history: list[dict[str, float]]
+    metrics: dict[str, Any]
+    predictor: Predictor = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.predictor = Predictor(self.checkpoint)
+
+
+def fit(
+    kind: str,
+    params: ModelParams,
+    train: pd.DataFrame,
+    val: pd.DataFrame | None = None,
+    *,
+    train_data_sha256: str | None = None,
+    log: Log | None = None,
+) -> TrainResult:
+    """Train one model of `kind` on `train`, early-stopping the networks on `val` (if it has rows).
+
+    `train_data_sha256` identifies the data in the checkpoint; by default a hash of the frames.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
+    if not isinstance(params, PARAMS_MODELS[kind]):
+        raise TypeError(f"{kind} takes {PARAMS_MODELS[kind].__name__}, got {type(params).__name__}")
+    if train.empty:
+        raise ValueError("no training rows")
+    val = train.iloc[:0] if val is None else val
+    channels = channels_of(train)
+    if not channels:
+        raise ValueError(f"the training rows have no estimator channel (columns: {list(train.columns)})")
+    for name, frame in (("training", train), ("validation", val)):
+        if not frame.empty and (missing := [c for c in AXES if c not in frame.columns]):
+            raise ValueError(f"the {name} rows lack the target column(s) {missing}")
+    if not val.empty and channels_of(val) != channels:
+        raise ValueError(f"validation channels {channels_of(val)} differ from training channels {channels}")
+
+    log = log or (lambda _msg: None)
+    _import_backends(kind)  # before the clock: train_seconds measures the work, not the imports
+    codes = trial_codes(train)
+    started = time.perf_counter()
+    if isinstance(params, LSParams):
+        cfg = ModelConfig(kind="ls", n_in=len(channels))
+        state, pre, history, summary = _fit_ls(params, train, val, channels)
+    else:
+        if isinstance(params, FNNParams):
+            cfg = ModelConfig("fnn", len(channels), hidden=tuple(params.hidden), activation=params.activation)
+        else:
+            hidden = (params.hidden,) * params.layers
+            cfg = ModelConfig("lstm", len(channels), hidden=hidden, activation="tanh", window=params.window)
+        state, pre, history, summary = _fit_network(cfg, params, train, val, channels, log)
+
+    seconds = time.perf_counter() - started
+    sha = train_data_sha256 or data_sha256(train, val)
+    checkpoint = {
+        "format": FORMAT,
+        "kind": kind,
+        "config": cfg.to_dict(),
+        "state_dict": state,
+        "preprocessing": pre,
+        "channels": list(channels),
+        "targets": list(AXES),
+        "rate_hz": rate_hz(train["t_s"], codes) if "t_s" in train.columns else math.nan,
+        "angle_deg": _angle_deg(train),
+        "train_data_sha256": sha,
+        "params": params.model_dump(mode="json"),
+        "torch_version": _torch_version(),
+    }
+    metrics = {
+        "kind": kind,
+        "angle_deg": checkpoint["angle_deg"],
+        **summary,
+        "loss": LOSS_DEFINITION,
+        "train_seconds": round(seconds, 3),
+        "n_train": len(train),
+        "n_val": len(val),
+        "train_data_sha256": sha,
+    }
+    return TrainResult(checkpoint, history, metrics)
+
+
+def _import_backends(kind: str) -> None:
+    import torch  # noqa: F401
+
+    if kind == "ls":
+        import sklearn.linear_model  # noqa: F401
+
+
+def _torch_version() -> str:
+    import torch
+
+    return str(torch.__version__)
+
+
+def _scaled_mse(pred: np.ndarray, y: np.ndarray, y_std: np.ndarray) -> float:
+    return float(np.mean(((pred - y) / y_std) ** 2)) if len(y) else math.nan
+
+
+def _fit_ls(
+    params: LSParams, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
+) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, float]], dict[str, Any]]:
+    """Eq. (2) on raw volts, no scaling: that is the paper's method, and scaling would add an offset."""
+    import torch
+    from sklearn.linear_model import LinearRegression
+
+    x = train[channels].to_numpy(np.float64)
+    y = train[list(AXES)].to_numpy(np.float64)
+    _, y_std = column_stats(y)  # only to report a loss on the same scale as the networks'
+
+    reg = LinearRegression(fit_intercept=params.fit_intercept).fit(x, y)
+    # copies: coef_ can be a view into lstsq's n_samples-long work array, which torch.save would store whole
+    weight = np.array(reg.coef_, dtype=np.float64).reshape(len(AXES), len(channels))
+    bias = np.asarray(reg.intercept_, dtype=np.float64) * np.ones(len(AXES))
+    train_loss = _scaled_mse(x @ weight.T + bias, y, y_std)
+    if val.empty:
+        val_loss = math.nan
+    else:
+        xv = val[channels].to_numpy(np.float64)
+        val_loss = _scaled_mse(xv @ weight.T + bias, val[list(AXES)].to_numpy(np.float64), y_std)
+    state = {"weight": torch.from_numpy(weight), "bias": torch.from_numpy(bias)}
+    n = len(channels)
+    pre = _preprocessing(np.zeros(n), np.ones(n), np.zeros(len(AXES)), np.ones(len(AXES)))
+    history = [{"epoch": 1, "train_loss": train_loss, "val_loss": val_loss}]
+    summary = {
+        "epochs_run": 1,
+        "best_epoch": 1,
+        "best_val_loss": None if math.isnan(val_loss) else val_loss,
+        "early_stopping": False,
+    }
+    return state, pre, history, summary
+
+
+def _preprocessing(x_mean: np.ndarray, x_std: np.ndarray, y_mean: np.ndarray, y_std: np.ndarray) -> dict:
+    import torch
+
+    arrays = {"x_mean": x_mean, "x_std": x_std, "y_mean": y_mean, "y_std": y_std}
+    return {k: torch.tensor(np.asarray(v, dtype=np.float64)) for k, v in arrays.items()}
+
+
+def _fit_network(
+    cfg: ModelConfig,
+    params: FNNParams | LSTMParams,
+    train: pd.DataFrame,
+    val: pd.DataFrame,
+    channels: list[str],
+    log: Log,
+) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, float]], dict[str, Any]]:
+    """Adam on standardised data, seeded shuffling, early stopping on val MSE keeping the best weights."""
+    import torch
+
+    x_mean, x_std = column_stats(train[channels].to_numpy(np.float64))
+    y_mean, y_std = column_stats(train[list(AXES)].to_numpy(np.float64))
+    x_tr = torch.from_numpy(inputs_of(cfg, train, channels, x_mean, x_std))
+    y_tr = torch.from_numpy(((train[list(AXES)].to_numpy(np.float64) - y_mean) / y_std).astype(np.float32))
+    has_val = not val.empty
+    if has_val:
+        x_va = torch.from_numpy(inputs_of(cfg, val, channels, x_mean, x_std))
+        y_va = torch.from_numpy(((val[list(AXES)].to_numpy(np.float64) - y_mean) / y_std).astype(np.float32))
+    else:
+        log(f"no validation rows: no early stopping, training all {params.max_epochs} epochs")
+
+    n, bs = len(x_tr), params.batch_size
+    every = max(1, params.max_epochs // 10)
+    history: list[dict[str, float]] = []
+    with deterministic_torch(params.seed):
+        net = build_network(cfg)  # initialised from the seeded (forked) global RNG
+        gen = torch.Generator().manual_seed(params.seed)
+        opt = Adam(net.parameters(), lr=params.lr, weight_decay=params.weight_decay)
+        loss_fn = torch.nn.MSELoss()
+        # The averaged copy is what gets validated and saved: it smooths the step-to-step noise of
+        # the SGD iterate, so the early-stopping choice depends less on where one epoch happened to end.
+        avg = build_network(cfg) if params.ema > 0 else net
+        if params.ema > 0:
+            avg.load_state_dict(net.state_dict())
+            pairs = list(zip(avg.parameters(), net.parameters(), strict=True))
+        best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
+        best_val, best_epoch, epoch = math.inf, 0, 0
+        for epoch in range(1, params.max_epochs + 1):
+            net.train()
+            perm = torch.randperm(n, generator=gen)
+            total = torch.zeros(())
+            for i in range(0, n, bs):
+                idx = perm[i : i + bs]
+                opt.zero_grad()
+                loss = loss_fn(net(x_tr[idx]), y_tr[idx])
+                loss.backward()
+                opt.step()
+                if params.ema > 0:
+                    with torch.no_grad():
+                        for a, w in pairs:
+                            a.lerp_(w, 1 - params.ema)
+                total += loss.detach() * len(idx)
+            train_loss = float(total) / n
+            val_loss = math.nan
+            if has_val:
+                avg.eval()
+                with torch.no_grad():
+                    val_loss = float(loss_fn(avg(x_va), y_va))
+            history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss})
+            if not has_val or val_loss < best_val:
+                best_val, best_epoch = val_loss, epoch
+                best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
+            if epoch % every == 0:
+                log(f"epoch {epoch:4d}  train loss {train_loss:.5f}  val loss {val_loss:.5f}")
+            if has_val and epoch - best_epoch >= params.patience:
+                break
+
+    summary = {
+        "epochs_run": epoch,
+        "best_epoch": best_epoch,
+        "best_val_loss": best_val if has_val else None,
+        "early_stopping": has_val,
+    }
+    return best_state, _preprocessing(x_mean, x_std, y_mean, y_std), history, summary

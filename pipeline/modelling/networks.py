@@ -1,0 +1,101 @@
+"""The networks' torch modules, and the deterministic torch settings they train and run under.
+
+torch is imported inside the functions, so importing this module stays cheap.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING
+
+from pipeline.modelling.checkpoint import ModelConfig
+
+if TYPE_CHECKING:
+    import torch
+
+# One intra-op thread: on these tiny layers two threads were 15-20 % slower (measured on the 2-core
+# CI box, which other jobs share), and a fixed count keeps the order of float reductions, hence the
+# weights, the same on any machine (1 and 2 threads happen to agree at the default sizes; larger
+# layers cross torch's parallel grain and would not).
+TRAIN_THREADS = 1
+
+
+@functools.cache
+def _lstm_class() -> type:
+    """The LSTM regressor's module class (defined lazily so that importing this file skips torch)."""
+    from torch import nn
+
+    class LSTMRegressor(nn.Module):
+        """Stacked LSTM over the window; a linear head on the last step's output."""
+
+        def __init__(self, cfg: ModelConfig) -> None:
+            super().__init__()
+            self.lstm = nn.LSTM(cfg.n_in, cfg.hidden[0], num_layers=len(cfg.hidden), batch_first=True)
+            self.head = nn.Linear(cfg.hidden[0], cfg.n_out)
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            out, _ = self.lstm(x)
+            return self.head(out[:, -1])
+
+    return LSTMRegressor
+
+
+def build_network(cfg: ModelConfig) -> torch.nn.Module:
+    """The torch module of an `fnn` or `lstm` config (float32, freshly initialised)."""
+    from collections import OrderedDict
+
+    from torch import nn
+
+    if cfg.kind == "fnn":
+        act = {"tanh": nn.Tanh, "relu": nn.ReLU}[cfg.activation]
+        layers: OrderedDict[str, nn.Module] = OrderedDict()
+        width = cfg.n_in
+        for i, h in enumerate(cfg.hidden, start=1):
+            layers[f"fc{i}"] = nn.Linear(width, h)
+            layers[f"act{i}"] = act()
+            width = h
+        layers["out"] = nn.Linear(width, cfg.n_out)
+        return nn.Sequential(layers)
+    if cfg.kind == "lstm":
+        if len(set(cfg.hidden)) != 1:
+            raise ValueError(f"an LSTM's layers share one width, got hidden={cfg.hidden}")
+        return _lstm_class()(cfg)
+    raise ValueError(f"no network for model kind {cfg.kind!r}")
+
+
+def _set_deterministic(mode: bool, warn_only: bool = False) -> None:
+    """`torch.use_deterministic_algorithms`, minus its import of torch._inductor (~0.95 s measured, per
+    process) when inductor is not loaded: that import only sets inductor's own flag, which matters
+    for torch.compile alone, unused here. With inductor loaded, the public call keeps both in step."""
+    import sys
+
+    import torch
+
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None or "torch._inductor.config" in sys.modules:
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        setter(mode, warn_only=warn_only)
+
+
+@contextmanager
+def deterministic_torch(seed: int | None = None, threads: int | None = None) -> Iterator[None]:
+    """Fixed thread count, deterministic algorithms and (optionally) a seeded global RNG, all
+    restored on exit so a caller's own torch state is untouched."""
+    import torch
+
+    prev_threads = torch.get_num_threads()
+    prev_det = torch.are_deterministic_algorithms_enabled()
+    prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.set_num_threads(threads or TRAIN_THREADS)
+    _set_deterministic(True)
+    try:
+        with torch.random.fork_rng(devices=[]):
+            if seed is not None:
+                torch.manual_seed(seed)
+            yield
+    finally:
+        _set_deterministic(prev_det, warn_only=prev_warn)
+        torch.set_num_threads(prev_threads)

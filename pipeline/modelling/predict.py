@@ -1,0 +1,128 @@
+"""Inference: a trained model behind one call, volts in, newtons out (cf. Made-With-ML's
+`predict.TorchPredictor`). The low layer that the predict stage, the champion's re-scoring and
+the peer benchmark all use; the simulator's client runs the exported ONNX graph instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
+from pipeline.modelling.inputs import network_inputs, trial_codes
+from pipeline.modelling.networks import build_network, deterministic_torch
+from pipeline.vocab import KINDS
+
+PREDICT_CHUNK = 65_536  # rows per forward pass at prediction time
+
+
+class Predictor:
+    """A trained model behind one call: volts in, force in newtons out.
+
+    Attributes: `kind`, `channels` (the order it reads them in), `targets`, `rate_hz`,
+    `angle_deg`, `window` (samples of history it uses, 1 for ls/fnn), `config`, `checkpoint`.
+    """
+
+    def __init__(self, checkpoint: dict[str, Any]) -> None:
+        if checkpoint.get("format") != FORMAT:
+            raise ValueError(f"not a {FORMAT} checkpoint (format {checkpoint.get('format')!r})")
+        self.checkpoint = checkpoint
+        self.kind: str = checkpoint["kind"]
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown model kind {self.kind!r} in checkpoint")
+        self.config = ModelConfig.from_dict(checkpoint["config"])
+        self.channels: tuple[str, ...] = tuple(checkpoint["channels"])
+        self.targets: tuple[str, ...] = tuple(checkpoint["targets"])
+        self.rate_hz: float = float(checkpoint["rate_hz"])
+        self.angle_deg: float = float(checkpoint["angle_deg"])
+        self.window: int = self.config.window
+        pre = checkpoint["preprocessing"]
+        self._x_mean, self._x_std, self._y_mean, self._y_std = (
+            pre[k].double().numpy() for k in ("x_mean", "x_std", "y_mean", "y_std")
+        )
+        state = checkpoint["state_dict"]
+        self._net: Any = None
+        if self.kind == "ls":
+            self._weight = state["weight"].double().numpy()
+            self._bias = state["bias"].double().numpy()
+        else:
+            import torch
+
+            with torch.random.fork_rng(
+                devices=[]
+            ):  # the throwaway initialisation must not use the caller's RNG
+                self._net = build_network(self.config)
+            self._net.load_state_dict(state)
+            self._net.eval()
+
+    def __repr__(self) -> str:
+        return f"Predictor(kind={self.kind!r}, angle_deg={self.angle_deg:g}, channels={list(self.channels)})"
+
+    def predict(self, frame: pd.DataFrame) -> np.ndarray:
+        """Forces (n, 3) in N for the frame's rows, in its row order.
+
+        Reads the model's channels by name (extra columns are ignored). The LSTM builds its windows
+        per (batch_id, trial_id) in t_s order; a frame without those columns is one trial in row order.
+        """
+        missing = [c for c in self.channels if c not in frame.columns]
+        if missing:
+            raise ValueError(
+                f"the frame lacks the model's channel(s) {missing}: this {self.kind} model "
+                f"(angle {self.angle_deg:g}°) reads {list(self.channels)}; "
+                f"the frame has {list(frame.columns)}"
+            )
+        volts = frame[list(self.channels)].to_numpy(np.float64)
+        t = (
+            frame["t_s"].to_numpy(np.float64)
+            if "t_s" in frame.columns
+            else np.arange(len(frame), dtype=float)
+        )
+        return self._predict(volts, trial_codes(frame), t)
+
+    def predict_arrays(
+        self, volts: np.ndarray, trial_ids: Sequence[Any] | np.ndarray | None = None
+    ) -> np.ndarray:
+        """Forces (n, 3) in N for volts (n, channels) in `self.channels` order, rows in time order
+        within each trial; `trial_ids` (n,) labels trials, None = all rows are one trial.
+
+        A live client can keep the last `window` samples and take the last row of the result.
+        """
+        volts = np.asarray(volts, dtype=np.float64)
+        if volts.ndim != 2 or volts.shape[1] != len(self.channels):
+            raise ValueError(
+                f"volts must be (n, {len(self.channels)}) for {list(self.channels)}, got {volts.shape}"
+            )
+        if trial_ids is None:
+            codes = np.zeros(len(volts), dtype=np.int64)
+        else:
+            if len(trial_ids) != len(volts):
+                raise ValueError(f"{len(trial_ids)} trial ids for {len(volts)} rows")
+            codes = pd.factorize(
+                pd.Series(list(trial_ids) if not isinstance(trial_ids, np.ndarray) else trial_ids)
+            )[0]
+        return self._predict(volts, codes.astype(np.int64), np.arange(len(volts), dtype=float))
+
+    def _predict(self, volts: np.ndarray, codes: np.ndarray, t: np.ndarray) -> np.ndarray:
+        if not np.isfinite(volts).all():
+            bad = [c for c, ok in zip(self.channels, np.isfinite(volts).all(axis=0), strict=True) if not ok]
+            raise ValueError(f"non-finite volts in channel(s) {bad}")
+        if len(volts) == 0:
+            return np.zeros((0, len(self.targets)))
+        if self.kind == "ls":
+            return volts @ self._weight.T + self._bias
+        import torch
+
+        x = torch.from_numpy(network_inputs(self.config, (volts - self._x_mean) / self._x_std, codes, t))
+        with deterministic_torch(), torch.no_grad():  # same thread count as training: same float sums
+            # fixed-size chunks bound the memory of long recordings (an LSTM keeps every step's state)
+            y = torch.cat([self._net(x[i : i + PREDICT_CHUNK]) for i in range(0, len(x), PREDICT_CHUNK)])
+        return y.double().numpy() * self._y_std + self._y_mean
+
+
+def load_predictor(model_dir_or_file: Path) -> Predictor:
+    """The predictor of a trained model: `load_predictor(Path("models/fnn/30")).predict(df)`."""
+    return Predictor(load_checkpoint(model_dir_or_file))

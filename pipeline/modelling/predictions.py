@@ -1,0 +1,127 @@
+"""The store of predictions computed once: every model on every processed split of every angle.
+
+The predict stage (`pipeline.modelling.batch`) writes one file per model,
+`PRED_DIR/<kind>/<angle>.parquet`, with one row per row of each split file it predicted, in that
+file's row order:
+
+    data_angle (str), split (str), row (int64: position in the split file), fx, fy, fz (float64, N)
+
+Evaluation, the cue packs and their scoring, the report and the registry all read these instead
+of loading the models again. A model is predicted on a split only if the split has rows and holds
+the model's channels; `Predictions.get` returns None otherwise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
+
+SCHEMA = pa.schema(
+    [
+        ("data_angle", pa.string()),
+        ("split", pa.string()),
+        ("row", pa.int64()),
+        *((axis, pa.float64()) for axis in AXES),
+    ]
+)
+
+
+class SplitFiles:
+    """The processed split files, `DATA_DIR/<angle>/<split>.parquet`, each read at most once."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = Path(data_dir)
+        self._frames: dict[tuple[str, str], pd.DataFrame] = {}
+
+    def path(self, angle: str, split: str) -> Path:
+        return self.data_dir / angle / f"{split}.parquet"
+
+    def angles(self) -> list[str]:
+        """Every angle folder that holds a split file."""
+        if not self.data_dir.is_dir():
+            raise FileNotFoundError(f"{self.data_dir}: no such folder (run the split stage first)")
+        return sorted_angles(
+            p.name for p in self.data_dir.iterdir() if any(self.path(p.name, s).is_file() for s in SPLITS)
+        )
+
+    def frame(self, angle: str, split: str) -> pd.DataFrame:
+        """One split file's rows; FileNotFoundError if the split stage did not write it."""
+        if (angle, split) not in self._frames:
+            path = self.path(angle, split)
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: missing (run the split stage first)")
+            self._frames[angle, split] = pd.read_parquet(path)
+        return self._frames[angle, split]
+
+
+def prediction_table(angle: str, split: str, force: np.ndarray) -> pa.Table:
+    """The rows of one (angle, split) block: forces (n, 3) in the split file's row order."""
+    n = len(force)
+    columns = {
+        "data_angle": pa.array([angle] * n, pa.string()),
+        "split": pa.array([split] * n, pa.string()),
+        "row": pa.array(np.arange(n, dtype=np.int64)),
+        **{axis: pa.array(force[:, k]) for k, axis in enumerate(AXES)},
+    }
+    return pa.table(columns, schema=SCHEMA)
+
+
+def write_predictions(blocks: list[pa.Table], path: Path) -> int:
+    """One model's file of prediction blocks; returns its row count."""
+    table = pa.concat_tables(blocks) if blocks else SCHEMA.empty_table()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(table, path, compression="zstd")
+    return table.num_rows
+
+
+class Predictions:
+    """The predict stage's output, read lazily: `get(kind, model_angle, data_angle, split)`."""
+
+    def __init__(self, pred_dir: Path) -> None:
+        self.pred_dir = Path(pred_dir)
+        if not self.pred_dir.is_dir():
+            raise FileNotFoundError(f"{self.pred_dir}: no such folder (run the predict stage first)")
+        self._cache: dict[tuple[str, str], dict[tuple[str, str], np.ndarray]] = {}
+
+    def models(self) -> list[tuple[str, str]]:
+        """(kind, angle) of every model with predictions, by kind folder then angle."""
+        out = []
+        for kind_dir in sorted(p for p in self.pred_dir.iterdir() if p.is_dir()):
+            angles = sorted_angles(f.stem for f in kind_dir.glob("*.parquet"))
+            out += [(kind_dir.name, a) for a in angles]
+        return out
+
+    def has(self, kind: str, angle: str) -> bool:
+        return (self.pred_dir / kind / f"{angle}.parquet").is_file()
+
+    def _load(self, kind: str, angle: str) -> dict[tuple[str, str], np.ndarray]:
+        if (kind, angle) not in self._cache:
+            path = self.pred_dir / kind / f"{angle}.parquet"
+            blocks: dict[tuple[str, str], np.ndarray] = {}
+            if path.is_file():
+                table = pq.read_table(path, schema=SCHEMA).to_pandas()
+                for (data_angle, split), rows in table.groupby(["data_angle", "split"], sort=False):
+                    force = np.empty((len(rows), len(AXES)))
+                    force[rows["row"].to_numpy()] = rows[list(AXES)].to_numpy(np.float64)
+                    blocks[(str(data_angle), str(split))] = force
+            self._cache[(kind, angle)] = blocks
+        return self._cache[(kind, angle)]
+
+    def get(self, kind: str, model_angle: str, data_angle: str, split: str) -> np.ndarray | None:
+        """Forces (n, 3) of model (kind, model_angle) on `data_angle`'s `split`, in the split file's
+        row order; None if that model was not predicted there."""
+        return self._load(kind, model_angle).get((data_angle, split))
+
+    def on_split(
+        self, kind: str, model_angle: str, split: str, angles: Iterable[float]
+    ) -> dict[float, np.ndarray]:
+        """{angle: forces} of one model on `split` of each of `angles` that it was predicted on."""
+        found = {a: self.get(kind, model_angle, angle_name(a), split) for a in angles}
+        return {a: f for a, f in found.items() if f is not None}

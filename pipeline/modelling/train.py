@@ -1,0 +1,40 @@
+"""Training one angle's model from its processed folder into its model folder (the train stage's
+work, callable from tests and the benchmark)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from pipeline.modelling.checkpoint import save_model_dir
+from pipeline.modelling.fit import ModelParams, fit
+from pipeline.vocab import file_sha256
+
+Log = Callable[[str], None]
+
+
+def train_folder(kind: str, params: ModelParams, data_dir: Path, out_dir: Path, log: Log) -> dict[str, Any]:
+    """Fit `kind` on `data_dir/train.parquet`, early-stopping on `val.parquet` (may be empty or
+    absent), and write the model folder; returns the metrics written."""
+    train_path, val_path = data_dir / "train.parquet", data_dir / "val.parquet"
+    if not train_path.is_file():
+        raise FileNotFoundError(f"{data_dir}: no train.parquet (run the split stage first)")
+    train = pd.read_parquet(train_path)
+    if train.empty:
+        raise ValueError(f"{data_dir}: train.parquet has no rows, nothing to train {kind} on")
+    val = pd.read_parquet(val_path) if val_path.is_file() else train.iloc[:0]
+    sha = file_sha256([p for p in (train_path, val_path) if p.is_file()])
+    label = f"{kind} on {data_dir}"
+    log(f"{label}: {len(train)} train rows, {len(val)} val rows, {params.model_dump(mode='json')}")
+    result = fit(kind, params, train, val, train_data_sha256=sha, log=lambda m: log(f"{label}: {m}"))
+    written = save_model_dir(out_dir, result.checkpoint, result.metrics, result.history)
+    m = result.metrics
+    val_txt = "n/a (no val rows)" if m["best_val_loss"] is None else f"{m['best_val_loss']:.5f}"
+    log(
+        f"{label}: done, {m['epochs_run']} epochs (best {m['best_epoch']}, val loss {val_txt}) "
+        f"in {m['train_seconds']:.2f} s -> {out_dir}"
+    )
+    return written

@@ -1,0 +1,141 @@
+"""Where MLflow lives, how the registered force models are named, and how an alias is looked up:
+shared by the `register` stage, the simulator's client and the `needlecue` commands.
+
+The tracking store is `MLFLOW_TRACKING_URI` if set, else `sqlite:///<project>/mlflow.db`, an
+absolute path to the project's root: `dvc exp run --temp` runs stages in a copy under
+`.dvc/tmp/exps/`, and a relative `sqlite:///mlflow.db` would be created (and lost) in that copy.
+
+mlflow is imported inside the functions, so importing this module is cheap.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mlflow import MlflowClient
+
+EXPERIMENT = "needle-force"
+CHAMPION = "champion"
+CHALLENGER = "challenger"
+ABOUT = """One run per trained model: `<angle>°-<kind>` (ls, fnn, lstm), tagged `angle_deg` and `model_type`.
+
+Metrics are named `<split>_<measure>_<axis>`: split `val`, `test` or `external` (the held-out tissue
+batch, the one that decides champions), measure `rmse` (N) or `nrmse_pct` (the paper's eq. 4, in %),
+axis `fx`, `fy`, `fz` or `mean`. `gap15_nrmse_pct_<axis>` / `gap30_...` are the model on the
+external sets of the angles 15° / 30° away. `train_loss` / `val_loss` are the loss curves.
+
+To compare: group runs by the tag `angle_deg`, or filter `tags.angle_deg = '30'`, and chart
+`external_nrmse_pct_mean`. Registered models: `needle-force-<angle>`, aliases `champion` and
+`challenger`."""
+# Fail fast on an unreachable HTTP store instead of MLflow's default minutes of retries.
+_HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
+
+
+class RegistryUnreachable(RuntimeError):
+    """The tracking server / registry could not be reached (nothing was changed)."""
+
+
+def model_name(angle_deg: float) -> str:
+    """`needle-force-30` for 30°: the registered model of one insertion angle."""
+    if float(angle_deg) != int(angle_deg):
+        raise ValueError(f"angles are whole degrees, got {angle_deg}")
+    return f"needle-force-{int(angle_deg)}"
+
+
+def model_uri(angle_deg: float, alias: str = CHAMPION) -> str:
+    """`models:/needle-force-30@champion`."""
+    return f"models:/{model_name(angle_deg)}@{alias}"
+
+
+def project_root(start: Path | None = None) -> Path:
+    """The folder holding `.dvc/` above `start` (default: cwd); a `dvc exp run --temp` copy under
+    `<root>/.dvc/tmp/exps/` resolves to the outer `<root>`. Falls back to `start` itself."""
+    here = (start or Path.cwd()).resolve()
+    parts = here.parts
+    for i in range(len(parts) - 1):
+        if parts[i : i + 3] == (".dvc", "tmp", "exps"):
+            return Path(*parts[:i])
+    for folder in (here, *here.parents):
+        if (folder / ".dvc").is_dir():
+            return folder
+    return here
+
+
+def tracking_uri(start: Path | None = None) -> str:
+    """`MLFLOW_TRACKING_URI`, or the project's own `sqlite:///<root>/mlflow.db`."""
+    return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{project_root(start) / 'mlflow.db'}"
+
+
+def sqlite_file(uri: str) -> Path | None:
+    """The database file of a `sqlite:///` store URI, None for any other kind of store."""
+    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+
+
+def experiment_id(client: MlflowClient, name: str = EXPERIMENT) -> str:
+    """The experiment's id, creating it if needed. With a sqlite store its artifacts go to
+    `mlartifacts/` beside the database file: MLflow's own default is `./mlruns` under the cwd,
+    which under `dvc exp run --temp` is a throwaway copy. A server decides for itself."""
+    found = client.get_experiment_by_name(name)
+    if found is not None:
+        return str(found.experiment_id)
+    location = None
+    db = sqlite_file(client.tracking_uri)
+    if db is not None:
+        location = (db.parent / "mlartifacts").as_uri()
+    return str(
+        client.create_experiment(name, artifact_location=location, tags={"mlflow.note.content": ABOUT})
+    )
+
+
+def connect(uri: str | None = None, *, must_exist: bool = False) -> MlflowClient:
+    """A client on `uri` (default `tracking_uri()`), checked to answer; `RegistryUnreachable` if not.
+
+    `must_exist`: a sqlite store that is not there yet is unreachable too, instead of being created
+    empty (a reader, like the simulator's client run outside the project, wants the real one).
+
+    Also sets the fluent API's tracking and registry URI, so `mlflow.start_run` goes to the same store.
+    """
+    for key, value in _HTTP_DEFAULTS.items():
+        os.environ.setdefault(key, value)
+    import mlflow
+    from mlflow import MlflowClient
+
+    uri = uri or tracking_uri()
+    db = sqlite_file(uri)
+    if db is not None:
+        if not db.parent.is_dir():
+            raise RegistryUnreachable(f"MLflow store {uri}: folder {db.parent} does not exist")
+        if must_exist and not db.is_file():
+            raise RegistryUnreachable(f"MLflow store {uri}: no such database (run `make repro` to create it)")
+    mlflow.set_tracking_uri(uri)
+    mlflow.set_registry_uri(uri)
+    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+    try:
+        client.search_registered_models(max_results=1)
+    except Exception as e:
+        raise RegistryUnreachable(
+            f"cannot reach the MLflow registry at {uri}: {type(e).__name__}: {str(e).splitlines()[0][:300]}"
+        ) from e
+    return client
+
+
+def versions(client: MlflowClient, name: str) -> list[Any]:
+    """Every version of `name` ([] for an unknown name); any other registry error propagates, so a
+    hiccup of the store is never read as "no versions"."""
+    return list(client.search_model_versions(f"name = '{name}'"))
+
+
+def alias_version(client: MlflowClient, name: str, alias: str) -> Any | None:
+    """The version `name@alias` points to; None only when the model or the alias does not exist
+    (any other error, an unreachable store say, propagates)."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        return client.get_model_version_by_alias(name, alias)
+    except MlflowException as e:
+        if e.error_code in ("RESOURCE_DOES_NOT_EXIST", "INVALID_PARAMETER_VALUE"):
+            return None
+        raise

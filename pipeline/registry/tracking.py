@@ -1,0 +1,198 @@
+"""Tracking: each trained model as one MLflow run of the `needle-force` experiment, with its
+params, datasets, loss curve, per-split and per-gap metrics, figures, checkpoint and the deployable
+ONNX model. A model already tracked (same model hash) is not logged again."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import tempfile
+import warnings
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.metrics.scores import gap_of
+from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
+from pipeline.modelling.predictions import SplitFiles
+from pipeline.registry.candidates import Trained
+from pipeline.vocab import AXES
+
+if TYPE_CHECKING:
+    from mlflow import MlflowClient
+
+Log = Callable[[str], None]
+TAG = "needlecue."  # prefix of our own tags on runs and model versions
+
+
+def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:
+    """The run's flat metrics: `<split>_<rmse|nrmse_pct>_<axis|mean>`, accuracy, gap NRMSE."""
+    out: dict[str, float] = {}
+    for split, scores in t.scores.items():
+        for what in ("rmse", "nrmse_pct"):
+            values = [scores[a][what] for a in AXES]
+            out.update({f"{split}_{what}_{a}": v for a, v in zip(AXES, values, strict=True)})
+            out[f"{split}_{what}_mean"] = float(np.mean(values))
+    out["external_accuracy_pct"] = 100.0 - out["external_nrmse_pct_mean"]
+    # This model on the other angles' external sets, averaged per gap (the paper's Table II, per model).
+    row = metrics.get("angle_gap_matrix", {}).get(t.kind, {}).get(t.angle, {})
+    for gap in metrics.get("gaps_deg", []):
+        cells = [row[d] for d in row if abs(gap_of(t.angle, d) - float(gap)) < 1e-9]
+        for a in AXES:
+            vals = [c[a] for c in cells if c.get(a) is not None]
+            if vals:
+                out[f"gap{float(gap):g}_nrmse_pct_{a}"] = float(np.mean(vals))
+    for key in ("best_epoch", "epochs_run", "best_val_loss"):
+        if isinstance(t.train_metrics.get(key), int | float):
+            out[key] = float(t.train_metrics[key])
+    return {k: v for k, v in out.items() if np.isfinite(v)}
+
+
+def run_params(t: Trained) -> dict[str, str]:
+    ck = t.checkpoint
+    params = {
+        f"{t.kind}.{k}": json.dumps(v) if isinstance(v, list) else str(v) for k, v in ck["params"].items()
+    }
+    return {
+        **params,
+        "kind": t.kind,
+        "angle_deg": t.angle,
+        "channels": ",".join(ck["channels"]),
+        "rate_hz": f"{ck['rate_hz']:g}",
+        "window": str(ck["config"].get("window", 1)),
+        "n_train": str(t.train_metrics.get("n_train", "")),
+        "n_val": str(t.train_metrics.get("n_val", "")),
+    }
+
+
+def git_commit(root: Path) -> str:
+    """HEAD's commit (with "+dirty" if the work tree differs), or "unknown" outside git."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
+def _loss_curve(t: Trained, path: Path) -> bool:
+    history = t.folder / HISTORY_FILE
+    if not history.is_file():
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = pd.read_csv(history)
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.plot(h["epoch"], h["train_loss"], label="train")
+    if h["val_loss"].notna().any():
+        ax.plot(h["epoch"], h["val_loss"], label="validation")
+    ax.set(xlabel="epoch", ylabel="scaled MSE", yscale="log", title=f"{t.angle}° {t.kind}")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, metadata={"Software": None})
+    plt.close(fig)
+    return True
+
+
+def find_run(client: MlflowClient, exp_id: str, sha: str) -> Any | None:
+    """The latest run of the model with this hash, if any."""
+    runs = client.search_runs(
+        [exp_id],
+        filter_string=f"tags.`{TAG}model_sha256` = '{sha}'",
+        max_results=1,
+        order_by=["attributes.start_time DESC"],
+    )
+    return runs[0] if runs else None
+
+
+def track(
+    client: MlflowClient,
+    t: Trained,
+    exp_id: str,
+    files: SplitFiles,
+    metrics: Mapping[str, Any],
+    cue_pack: dict[str, Any] | None,
+    figures: list[Path],
+    commit: str,
+    log: Log,
+) -> tuple[str, str, bool]:
+    """Log `t` as a run (unless a run of the same model exists): (run_id, model_uri, newly_logged)."""
+    import mlflow
+    import mlflow.data
+    from mlflow.entities import Metric
+
+    from pipeline.modelling.export import log_onnx_model
+
+    existing = find_run(client, exp_id, t.model_sha256)
+    if existing is not None and existing.data.tags.get(f"{TAG}model_uri"):
+        return existing.info.run_id, existing.data.tags[f"{TAG}model_uri"], False
+
+    ck = t.checkpoint
+    tags = {
+        "angle_deg": t.angle,
+        "model_type": t.kind,
+        "deployable": "true",  # every kind here reads estimator voltages only
+        "git_commit": commit,
+        "data_sha256": str(ck.get("train_data_sha256", "")),
+        f"{TAG}model_sha256": t.model_sha256,
+        "mlflow.note.content": (
+            f"{t.kind} for {t.angle}° insertions, trained on {t.train_metrics.get('n_train', '?')} samples; "
+            f"external-set NRMSE (mean of fx, fy, fz) {t.mean_nrmse():.2f} %."
+        ),
+    }
+    with mlflow.start_run(experiment_id=exp_id, run_name=f"{t.angle}°-{t.kind}", tags=tags) as run:
+        mlflow.log_params(run_params(t))
+        for split, context in (
+            ("train", "training"),
+            ("val", "validation"),
+            ("test", "test"),
+            ("external", "external"),
+        ):
+            frame = files.frame(t.angle, split)
+            if frame.empty:  # nothing to describe (and MLflow cannot digest an empty frame)
+                continue
+            with warnings.catch_warnings():  # MLflow registers its local-file source twice, then warns
+                warnings.filterwarnings("ignore", message="The specified dataset source can be interpreted")
+                dataset = mlflow.data.from_pandas(
+                    frame, source=str(files.path(t.angle, split)), name=f"{t.angle}°-{split}"
+                )
+            mlflow.log_input(dataset, context=context)
+        mlflow.log_metrics(run_metrics(t, metrics))
+        history = t.folder / HISTORY_FILE
+        if history.is_file():
+            h = pd.read_csv(history)
+            steps = [
+                Metric(key, float(v), 0, int(e))
+                for key in ("train_loss", "val_loss")
+                for e, v in zip(h["epoch"], h[key], strict=True)
+                if pd.notna(v)
+            ]
+            for i in range(0, len(steps), 1000):  # log_batch takes at most 1000 metrics a call
+                client.log_batch(run.info.run_id, metrics=steps[i : i + 1000])
+        with tempfile.TemporaryDirectory() as tmp:
+            curve = Path(tmp) / "loss_curve.png"
+            if _loss_curve(t, curve):
+                mlflow.log_artifact(str(curve), artifact_path="figures")
+        for fig in figures:
+            mlflow.log_artifact(str(fig), artifact_path="figures")
+        for name in (CHECKPOINT_FILE, METRICS_FILE, HISTORY_FILE):
+            if (t.folder / name).is_file():
+                mlflow.log_artifact(str(t.folder / name), artifact_path="checkpoint")
+        info = log_onnx_model(ck, cue_pack, name="model")
+        mlflow.set_tag(f"{TAG}model_uri", info.model_uri)
+    log(f"tracked {t.angle}° {t.kind}: run {run.info.run_id}, external NRMSE {t.mean_nrmse():.2f} %")
+    return run.info.run_id, info.model_uri, True

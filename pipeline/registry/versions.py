@@ -1,0 +1,258 @@
+"""Registering: a candidate becomes a version of `needle-force-<angle>` and the aliases move by
+the champion rule; `rollback` moves the champion back. `register_all` is what the stage runs."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import RegisterParams
+from pipeline.metrics.scores import axis_scores, mean_nrmse
+from pipeline.modelling.batch import predict_frame
+from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
+from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictions import Predictions, SplitFiles
+from pipeline.registry.candidates import Trained, collect, kind_rank
+from pipeline.registry.champion import best_per_angle, decide
+from pipeline.registry.store import (
+    CHALLENGER,
+    CHAMPION,
+    EXPERIMENT,
+    RegistryUnreachable,
+    alias_version,
+    connect,
+    experiment_id,
+    model_name,
+    versions,
+)
+from pipeline.registry.tracking import TAG, git_commit, track
+from pipeline.vocab import AXES
+
+if TYPE_CHECKING:
+    from mlflow import MlflowClient
+
+Log = Callable[[str], None]
+
+
+def _create_registered_model(client: MlflowClient, name: str, description: str) -> None:
+    """Create `name`; one left empty by an interrupted run is fine as it is."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        client.create_registered_model(name, description=description)
+    except MlflowException as e:
+        if e.error_code != "RESOURCE_ALREADY_EXISTS":
+            raise
+
+
+def rescore_version(
+    client: MlflowClient, version: Any, external: pd.DataFrame, known: Mapping[str, float], log: Log
+) -> float | None:
+    """Mean NRMSE of a registered version on today's scored set. `known`: {model_sha256: score} of
+    today's candidates, already scored from the stored predictions; any other version's checkpoint
+    is fetched and predicted. None if its model cannot read this data (other channels, say): then it
+    cannot defend its title. A checkpoint that cannot be fetched is an error (the stage fails and no
+    alias moves), never a free pass."""
+    import mlflow
+
+    sha = version.tags.get(f"{TAG}model_sha256")
+    if sha in known:
+        return known[sha]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = mlflow.artifacts.download_artifacts(
+            run_id=version.run_id, artifact_path=f"checkpoint/{CHECKPOINT_FILE}", dst_path=tmp
+        )
+        predictor = Predictor(load_checkpoint(Path(path)))
+    try:
+        predicted = predict_frame(predictor, external, f"{version.name} v{version.version}")
+    except (KeyError, ValueError) as e:
+        log(f"{version.name} v{version.version}: cannot score today's data ({type(e).__name__}: {e})")
+        return None
+    return mean_nrmse(axis_scores(predicted, external[list(AXES)].to_numpy(np.float64)))
+
+
+def register_angle(
+    client: MlflowClient,
+    t: Trained,
+    model_uri: str,
+    run_id: str,
+    external: pd.DataFrame,
+    known: Mapping[str, float],
+    params: RegisterParams,
+    log: Log,
+) -> dict[str, Any]:
+    """Register `t` for its angle and move the aliases by the champion rule; the registry.json entry.
+    `external`: the set `t` is judged on; `known`: today's candidates' scores on it, by model hash."""
+    import mlflow
+
+    name = model_name(float(t.angle))
+    entry: dict[str, Any] = {
+        "model": name,
+        "kind": t.kind,
+        "model_sha256": t.model_sha256,
+        "external_nrmse_pct_mean": round(t.mean_nrmse(), 4),
+        "scored_on": t.judged_on,
+    }
+    same = [v for v in versions(client, name) if v.tags.get(f"{TAG}model_sha256") == t.model_sha256]
+    mv = max(same, key=lambda v: int(v.version)) if same else None
+    if mv is not None:
+        # search results may leave aliases out: ask for the version itself
+        aliases = sorted(client.get_model_version(name, str(mv.version)).aliases or [])
+        if aliases or mv.tags.get(f"{TAG}decided"):  # decided once (maybe since rolled back): final
+            log(f"{name}: this {t.kind} is already version {mv.version} ({', '.join(aliases) or 'no alias'})")
+            return {**entry, "action": "unchanged", "version": int(mv.version), "aliases": aliases}
+        # registered by a run that was stopped before it set an alias: finish that decision now
+        log(f"{name}: version {mv.version} was never decided (an interrupted run?): deciding it now")
+    elif not versions(client, name):  # the first version creates the registered model: describe it
+        _create_registered_model(
+            client,
+            name,
+            description=(
+                f"3-D needle force (fx, fy, fz in N) from the estimator's voltages, {t.angle}° insertions. "
+                f"`@{CHAMPION}` is what the simulator loads (models:/{name}@{CHAMPION}); a new version "
+                f"takes it only if it beats it on the external set, else it is `@{CHALLENGER}`. "
+                "ONNX, no pickles; the cue pack is in the model's metadata."
+            ),
+        )
+    champion = alias_version(client, name, CHAMPION)
+    champion_score = None if champion is None else rescore_version(client, champion, external, known, log)
+    if mv is None:
+        mv = mlflow.register_model(
+            model_uri,
+            name,
+            tags={
+                f"{TAG}model_sha256": t.model_sha256,
+                "model_type": t.kind,
+                "angle_deg": t.angle,
+                "external_nrmse_pct_mean": f"{t.mean_nrmse():.4f}",
+            },
+        )
+        client.update_model_version(
+            name,
+            mv.version,
+            description=f"{t.kind}, external NRMSE {t.mean_nrmse():.2f} % (mean of fx, fy, fz), run {run_id}",
+        )
+    decision = decide(
+        t.mean_nrmse(),
+        None if champion is None else int(champion.version),
+        champion_score,
+        params.min_improvement_pct,
+    )
+    alias, reason = decision.alias, decision.reason
+    if decision.promote and champion is not None:
+        client.set_model_version_tag(name, mv.version, f"{TAG}previous_champion", str(champion.version))
+    client.set_registered_model_alias(name, alias, mv.version)
+    # Marks the decision as made: a later rollback (or a newer challenger) may take the alias away,
+    # and the next run must not mistake that for an interrupted decision and re-promote it.
+    client.set_model_version_tag(name, mv.version, f"{TAG}decided", alias)
+    log(f"{name}: registered {t.kind} as version {mv.version} -> {alias} ({reason})")
+    out = {**entry, "action": "registered", "version": int(mv.version), "aliases": [alias], "reason": reason}
+    if champion is not None:
+        out["previous_champion"] = {
+            "version": int(champion.version),
+            "external_nrmse_pct_mean": None if champion_score is None else round(champion_score, 4),
+        }
+    return out
+
+
+def rollback(
+    angle_deg: float, to_version: int | None = None, uri: str | None = None
+) -> tuple[int | None, int]:
+    """Move `needle-force-<angle>@champion` to `to_version` (default: the version the current champion
+    replaced). Returns (old champion version, new champion version)."""
+    client = connect(uri)
+    name = model_name(angle_deg)
+    champion = alias_version(client, name, CHAMPION)
+    if to_version is None:
+        if champion is None or not champion.tags.get(f"{TAG}previous_champion"):
+            raise ValueError(f"{name}: no earlier champion on record; pass the version to roll back to")
+        to_version = int(champion.tags[f"{TAG}previous_champion"])
+    known = {int(v.version) for v in versions(client, name)}
+    if to_version not in known:
+        raise ValueError(f"{name} has no version {to_version} (versions: {sorted(known) or 'none'})")
+    client.set_registered_model_alias(name, CHAMPION, str(to_version))
+    client.set_model_version_tag(
+        name, str(to_version), f"{TAG}rolled_back_from", "" if champion is None else str(champion.version)
+    )
+    return (None if champion is None else int(champion.version)), to_version
+
+
+def register_all(
+    models_dir: Path,
+    data_dir: Path,
+    pred_dir: Path,
+    reports_dir: Path,
+    out_json: Path,
+    params: RegisterParams,
+    log: Log,
+) -> dict[str, Any]:
+    """Track all models, register the best per angle, write `out_json`; returns its content."""
+    try:
+        client = connect()  # before anything else: an unreachable store changes nothing
+    except RegistryUnreachable as e:
+        raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
+    metrics_path = reports_dir / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    figures = sorted((reports_dir / "figures").glob("*.png"))
+    files = SplitFiles(data_dir)
+    trained = collect(models_dir, files, Predictions(pred_dir), params.candidates, log)
+    commit = git_commit(Path.cwd())
+
+    logged: dict[tuple[str, str], tuple[str, str]] = {}
+    n_new = 0
+    # Logged from the last angle and kind to the first, so the UI's newest-first list reads 0°-ls,
+    # 0°-fnn, 0°-lstm, 15°-ls, ... from the top.
+    trained.sort(key=lambda t: (float(t.angle), kind_rank(t.kind), t.kind), reverse=True)
+    exp_id = experiment_id(client)
+    for i, t in enumerate(trained, start=1):
+        pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
+        pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
+        run_id, uri, new = track(client, t, exp_id, files, metrics, pack, figures, commit, log)
+        logged[(t.kind, t.angle)] = (run_id, uri)
+        n_new += new
+        if not new:
+            log(f"[{i}/{len(trained)}] {t.angle}° {t.kind}: already tracked (run {run_id})")
+    log(f"tracked {n_new} new run(s) of {len(trained)} model(s) in experiment {EXPERIMENT!r}")
+
+    angles: dict[str, Any] = {}
+    best = best_per_angle(trained, params.candidates)
+    for angle in sorted({t.angle for t in trained} - set(best), key=float):
+        reason = "no external or test rows to score a candidate on: nothing registered"
+        log(f"{model_name(float(angle))}: {reason}")
+        angles[angle] = {
+            "model": model_name(float(angle)),
+            "action": "skipped",
+            "aliases": [],
+            "reason": reason,
+        }
+    for angle, t in best.items():
+        run_id, uri = logged[(t.kind, t.angle)]
+        split = t.judged_on
+        known = {c.model_sha256: c.mean_nrmse(split) for c in trained if c.angle == angle}
+        external = files.frame(angle, split)
+        angles[angle] = register_angle(client, t, uri, run_id, external, known, params, log)
+    angles = dict(sorted(angles.items(), key=lambda kv: float(kv[0])))
+    record = {
+        "experiment": EXPERIMENT,
+        "rule": {
+            "candidates": list(params.candidates),
+            "best": "lowest external_nrmse_pct_mean (mean of fx, fy, fz NRMSE on the external set)",
+            "promote": "beats the champion, re-scored on the same external set, "
+            f"by > {params.min_improvement_pct:g} NRMSE points",
+        },
+        "angles": angles,
+        "registered": sorted((a for a, e in angles.items() if e["action"] == "registered"), key=float),
+        "promoted": sorted(
+            (a for a, e in angles.items() if CHAMPION in e["aliases"] and e["action"] == "registered"),
+            key=float,
+        ),
+    }
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
+    return record

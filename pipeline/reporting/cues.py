@@ -1,0 +1,371 @@
+"""The angle cues in the report: the `## Angle cues` section, the confusion matrices and the
+time-to-cue curves, rendered from the cues stage's evaluation.json and packs."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.cues.score import DEVIATION_GROUPS
+from pipeline.cues.tracker import CUES, METHODS, REFERENCE, VERDICTS
+from pipeline.reporting.style import save_png
+from pipeline.vocab import angle_name
+
+
+def _label(method: str) -> str:
+    return {"combined": "angle estimate + force check (ours)", "paper": "profile comparison (paper)"}[method]
+
+
+def _no_results(evaluation: Mapping[str, Any]) -> str | None:
+    """Why there is nothing to plot (None if there is)."""
+    res = evaluation.get("results") or {}
+    if evaluation.get("skipped"):
+        return f"Cue evaluation skipped: {evaluation['skipped']}"
+    if not [k for k in evaluation.get("kinds", []) if k in res]:
+        return "No model's cues were scored"
+    return None
+
+
+def _placeholder(message: str, path: Path) -> None:
+    """A small figure that only says why there is no plot (deterministic bytes)."""
+
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 2))
+    fig.text(0.5, 0.5, textwrap.fill(message, 70), ha="center", va="center", fontsize=9, wrap=True)
+    save_png(fig, path)
+
+
+def plot_confusion(evaluation: Mapping[str, Any], path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    if (why := _no_results(evaluation)) is not None:
+        _placeholder(why, path)
+        return
+    res = evaluation["results"]
+    kinds = [k for k in evaluation["kinds"] if k in res]
+    methods = [m for m in METHODS if any(m in res[k] for k in kinds)]
+    rows = max(len(kinds), 1)
+    fig = Figure(figsize=(5 * len(methods), 3.2 * rows))
+    axes = fig.subplots(rows, len(methods), squeeze=False)
+    for r, kind in enumerate(kinds):
+        for c, method in enumerate(methods):
+            if method not in res[kind]:
+                axes[r][c].set_axis_off()
+                continue
+            ax = axes[r][c]
+            m = np.asarray(res[kind][method]["confusion_final"]["counts"])
+            share = m / np.maximum(m.sum(axis=1, keepdims=True), 1)
+            ax.imshow(share, cmap="Blues", vmin=0, vmax=1, aspect="auto")
+            for i in range(m.shape[0]):
+                for j in range(m.shape[1]):
+                    ax.text(
+                        j,
+                        i,
+                        str(m[i, j]),
+                        ha="center",
+                        va="center",
+                        color="white" if share[i, j] > 0.6 else "black",
+                        fontsize=10,
+                    )
+            ax.set_xticks(range(len(CUES)), CUES)
+            ax.set_yticks(range(len(VERDICTS)), VERDICTS)
+            acc = res[kind][method]["accuracy_final"]
+            ax.set_title(f"{kind.upper()}: {_label(method)}\naccuracy {100 * (acc or 0):.1f} %", fontsize=9)
+            ax.set_xlabel("cue at the end of the insertion")
+            ax.set_ylabel("true cue")
+    fig.tight_layout()
+    save_png(fig, path)
+
+
+def plot_time_to_cue(evaluation: Mapping[str, Any], path: Path) -> None:
+    """ECDF of the seconds into the insertion until the cue is right (and stays right)."""
+    from matplotlib.figure import Figure
+
+    if (why := _no_results(evaluation)) is not None:
+        _placeholder(why, path)
+        return
+    res = evaluation["results"]
+    kinds = [k for k in evaluation["kinds"] if k in res]
+    cols = max(len(kinds), 1)
+    fig = Figure(figsize=(4.2 * cols, 3.6))
+    axes = fig.subplots(1, cols, squeeze=False)[0]
+    colors = {"0": "tab:green", "15": "tab:orange", "30": "tab:red", ">=45": "tab:purple"}
+    for ax, kind in zip(axes, kinds, strict=False):
+        for method, style in (("combined", "-"), ("paper", "--")):
+            if method not in res[kind]:
+                continue
+            for g in DEVIATION_GROUPS:
+                d = res[kind][method]["time_to_cue"][g]
+                if not d["trials"]:
+                    continue
+                right = np.asarray(d["seconds"], dtype=float)
+                x = np.concatenate([[0.0], right, [12.0]])
+                y = np.concatenate([[0.0], np.arange(1, len(right) + 1), [len(right)]]) / d["trials"]
+                ax.step(
+                    x,
+                    y,
+                    where="post",
+                    color=colors[g],
+                    ls=style,
+                    lw=1.3,
+                    label=f"{g}° {'ours' if method == 'combined' else 'paper'}",
+                )
+        ax.set_xlim(0, 12)
+        ax.set_ylim(0, 1.02)
+        ax.set_title(kind.upper(), fontsize=10)
+        ax.set_xlabel("seconds into the insertion")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("share of trials with the right cue to the end")
+    axes[-1].legend(fontsize=7, loc="lower right", ncol=2)
+    fig.tight_layout()
+    save_png(fig, path)
+
+
+def _f(x: float | None, spec: str = ".1f") -> str:
+    return "–" if x is None else format(x, spec)
+
+
+def _rows(res: Mapping[str, Any], kinds: Sequence[str]) -> list[tuple[str, str, str, Mapping[str, Any]]]:
+    """(kind, method, label, result) in report order, the reference-force bound last."""
+    out = [(k, m, f"{k.upper()}", res[k][m]) for k in kinds for m in METHODS if m in res[k]]
+    if REFERENCE in res and "paper" in res[REFERENCE]:
+        out.append((REFERENCE, "paper", "measured force (bound)", res[REFERENCE]["paper"]))
+    return out
+
+
+def render_summary(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, Any]]) -> str:
+    """The `## Angle cues` section of the report (image links relative to `reports/`). What the stage
+    could not build or score is listed, with why, right under the description."""
+    not_done = _not_done(evaluation, packs)
+    if evaluation.get("skipped") or not packs:
+        return _render_built_only(packs, not_done)
+    res = evaluation["results"]
+    kinds = [k for k in evaluation["kinds"] if k in res]
+    ae = evaluation.get("angle_estimate_at_insertion_end")
+    some = next(iter(packs.values()))
+    pp = some["params"]
+    n_trials = sorted(set(evaluation["external_trials"].values()))
+    lines = [
+        "## Angle cues",
+        "",
+        "The paper's conclusion as simulator cues: on the preset angle with the force in range, "
+        "*continue*; about 15° off, *correct*; 30° or more off, *stop*. **Paper method**: the preset "
+        "angle's model predicts the force; a running RMS distance between it and the preset angle's "
+        "*standard profile* (mean reference force against time since contact over its training trials, "
+        "in units of their spread) is cut by two thresholds, calibrated per model on the training splits "
+        "of every angle. **Ours**: the estimator's own volts say at which angle it is held. At rest the "
+        "needle's weight loads the tilted tripod differently at each angle; once the tissue pushes back, "
+        "the direction in which the three voltages move (log-ratio to rest, taken as the loading reaches "
+        "fixed levels) differs too. A linear discriminant per evidence stage, fitted on the training splits "
+        "of all angles (temperature by leave-one-batch-out), gives P(angle); the cue is the most probable "
+        f"deviation class once its probability reaches {pp['min_confidence']:g}, with the profile's "
+        f"force-in-range check (a predicted force above {pp['force_margin']:g}× the preset angle's largest "
+        "training force means stop). Both are causal, frame by frame, and debounced "
+        f"({pp['debounce_s']:g} s). Scored on the held-out batch: every preset angle against the "
+        f"{'/'.join(str(n) for n in n_trials)} held-out trials of every angle; truth from |true − preset|: "
+        "0° continue, 15° correct, ≥ 30° stop; the insertion spans the frames labelled `insertion` "
+        "(from the reference force, for scoring only: the tracker never sees it).",
+        "",
+        *([*_NOT_DONE_HEAD, *not_done, ""] if not_done else []),
+        "| model | method | right at insertion end | per frame during insertion | "
+        "recall continue / correct / stop | force-check stops |",
+        "|---|---|---|---|---|---|",
+    ]
+    for _kind, method, label, r in _rows(res, kinds):
+        rec = " / ".join(_f(None if v is None else 100 * v, ".0f") for v in r["recall_final"].values())
+        alarms = "–" if r["force_alarm_trials"] is None else f"{r['force_alarm_trials']} trials"
+        lines.append(
+            f"| {label} | {_label(method)} | {_f(100 * (r['accuracy_final'] or 0))} % | "
+            f"{_f(100 * (r['accuracy_frames'] or 0))} % | {rec} % | {alarms} |"
+        )
+    lines += [
+        "",
+        "Seconds into the insertion until the cue is right and stays right to its end (median / p90 "
+        "over the trials that end right; 0 = right from the first insertion frame, e.g. from the rest "
+        "reading), and how many trials end wrong:",
+        "",
+        "| model | method | " + " | ".join(f"{g}° off" for g in DEVIATION_GROUPS) + " |",
+        "|---|---|" + "---|" * len(DEVIATION_GROUPS),
+    ]
+    for _kind, method, label, r in _rows(res, kinds):
+        cells = []
+        for g in DEVIATION_GROUPS:
+            d = r["time_to_cue"][g]
+            cells.append(f"{_f(d['median_s'])} / {_f(d['p90_s'])} s; wrong {d['never_right']}/{d['trials']}")
+        lines.append(f"| {label} | {_label(method)} | " + " | ".join(cells) + " |")
+    lines += ["", "Confusion at the end of the insertion (rows: true cue; columns: cue shown):", ""]
+    header = "| model | method | true cue | " + " | ".join(CUES) + " |"
+    lines += [header, "|---|---|---|" + "---|" * len(CUES)]
+    for _kind, method, label, r in _rows(res, kinds):
+        for name, row in zip(VERDICTS, r["confusion_final"]["counts"], strict=True):
+            lines.append(f"| {label} | {_label(method)} | {name} | " + " | ".join(str(v) for v in row) + " |")
+    if ae is not None and some.get("angle_estimator"):
+        lines += _angle_estimate_lines(ae, some["angle_estimator"])
+    lines += [
+        "",
+        *_findings(res, kinds),
+        "",
+        "![Confusion matrices of the cues at the end of the insertion](cues/confusion.png)",
+        "",
+        "![Share of trials with the right cue against seconds into the insertion](cues/time_to_cue.png)",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+_NOT_DONE_HEAD = ["What this stage could not do, and why:", ""]
+
+
+def _not_done(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, Any]]) -> list[str]:
+    """Bullet lines: what is missing from the packs or the evaluation, and why (empty if nothing)."""
+    out = []
+    missing = {a: p.get("unavailable") or {} for a, p in sorted(packs.items())}
+    reasons = sorted({m["angle_estimator"] for m in missing.values() if "angle_estimator" in m})
+    if reasons:
+        out.append(
+            f"- **No angle estimator** ({'; '.join(reasons)}): the packs have `angle_estimator: null` and "
+            "the tracker's cue falls back to the paper's profile method, saying that the angle estimate "
+            "is unavailable; only that method is scored."
+        )
+    whats: dict[tuple[str, str], list[float]] = {}
+    for a, m in missing.items():
+        for what, why in m.items():
+            if what != "angle_estimator":
+                whats.setdefault((what, why), []).append(a)
+    for (what, why), angles in sorted(whats.items()):
+        at = ", ".join(f"{angle_name(a)}°" for a in angles)
+        if what == "standard_profile":
+            out.append(f"- **No standard profile** at {at} ({why}): no paper-method cue there (it waits).")
+        else:
+            kind = what.rsplit(".", 1)[-1]
+            out.append(f"- **No paper-method thresholds** for {kind} at {at}: {why}.")
+    if evaluation.get("skipped"):
+        out.append(
+            f"- **Cue evaluation skipped**: {evaluation['skipped']}. `cues/evaluation.json` says so; "
+            "its two figures only carry that message."
+        )
+    return out
+
+
+def _render_built_only(packs: Mapping[float, Mapping[str, Any]], not_done: Sequence[str]) -> str:
+    """The section when the cues could not be scored: what was built, what was not, and why."""
+    built = []
+    if packs:
+        some = next(iter(packs.values()))
+        per_angle = some["training"]["trials_per_angle"]
+        with_profile = [a for a, p in sorted(packs.items()) if p.get("standard_profile")]
+        if with_profile:
+            built.append(
+                f"the standard force profile of {', '.join(f'{angle_name(a)}°' for a in with_profile)}"
+            )
+        kinds = sorted({k for p in packs.values() for k in p["thresholds"]["profile"]})
+        if kinds:
+            built.append(f"paper-method thresholds ({', '.join(kinds)})")
+        est = some.get("angle_estimator")
+        if est:
+            built.append(
+                f"an angle estimator over {', '.join(f'{a:g}°' for a in est['classes_deg'])} "
+                f"({len(est['stages'])} evidence stage(s))"
+            )
+        text = (
+            "Simulator cues (continue / correct / stop from the preset angle's standard force profile and "
+            "an angle estimate; see `pipeline/cues/`). Cue packs were built for the preset angle(s) "
+            f"{', '.join(f'{angle_name(a)}°' for a in sorted(packs))} from the training splits (trials per "
+            f"angle: {', '.join(f'{a}° {n}' for a, n in per_angle.items())}), with "
+            + (", ".join(built) if built else "nothing usable")
+            + "."
+        )
+    else:
+        text = "No cue pack was built."
+    return "\n".join(["## Angle cues", "", text, "", *_NOT_DONE_HEAD, *not_done, ""])
+
+
+def _angle_estimate_lines(ae: Mapping[str, Any], estimator: Mapping[str, Any]) -> list[str]:
+    stages = estimator["stages"]
+    est_cols = ae["cols_estimated_deg"]
+    lines = [
+        "",
+        "Our angle estimate at the end of the insertion (rows: true angle; columns: estimate; the same "
+        "for every model and preset angle):",
+        "",
+        "| true \\ estimated | " + " | ".join(f"{a:g}°" for a in est_cols) + " |",
+        "|---|" + "---|" * len(est_cols),
+    ]
+    for a, row in zip(ae["rows_true_deg"], ae["counts"], strict=True):
+        lines.append(f"| {a:g}° | " + " | ".join(str(v) for v in row) + " |")
+    lines += [
+        "",
+        f"Exact in {_f(100 * (ae['exact'] or 0))} % of the held-out trials, within 15° in "
+        f"{_f(100 * (ae['within_15'] or 0))} %. Cross-validated accuracy on the training splits "
+        f"({estimator['cv']}) per evidence stage: "
+        + ", ".join(
+            f"{'rest' if i == 0 else f'level {i}'} "
+            f"{_f(None if s['cv_accuracy'] is None else 100 * s['cv_accuracy'], '.0f')} %"
+            for i, s in enumerate(stages)
+        )
+        + ".",
+    ]
+    return lines
+
+
+def _findings(res: Mapping[str, Any], kinds: Sequence[str]) -> list[str]:
+    """What the numbers say, computed, never written in advance."""
+    out = []
+    for kind in kinds:
+        if "combined" not in res[kind]:
+            continue
+        ours, paper = res[kind]["combined"], res[kind]["paper"]
+        a, b = ours["accuracy_final"] or 0, paper["accuracy_final"] or 0
+        verdict = "helps" if a > b + 0.02 else ("does not help" if a < b - 0.02 else "changes little")
+        line = (
+            f"- {kind.upper()}: going past the paper {verdict}: {100 * a:.1f} % against {100 * b:.1f} % "
+            "right at the end of the insertion."
+        )
+        weak = [c for c, v in paper["recall_final"].items() if v is not None and v < 0.5]
+        if weak:
+            line += f" The profile comparison alone gets under half of the true *{'*, *'.join(weak)}* right."
+        weak = [c for c, v in ours["recall_final"].items() if v is not None and v < 0.8]
+        if weak:
+            line += f" Ours is weak on *{'*, *'.join(weak)}* (recall under 80 %)."
+        if ours["force_alarm_trials"]:
+            fin = ours["confusion_final"]["counts"]
+            line += (
+                f" Its force check fired in {ours['force_alarm_trials']} trials "
+                f"(true *continue* trials ending on *stop*: {fin[0][3]})."
+            )
+        out.append(line)
+    ref = res.get(REFERENCE, {}).get("paper")
+    if ref and kinds:
+        best = max((res[k]["paper"]["accuracy_final"] or 0) for k in kinds)
+        r = ref["accuracy_final"] or 0
+        if r > best + 0.1:
+            out.append(
+                f"- The profile comparison itself is not the weak link: on the measured force it is right "
+                f"in {100 * r:.1f} % of the trials, against at most {100 * best:.1f} % on a model's "
+                "prediction. A model trained at one angle maps another angle's volts onto its own angle's "
+                "force direction (cutting and friction act along the needle, so they reach the tilted "
+                "estimator the same way at every angle), so its predicted profile looks like the preset's "
+                "even when the angle is off."
+            )
+        else:
+            out.append(
+                f"- On the measured force the profile comparison is right in {100 * r:.1f} % of the trials "
+                f"(at most {100 * best:.1f} % on a model's prediction)."
+            )
+    models_agree = len({json.dumps(res[k].get("combined", {}).get("confusion_final")) for k in kinds}) == 1
+    if len(kinds) > 1 and all("combined" in res[k] for k in kinds):
+        out.append(
+            "- Our cue reads the model's force only for the force-in-range check, so it "
+            + (
+                "gives the same result with every model."
+                if models_agree
+                else "differs between models only where that check fired."
+            )
+        )
+    return out

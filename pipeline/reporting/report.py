@@ -1,0 +1,327 @@
+"""report.md, assembled from small section functions: each heading is written by the function of
+the same name (`datasets` writes "## Datasets", `table1` "## Table I ...", and so on), and
+`render` puts them in order. Inputs are data only: metrics.json, the cue evaluation, the packs."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.metrics.paper import (
+    PAPER_ACCURACY,
+    PAPER_MEAN_NRMSE,
+    PAPER_MEAN_RMSE,
+    PAPER_TABLE1,
+    PAPER_TABLE2,
+    PAPER_TABLE3,
+    check_gap_growth,
+    findings,
+    gap_curve_statement,
+    gap_key,
+    models_in,
+    pct,
+    reference_angle,
+)
+from pipeline.metrics.scores import mean_over_axes
+from pipeline.reporting.style import fmt, table
+from pipeline.vocab import AXES, kind_label, sorted_angles
+
+SIMULATOR_NOTE = """\
+The data come from the project's pipeline, normally fed by its built-in rig simulator
+(`pipeline/sim/physics.py`, see `docs/physics.md`): Okamura's needle–tissue force model, a
+tripod estimator tilted with the insertion angle, FSRs with threshold, hysteresis, drift and
+part-to-part spread behind a viscoelastic silicone layer, a 10-bit ADC and two
+unsynchronised clocks. It is faithful in kind but it is not the authors' rig: tissue casts,
+FSR parts, preload, connector geometry, noise levels and trial protocol are estimates from
+published figures, not measurements of their device, and nothing was tuned to reproduce
+their numbers. Absolute NRMSE values therefore differ; what physics should carry over is the
+order (LS clearly worse than the networks, error growing with the angle gap). Other known
+differences: the paper does not document its splits (we split by trial and hold out a whole
+batch per angle as the "new dataset"); it does not describe its LSTM (ours sees only the
+estimator's own history in a fixed window); NRMSE divides by the reference range of the set
+scored, so a set with a smaller range reads worse at the same RMSE; and the paper's gap rows
+come from single (model, dataset) pairs, while ours average every pair with that gap, in
+both directions."""
+
+
+def _axis_cells(values: Mapping[str, float | None] | None) -> list[str]:
+    return [pct((values or {}).get(a)) for a in AXES]
+
+
+def _paper_cells(values: Sequence[float] | None) -> list[str]:
+    return [pct(v) for v in values] if values else ["—"] * len(AXES)
+
+
+def _within_nrmse(
+    metrics: Mapping[str, Any], key: str, model: str, angle: str
+) -> dict[str, float | None] | None:
+    scores = metrics.get(key, {}).get(model, {}).get(angle)
+    return None if scores is None else {a: scores[a]["nrmse_pct"] for a in AXES}
+
+
+def title(metrics: Mapping[str, Any]) -> list[str]:
+    """# Evaluation: the title and how the numbers are defined."""
+    out = ["# Evaluation: needle force estimators against the paper (Tang et al., IEEE Sensors J. 2024)", ""]
+    out += [
+        "NRMSE = 100 · RMSE / (max(ref) − min(ref)) per axis over every sample of the set scored "
+        "(eq. (3)-(4)); accuracy = 100 − NRMSE. All numbers are computed by `pipeline/metrics/` "
+        "and also in `metrics.json`; paper values are copied from the text as extracted "
+        '(typos fixed: the second "LS (45°)" row of Table I is the FNN row; "1414%" is 14.14 %; '
+        'Table III\'s "FNN (angle gap 30°)" row is the 15° gap row). Models see only their inputs: '
+        "the force columns are dropped before `predict`.",
+        "",
+    ]
+    return out
+
+
+def datasets(metrics: Mapping[str, Any]) -> list[str]:
+    """## Datasets: which set each angle is scored on."""
+    datasets = metrics.get("datasets", {})
+    out = [
+        "## Datasets",
+        "",
+        "Table I and the angle-gap tables score each model on an angle's **external** set: the "
+        'held-out batch, never seen in training, standing for the paper\'s "new dataset" '
+        "(an angle without external rows falls back to its test split, marked below). The "
+        "test-split table uses the trials of the training batches that the split stage kept out "
+        "of training and validation.",
+        "",
+    ]
+    out += table(
+        ["angle", "scored set", "trials", "rows", "test rows", "batches"],
+        (
+            [
+                f"{a}°",
+                d["source"],
+                str(d["n_trials"]),
+                str(d["n_rows"]),
+                str(d["n_test_rows"]),
+                ", ".join(d["batches"]),
+            ]
+            for a, d in ((a, datasets[a]) for a in sorted_angles(datasets))
+        ),
+    )
+    return out
+
+
+def table1(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> list[str]:
+    """## Table I: within-angle NRMSE on the external set, with the average RMSE."""
+    out: list[str] = []
+    out += ["", "## Table I: within-angle NRMSE on the external set", ""]
+    rows = []
+    for angle in angles:
+        for m in models:
+            ours = _within_nrmse(metrics, "within_angle", m, angle)
+            paper = PAPER_TABLE1.get(m, {}).get(angle) or (
+                PAPER_TABLE3[("lstm", "30")] if (m, angle) == ("lstm", "30") else None
+            )
+            if ours is None and paper is None:
+                continue
+            rows.append([f"{kind_label(m)} ({angle}°)", *_axis_cells(ours), *_paper_cells(paper)])
+    for m in models:
+        mean = metrics.get("mean", {}).get(m, {})
+        n = mean.get("n_angles", 0)
+        rows.append(
+            [
+                f"**{kind_label(m)} average** ({n} angles)",
+                *_axis_cells(mean.get("within_angle")),
+                *_paper_cells(PAPER_MEAN_NRMSE.get(m)),
+            ]
+        )
+    out += table(["method", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
+    out += [
+        "",
+        "The paper's Table I has no LSTM rows; its LSTM at 30° is from Table III. Paper averages are "
+        "those stated in section V (Table I's own rows average to "
+        + ", ".join(
+            f"{kind_label(m)} "
+            + "/".join(f"{v:.2f}" for v in np.mean(list(PAPER_TABLE1[m].values()), axis=0))
+            for m in PAPER_TABLE1
+        )
+        + " %).",
+        "",
+        "Average RMSE over angles (N):",
+        "",
+    ]
+    rmse_rows = []
+    for m in models:
+        r = metrics.get("mean", {}).get(m, {}).get("within_angle_rmse", {})
+        paper_r = PAPER_MEAN_RMSE.get(m)
+        rmse_rows.append(
+            [
+                kind_label(m),
+                *(fmt(r.get(a)) or "—" for a in AXES),
+                *([f"{v:.4f}" for v in paper_r] if paper_r else ["—"] * 3),
+            ]
+        )
+    out += table(["method", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rmse_rows)
+    return out
+
+
+def test_split(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> list[str]:
+    """### Within-angle NRMSE on the test split."""
+    out: list[str] = []
+    out += ["", "### Within-angle NRMSE on the test split (ours only)", ""]
+    rows = [
+        [f"{kind_label(m)} ({a}°)", *_axis_cells(_within_nrmse(metrics, "within_angle_test", m, a))]
+        for a in angles
+        for m in models
+        if _within_nrmse(metrics, "within_angle_test", m, a) is not None
+    ]
+    out += table(["method", "Fx", "Fy", "Fz"], rows) if rows else ["No test-split results."]
+    return out
+
+
+def table2(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
+    """## Table II: angle gaps, and the train-by-data angle matrix per model."""
+    out: list[str] = []
+    out += [
+        "",
+        "## Table II: angle gaps (mean NRMSE over every pair of train and data angle with that gap)",
+        "",
+    ]
+    rows = []
+    pairs = metrics.get("angle_gap_pairs", {})
+    for g in metrics.get("gaps_deg", []):
+        for m in models:
+            ours = metrics.get("angle_gap", {}).get(m, {}).get(g)
+            if ours is None:
+                continue
+            rows.append(
+                [
+                    f"{kind_label(m)} ({g}° gap)",
+                    str(pairs.get(m, {}).get(g, 0)),
+                    *_axis_cells(ours),
+                    *_paper_cells(PAPER_TABLE2.get(m, {}).get(g)),
+                ]
+            )
+    out += table(["model", "pairs", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
+    out += ["", "Mean NRMSE over axes, train angle (rows) against data angle (columns):", ""]
+    for m in models:
+        mat = metrics.get("angle_gap_matrix", {}).get(m)
+        if not mat:
+            continue
+        cols = sorted_angles(d for row in mat.values() for d in row)
+        out += [f"**{kind_label(m)}**", ""]
+        out += table(
+            ["train \\ data", *(f"{d}°" for d in cols)],
+            (
+                [f"{t}°", *(fmt(mean_over_axes(mat[t].get(d, {})), ".2f") or "—" for d in cols)]
+                for t in sorted_angles(mat)
+            ),
+        )
+        out.append("")
+    return out
+
+
+def table3(metrics: Mapping[str, Any], angles: list[str]) -> list[str]:
+    """## Table III: FNN against LSTM."""
+    out: list[str] = []
+    ref = reference_angle(angles) or "30"
+    small = gap_key(metrics, 15.0)
+    out += [f"## Table III: FNN against LSTM ({ref}°, and the {small}° gap)", ""]
+    rows = []
+    for m in ("lstm", "fnn"):
+        rows.append(
+            [
+                f"{kind_label(m)} ({ref}°)",
+                *_axis_cells(_within_nrmse(metrics, "within_angle", m, ref)),
+                *_paper_cells(PAPER_TABLE3.get((m, "30"))),
+            ]
+        )
+    for m in ("lstm", "fnn"):
+        rows.append(
+            [
+                f"{kind_label(m)} (angle gap {small}°)",
+                *_axis_cells(metrics.get("angle_gap", {}).get(m, {}).get(small)),
+                *_paper_cells(PAPER_TABLE3.get((m, "gap15"))),
+            ]
+        )
+    out += table(["method & dataset", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
+    return out
+
+
+def accuracy(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
+    """## Accuracy: 100 − mean NRMSE, own angle and per gap."""
+    out: list[str] = []
+    out += ["", "## Accuracy (100 − mean NRMSE over axes)", ""]
+    rows = []
+    for m in models:
+        mean = metrics.get("mean", {}).get(m, {})
+        gap_acc = mean.get("angle_gap_accuracy_pct", {})
+        rows.append(
+            [
+                kind_label(m),
+                pct(mean.get("accuracy_pct")),
+                *(pct(gap_acc.get(g)) for g in metrics.get("gaps_deg", [])),
+            ]
+        )
+    out += table(["model", "own angle", *(f"{g}° gap" for g in metrics.get("gaps_deg", []))], rows)
+    out += [
+        "",
+        f"Paper: FNN above 90 % (section V averages: {100 - float(np.mean(PAPER_MEAN_NRMSE['fnn'])):.2f} %), "
+        f"LS {PAPER_ACCURACY['ls']:.2f} %; FNN at the 15° gap {PAPER_ACCURACY['fnn_gap15']:.2f} %, "
+        f"at the 30° gap an error of {PAPER_ACCURACY['fnn_gap30_error']:.2f} % "
+        f"(accuracy {100 - PAPER_ACCURACY['fnn_gap30_error']:.2f} %).",
+    ]
+    return out
+
+
+def figures_section(figures: Sequence[str]) -> list[str]:
+    """## Figures, with captions."""
+    out: list[str] = []
+    if figures:
+        out += ["", "## Figures", ""]
+        captions = {
+            "fig7_profiles.png": "Fig. 7 analogue: reference against each angle's own models on one "
+            "external trial per angle (the first by id, not a chosen one).",
+            "fig8_gaps.png": "Fig. 8 analogue: one angle's models on trials of angles 15° and 30° away.",
+            "gap_matrix.png": "Mean NRMSE over axes for every model on every angle's external set.",
+        }
+        for f in figures:
+            name = Path(f).name
+            out += [f"![{name}]({f})", "", captions.get(name, ""), ""]
+    return out
+
+
+def agreement(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
+    """## Where we agree with the paper and where we do not; why a simulator differs."""
+    out: list[str] = []
+    out += ["", "## Where we agree with the paper and where we do not", ""]
+    out += ["Each claim is checked by the same code on the paper's numbers and on ours.", ""]
+    for fd in findings(metrics):
+        out += [
+            f"- **{fd.claim}: {fd.verdict}.**",
+            f"  Paper: {fd.paper.text}.",
+            f"  Ours: {fd.ours.text}.",
+        ]
+    growth = [check_gap_growth(metrics, m) for m in models if m in metrics.get("angle_gap", {})]
+    if growth:
+        gaps = ", ".join(f"{g}°" for g in metrics.get("gaps_deg", []))
+        out += ["", f"Error grows with the angle gap for each model (own angle, then {gaps}):", ""]
+        out += [f"- {'yes' if c.holds else 'no'}: {c.text}." for c in growth]
+    curve = gap_curve_statement(metrics)
+    if curve:
+        out += ["", "Over every gap present (mean NRMSE over axes and pairs):", ""]
+        out += [f"- {line}." for line in curve]
+    out += ["", "### Why a simulator's numbers differ from the rig's", "", SIMULATOR_NOTE, ""]
+    return out
+
+
+def render(metrics: Mapping[str, Any], figures: Sequence[str] = (), cue_sections: Sequence[str] = ()) -> str:
+    """report.md: the sections in order; `cue_sections` (the angle cues' Markdown) come last."""
+    models = models_in(metrics)
+    angles = sorted_angles(
+        list(metrics.get("datasets", {})) + [a for m in metrics.get("within_angle", {}).values() for a in m]
+    )
+    out = title(metrics) + datasets(metrics)
+    out += table1(metrics, models, angles) + test_split(metrics, models, angles)
+    out += table2(metrics, models) + table3(metrics, angles) + accuracy(metrics, models)
+    out += figures_section(figures) + agreement(metrics, models)
+    report = "\n".join(out)
+    for section in cue_sections:
+        report = report.rstrip("\n") + "\n\n" + section.strip("\n") + "\n"
+    return report

@@ -1,0 +1,127 @@
+"""Reading one batch's `batch.yaml`: parsed, checked against the `BatchMeta` model, and every
+error placed on its line (`docs/rig-log-format.md`, section `batch.yaml`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from pipeline.rig.format import BATCH_FILE, ID_PATTERN, BatchMeta, is_valid_id
+from pipeline.rig.problems import ProblemLog
+
+# Internal columns of the validated frames (pipeline.rig.reader); a channel of the same name
+# would be ambiguous.
+RESERVED = frozenset({"trial_id", "line", "dt"})
+
+
+def _yaml_line(node: yaml.Node | None, loc: Sequence[Any]) -> int | None:
+    """1-based line of the deepest node of `loc` (a pydantic error location) in a composed YAML tree."""
+    if node is None:
+        return None
+    found = node
+    for part in loc:
+        nxt = None
+        if isinstance(found, yaml.MappingNode):
+            nxt = next((v for k, v in found.value if getattr(k, "value", None) == str(part)), None)
+        elif isinstance(found, yaml.SequenceNode) and isinstance(part, int) and part < len(found.value):
+            nxt = found.value[part]
+        if nxt is None:
+            break
+        found = nxt
+    return found.start_mark.line + 1
+
+
+def _duplicate_key(node: yaml.Node | None) -> tuple[str, int] | None:
+    """First key that appears twice in one mapping (safe_load would silently keep the last)."""
+    if isinstance(node, yaml.MappingNode):
+        seen: set[str] = set()
+        for k, v in node.value:
+            key = getattr(k, "value", None)
+            if isinstance(key, str):
+                if key in seen:
+                    return key, k.start_mark.line + 1
+                seen.add(key)
+            if found := _duplicate_key(v):
+                return found
+    elif isinstance(node, yaml.SequenceNode):
+        for v in node.value:
+            if found := _duplicate_key(v):
+                return found
+    return None
+
+
+def read_meta(batch_dir: Path, probs: ProblemLog) -> BatchMeta | None:
+    """batch.yaml parsed and validated; None (with Problems) if the batch must be set aside."""
+    path = batch_dir / BATCH_FILE
+    file = str(path)
+    if not path.is_file():
+        probs.add(file, f"missing {BATCH_FILE}")
+        return None
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except OSError as e:
+        probs.add(file, f"cannot read: {e.strerror}")
+        return None
+    except UnicodeDecodeError as e:
+        probs.add(file, "not UTF-8 text", line=path.read_bytes()[: e.start].count(b"\n") + 1)
+        return None
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        if dup := _duplicate_key(node):
+            probs.add(file, f"key {dup[0]!r} appears twice in one mapping", line=dup[1])
+            return None
+        data = yaml.safe_load(text)
+    except ValueError as e:  # a well-formed but impossible value, e.g. `recorded: 2026-13-45`
+        probs.add(file, f"not valid YAML: {e}")
+        return None
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        what = getattr(e, "problem", None) or str(e)
+        probs.add(file, f"not valid YAML: {what}", line=None if mark is None else mark.line + 1)
+        return None
+    if not isinstance(data, dict):
+        probs.add(file, "must be a mapping of keys to values (see rig-log/1)", line=1)
+        return None
+    try:
+        meta = BatchMeta.model_validate(data)
+    except ValidationError as e:
+        for err in e.errors():
+            loc = tuple(err["loc"])
+            key = ".".join(str(p) for p in loc) or "(top level)"
+            got = err.get("input")
+            shown = (
+                f" (got {got!r})"
+                if err["type"] != "missing" and isinstance(got, str | int | float | bool)
+                else ""
+            )
+            probs.add(file, f"key {key}: {err['msg']}{shown}", line=_yaml_line(node, loc))
+        return None
+    ok = True
+    if meta.batch_id != batch_dir.name:
+        probs.add(
+            file,
+            f"key batch_id: {meta.batch_id!r} differs from the folder name {batch_dir.name!r}",
+            line=_yaml_line(node, ("batch_id",)),
+        )
+        ok = False
+    elif not is_valid_id(meta.batch_id):
+        probs.add(
+            file,
+            f"key batch_id: {meta.batch_id!r} does not match {ID_PATTERN.pattern}",
+            line=_yaml_line(node, ("batch_id",)),
+        )
+        ok = False
+    if clash := sorted(RESERVED & set(meta.sensor.channels)):
+        probs.add(
+            file,
+            f"key sensor.channels: {', '.join(map(repr, clash))} is reserved for ingest's own "
+            "columns; rename the channel",
+            line=_yaml_line(node, ("sensor", "channels")),
+        )
+        ok = False
+    return meta if ok else None

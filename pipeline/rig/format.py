@@ -1,0 +1,128 @@
+"""The rig-log/1 contract (`docs/rig-log-format.md`): file and column names, the id pattern, the
+`batch.yaml` models and `Problem`, the one way any part of the pipeline says what is wrong.
+
+Shared by the simulator (which writes such folders) and ingest (which reads them), so the two
+can never disagree about the format.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass
+from datetime import date
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+FORMAT = "rig-log/1"
+ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+BATCH_FILE = "batch.yaml"
+TRIALS_FILE = "trials.csv"
+TRIAL_COLUMNS = ("trial_id", "angle_deg", "tissue_point")
+REF_COLUMNS = ("t_s", "fx", "fy", "fz")  # the forces keep these names downstream (vocab.AXES)
+REF_TORQUES = ("tx", "ty", "tz")
+FSR_TIME = "t_ms"
+
+
+def fsr_file(trial_id: str) -> str:
+    """Name of a trial's estimator stream file."""
+    return f"{trial_id}.fsr.csv"
+
+
+def ref_file(trial_id: str) -> str:
+    """Name of a trial's reference stream file."""
+    return f"{trial_id}.ref.csv"
+
+
+def is_valid_id(name: str) -> bool:
+    """Whether `name` is a valid batch or trial id."""
+    return ID_PATTERN.fullmatch(name) is not None
+
+
+class _Meta(BaseModel):
+    # Unknown keys are kept as metadata, never an error (rig-log/1).
+    model_config = ConfigDict(extra="allow")
+
+
+class SensorMeta(_Meta):
+    """`sensor`: the estimator unit, its channels and their units."""
+
+    unit_id: str
+    channels: list[str] = Field(min_length=1)
+    units: Literal["counts", "volts"]
+    adc_bits: int | None = Field(None, ge=1, le=32)
+    vref_v: float | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _counts_need_adc(self) -> SensorMeta:
+        if self.units == "counts" and (self.adc_bits is None or self.vref_v is None):
+            raise ValueError("sensor.units is 'counts', so sensor.adc_bits and sensor.vref_v are required")
+        bad = [c for c in self.channels if c in (FSR_TIME, "") or not isinstance(c, str)]
+        if bad or len(set(self.channels)) != len(self.channels):
+            raise ValueError(f"sensor.channels must be distinct column names other than {FSR_TIME!r}")
+        return self
+
+
+class ReferenceMeta(_Meta):
+    """`reference`: the force/torque sensor and its units."""
+
+    model: str | None = None
+    units: Literal["N", "mN"]
+    frame: str | None = "tissue"
+
+
+class RobotMeta(_Meta):
+    """`robot`: the insertion programme (informative only)."""
+
+    insertion_speed_mm_s: float | None = None
+    insertion_time_s: float | None = None
+    retraction_speed_mm_s: float | None = None
+
+
+class BatchMeta(_Meta):
+    """batch.yaml of one batch."""
+
+    format: Literal["rig-log/1"]
+    batch_id: str
+    recorded: date | None = None
+    tissue: dict[str, Any] | None = None
+    sensor: SensorMeta
+    reference: ReferenceMeta
+    robot: RobotMeta | None = None
+
+    def to_yaml_dict(self) -> dict[str, Any]:
+        return self.model_dump(mode="json", exclude_none=True)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One reason a batch, trial or file was set aside: what is wrong and exactly where."""
+
+    batch_id: str
+    file: str
+    reason: str
+    trial_id: str | None = None
+    line: int | None = None
+    column: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def __str__(self) -> str:
+        where = self.file
+        if self.line is not None:
+            where += f":{self.line}"
+        if self.column is not None:
+            where += f" column {self.column!r}"
+        return f"{where}: {self.reason}"
+
+
+def batch_dirs(root: Path) -> list[Path]:
+    """Candidate batch folders under a raw folder: every visible sub-directory, sorted.
+
+    Files next to them (README, `*.dvc`, `.gitignore` written by `dvc add`) are not batches.
+    """
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))

@@ -1,0 +1,333 @@
+"""Reading one rig-log/1 batch folder (`docs/rig-log-format.md`): `parse_batch` reads batch.yaml,
+trials.csv and every trial's two streams, validates the frames with Great Expectations and
+returns what is usable plus every `Problem`. Read-only; never raises on bad input.
+
+A bad cell sets aside its trial; a bad batch.yaml or trials.csv, or a failed check that names
+no row, sets aside the whole batch. Values stay in raw units (counts or volts, N or mN).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import IngestParams
+from pipeline.rig.batch_yaml import read_meta
+from pipeline.rig.csvfile import column_index, numbers, read_csv, well_formed
+from pipeline.rig.expectations import Check, Validator, frame_dt
+from pipeline.rig.format import (
+    BATCH_FILE,
+    FSR_TIME,
+    REF_COLUMNS,
+    REF_TORQUES,
+    TRIAL_COLUMNS,
+    TRIALS_FILE,
+    BatchMeta,
+    Problem,
+    fsr_file,
+    ref_file,
+)
+from pipeline.rig.problems import ProblemLog, group_warnings
+
+FSR_SUFFIX, REF_SUFFIX = fsr_file(""), ref_file("")
+
+Warn = Callable[[Path, str], None]
+
+
+# --------------------------------------------------------------------------- trials.csv
+
+
+@dataclass(frozen=True)
+class _Trials:
+    table: pd.DataFrame  # accepted rows so far, output schema
+    listed: set[str]  # every trial_id string in trials.csv, good or bad (files of these are no orphans)
+    extras: list[str]
+    check: Check | None
+
+
+def _read_trials(
+    batch_dir: Path, batch_id: str, probs: ProblemLog, validator: Validator, warn: Warn
+) -> _Trials | None:
+    """trials.csv read, checked row by row and validated with GX; None if the batch must be set aside."""
+    path = batch_dir / TRIALS_FILE
+    file = str(path)
+    if not path.is_file():
+        probs.add(file, f"missing {TRIALS_FILE}")
+        return None
+    table = read_csv(path, probs, None)
+    if table is None:
+        return None
+    idx = column_index(table, TRIAL_COLUMNS, file, probs, None)
+    if idx is None:
+        return None
+    i_id = idx["trial_id"]
+    listed = {r[i_id].strip() for r in table.rows if len(r) > i_id}
+    if not table.rows:
+        probs.add(file, "lists no trials", line=table.header_line)
+        return None
+    rows, lines = well_formed(table, file, probs, lambda r: r[i_id].strip() if len(r) > i_id else None)
+    extras = [h for h in table.header if h not in TRIAL_COLUMNS]
+    if "" in extras:
+        warn(path, "a column without a name is ignored")
+        extras = [h for h in extras if h]
+    ids = [r[i_id].strip() for r in rows]
+    angle = numbers([r[idx["angle_deg"]] for r in rows], lines, file, "angle_deg", ids, probs)
+    frame = pd.DataFrame(
+        {
+            "trial_id": pd.Series(ids, dtype=object),
+            "angle_deg": angle,
+            "tissue_point": pd.Series([r[idx["tissue_point"]].strip() for r in rows], dtype=object),
+            "line": lines,
+        }
+    )
+    check = None
+    if len(frame):
+        check = validator.trials(batch_id, frame, file)
+        probs.extend(check.problems)
+        if check.batch_failed:
+            return None
+    bad_lines = probs.bad_lines[file]
+    keep = [
+        i
+        for i, (t, ln) in enumerate(zip(ids, lines, strict=True))
+        if ln not in bad_lines and t not in probs.bad_trials
+    ]
+    out = pd.DataFrame(
+        {
+            "trial_id": [ids[i] for i in keep],
+            "angle_deg": angle[keep],
+            "tissue_point": [frame["tissue_point"].iat[i] for i in keep],
+            **{c: [rows[i][idx[c]] for i in keep] for c in extras},
+        }
+    )
+    # Sorted here so that every frame built from it is in trial_id order too.
+    return _Trials(out.sort_values("trial_id", kind="stable", ignore_index=True), listed, extras, check)
+
+
+# --------------------------------------------------------------------------- streams
+
+
+def _read_stream(
+    path: Path,
+    trial_id: str,
+    time_col: str,
+    values: Sequence[str],
+    optional: Sequence[str],
+    integer: bool,
+    probs: ProblemLog,
+    warn: Warn,
+) -> pd.DataFrame | None:
+    """One stream file as trial_id, line, time, values (+ optional columns if all present), float64."""
+    file = str(path)
+    if not path.is_file():
+        probs.add(
+            file,
+            f"trial {trial_id!r} is listed in {TRIALS_FILE} but {path.name} is missing",
+            trial_id=trial_id,
+        )
+        return None
+    table = read_csv(path, probs, trial_id)
+    if table is None:
+        return None
+    required = [time_col, *values]
+    idx = column_index(table, required, file, probs, trial_id)
+    if idx is None:
+        return None
+    opt = [c for c in optional if c in idx]
+    if opt and len(opt) != len(optional):
+        warn(path, f"only {', '.join(opt)} of {', '.join(optional)} present; ignored")
+        opt = []
+    if extra := [h for h in table.header if h not in required and h not in optional]:
+        warn(path, f"extra column(s) {', '.join(map(repr, extra))} ignored")
+    if not table.rows:
+        probs.add(file, "empty stream: a header but no samples", trial_id=trial_id)
+        return None
+    rows, lines = well_formed(table, file, probs, lambda _: trial_id)
+    if not rows:
+        return None
+    cols = {
+        c: numbers(
+            [r[idx[c]] for r in rows], lines, file, c, trial_id, probs, integer=integer and c != time_col
+        )
+        for c in [*required, *opt]
+    }
+    return pd.DataFrame({"trial_id": pd.Series([trial_id] * len(rows), dtype=object), "line": lines, **cols})
+
+
+def _rate_row(frame: pd.DataFrame, file: str, time_col: str, per_second: float) -> dict[str, Any]:
+    t = frame[time_col].to_numpy()
+    t = t[np.isfinite(t)]
+    span = (t.max() - t.min()) / per_second if len(t) > 1 else 0.0
+    # No rate without a positive span; the time checks report why.
+    rate = round((len(frame) - 1) / span, 3) if span > 0 else np.nan
+    return {
+        "trial_id": frame["trial_id"].iat[0],
+        "file": file,
+        "time_column": time_col,
+        "n_samples": len(frame),
+        "rate_hz": rate,
+    }
+
+
+# --------------------------------------------------------------------------- one batch
+
+
+@dataclass
+class ParsedBatch:
+    """Everything read from one batch folder: accepted frames (if any), Problems, GX results."""
+
+    batch_id: str
+    source_dir: Path
+    problems: list[Problem]
+    warnings: list[str]
+    meta: BatchMeta | None = None
+    trials: pd.DataFrame | None = None
+    fsr: pd.DataFrame | None = None
+    ref: pd.DataFrame | None = None
+    gx: dict[str, dict[str, Any]] = field(default_factory=dict)
+    trials_set_aside: list[str] = field(default_factory=list)
+
+    @property
+    def accepted(self) -> bool:
+        return self.trials is not None and len(self.trials) > 0
+
+
+def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> ParsedBatch:
+    """Read and validate one batch folder (read-only). Never raises on bad input: see `.problems`."""
+    batch_id = batch_dir.name
+    probs = ProblemLog(batch_id)
+    warnings: list[tuple[Path, str]] = []
+    out = ParsedBatch(batch_id, batch_dir, [], [])
+
+    def warn(path: Path, msg: str) -> None:
+        warnings.append((path, msg))
+
+    def done() -> ParsedBatch:
+        out.problems = probs.finish()
+        out.warnings = group_warnings(warnings)
+        return out
+
+    meta = read_meta(batch_dir, probs)
+    if meta is None:
+        return done()
+    out.meta = meta
+    trials = _read_trials(batch_dir, batch_id, probs, validator, warn)
+    if trials is None:
+        return done()
+    if trials.check is not None:
+        out.gx["trials"] = trials.check.result
+    _orphans(batch_dir, trials.listed, probs, warn)
+
+    channels = list(meta.sensor.channels)
+    counts = meta.sensor.units == "counts"
+    adc_max = 2**meta.sensor.adc_bits - 1 if counts and meta.sensor.adc_bits else None
+    fsr_frames: list[pd.DataFrame] = []
+    ref_frames: list[pd.DataFrame] = []
+    summary: list[dict[str, Any]] = []
+    for tid in trials.table["trial_id"]:
+        f = _read_stream(batch_dir / fsr_file(tid), tid, FSR_TIME, channels, (), counts, probs, warn)
+        if f is not None:
+            fsr_frames.append(f)
+            summary.append(_rate_row(f, fsr_file(tid), FSR_TIME, 1000.0))
+        r = _read_stream(
+            batch_dir / ref_file(tid),
+            tid,
+            REF_COLUMNS[0],
+            REF_COLUMNS[1:],
+            REF_TORQUES,
+            False,
+            probs,
+            warn,
+        )
+        if r is not None:
+            ref_frames.append(r)
+            summary.append(_rate_row(r, ref_file(tid), REF_COLUMNS[0], 1.0))
+
+    # Torques go through only if every ref stream of the batch has them (no half-empty columns).
+    torques = list(REF_TORQUES) if ref_frames and all(REF_TORQUES[0] in r for r in ref_frames) else []
+    if not torques and any(REF_TORQUES[0] in r for r in ref_frames):
+        warn(batch_dir, "torques ignored: not every reference stream has them")
+    ref_cols = [*REF_COLUMNS, *torques]
+    folder = str(batch_dir)
+    checks: list[Check] = []
+    fsr = ref = pd.DataFrame()
+    if fsr_frames:
+        fsr = pd.concat(fsr_frames, ignore_index=True)
+        fsr["dt"] = frame_dt(fsr, FSR_TIME)
+        checks.append(
+            validator.stream(
+                batch_id,
+                "fsr",
+                fsr,
+                FSR_TIME,
+                channels,
+                adc_max,
+                folder,
+                lambda t: str(batch_dir / fsr_file(t)),
+            )
+        )
+    if ref_frames:
+        ref = pd.concat([r[["trial_id", "line", *ref_cols]] for r in ref_frames], ignore_index=True)
+        ref["dt"] = frame_dt(ref, REF_COLUMNS[0])
+        checks.append(
+            validator.stream(
+                batch_id,
+                "ref",
+                ref,
+                REF_COLUMNS[0],
+                ref_cols[1:],
+                None,
+                folder,
+                lambda t: str(batch_dir / ref_file(t)),
+            )
+        )
+    if summary:
+        checks.append(
+            validator.streams(batch_id, pd.DataFrame(summary), folder, lambda name: str(batch_dir / name))
+        )
+    for check in checks:
+        probs.extend(check.problems)
+        out.gx[check.kind] = check.result
+    if any(c.batch_failed for c in checks):
+        return done()
+
+    accepted = [t for t in trials.table["trial_id"] if t not in probs.bad_trials]
+    out.trials_set_aside = sorted(trials.listed - set(accepted))
+    if not accepted:
+        probs.add(
+            str(batch_dir / TRIALS_FILE),
+            f"no usable trial: all {len(trials.listed)} listed trials "
+            "were set aside, so the batch is set aside",
+        )
+        return done()
+    keep = set(accepted)
+    out.trials = trials.table[trials.table["trial_id"].isin(keep)]
+    out.fsr = fsr.loc[fsr["trial_id"].isin(keep), ["trial_id", FSR_TIME, *channels]]
+    out.ref = ref.loc[ref["trial_id"].isin(keep), ["trial_id", *ref_cols]]
+    return done()
+
+
+def _orphans(batch_dir: Path, listed: set[str], probs: ProblemLog, warn: Warn) -> None:
+    """Stream files without a trial row are reported (and not read); other stray files are warned about."""
+    for p in sorted(batch_dir.iterdir()):
+        name = p.name
+        if name.startswith(".") or name in (BATCH_FILE, TRIALS_FILE):
+            continue
+        if p.is_dir():
+            warn(p, "sub-folder ignored")
+            continue
+        for suffix in (FSR_SUFFIX, REF_SUFFIX):
+            if name.endswith(suffix):
+                tid = name[: -len(suffix)]
+                if tid not in listed:
+                    probs.add(
+                        str(p), f"no row for trial {tid!r} in {TRIALS_FILE}: file not ingested", trial_id=tid
+                    )
+                break
+        else:
+            warn(p, "not a rig-log/1 file; ignored")

@@ -1,0 +1,296 @@
+"""Resampling ingested trials and batches: per trial, units are converted, the clocks aligned
+(`pipeline.signals.clock`), both streams put on one uniform grid at `resample.rate_hz` over their
+overlap (`pipeline.signals.filters`) and every grid sample given a phase
+(`pipeline.signals.phases`); per batch, the trials are assembled into one table
+(`pipeline.dataset.tables`).
+
+Input: the ingest stage's accepted batches, `IN_DIR/<batch_id>/{batch.json, trials.parquet,
+fsr.parquet, ref.parquet}` (folders without `trials.parquet` were set aside by ingest and are
+skipped). Output: `OUT_DIR/<batch_id>.parquet` + `.json`, and one offsets.csv row per trial. A
+trial that cannot be aligned is set aside with its reason in that row.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from pipeline.config import ResampleParams
+from pipeline.dataset.tables import table_schema, write_table
+from pipeline.signals.clock import OffsetEstimate, estimate_offset
+from pipeline.signals.filters import SetAside, gap_mask, median_rate, resample_stream
+from pipeline.signals.phases import label_phases, phase_durations
+from pipeline.signals.units import to_newtons, to_volts
+from pipeline.vocab import AXES, PHASES, angle_name
+
+TRUTH_COLUMN = "sim_clock_offset_s"  # written by the simulator only; a lab's data has no truth
+OFFSET_CSV_COLUMNS = (
+    "batch_id",
+    "trial_id",
+    "angle_deg",
+    "offset_s",
+    "quality",
+    "true_offset_s",
+    "error_s",
+    "n_fsr",
+    "n_ref",
+    "n_grid",
+    "n_dropped_gap",
+    "status",
+)
+
+Log = Callable[[str], None]
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+@dataclass
+class ResampledTrial:
+    """One trial on the common grid (host time base; `t_s` starts at 0)."""
+
+    offset: OffsetEstimate
+    t0_host_s: float  # host time of grid point t_s = 0
+    t_s: np.ndarray
+    volts: np.ndarray  # (n, channels)
+    force_n: np.ndarray  # (n, 3)
+    phase: np.ndarray
+    n_dropped_gap: int
+
+
+def resample_trial(
+    t_fsr_s: np.ndarray,
+    volts: np.ndarray,
+    t_ref_s: np.ndarray,
+    force_n: np.ndarray,
+    p: ResampleParams,
+) -> ResampledTrial:
+    """Align, resample and label one trial (inputs already in s, V and N). Raises SetAside."""
+    if t_fsr_s.size < 2 or t_ref_s.size < 2:
+        raise SetAside("a stream has fewer than two samples")
+    if not (np.all(np.isfinite(volts)) and np.all(np.isfinite(force_n))):
+        raise SetAside("missing (NaN) or infinite values in a stream")
+    est = estimate_offset(t_fsr_s, volts, t_ref_s, force_n, p.max_offset_s, p.offset_step_s, p.lowpass_order)
+    if est.on_edge:
+        raise SetAside(
+            f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
+            f"(quality {est.quality:.2f}): the true offset is probably outside it"
+        )
+    t_ref_host = t_ref_s + est.offset_s
+    lo, hi = max(t_fsr_s[0], t_ref_host[0]), min(t_fsr_s[-1], t_ref_host[-1])
+    # The grid is anchored to the estimator's own uniform grid, so that at equal rates its
+    # (quantised, noisy) samples are copied, not blurred by interpolation.
+    fsr_rate = median_rate(t_fsr_s)
+    k0 = math.ceil((lo - t_fsr_s[0]) * fsr_rate - 1e-6)
+    t0 = t_fsr_s[0] + k0 / fsr_rate
+    n = math.floor((hi - t0) * p.rate_hz + 1e-6) + 1 if hi >= t0 else 0
+    if n < 10:
+        raise SetAside(f"streams overlap for only {max(hi - lo, 0):.2f} s after clock alignment")
+    k = np.arange(n)
+    grid = t0 + k / p.rate_hz
+    v = resample_stream(t_fsr_s, volts, grid, p.rate_hz, p.lowpass_order)
+    f = resample_stream(t_ref_host, force_n, grid, p.rate_hz, p.lowpass_order)
+    # Phases on the full grid (uniform spacing is what the smoothing assumes), gaps dropped after.
+    phase = label_phases(f, p.rate_hz)
+    keep = ~(gap_mask(t_fsr_s, grid, p.max_gap_s) | gap_mask(t_ref_host, grid, p.max_gap_s))
+    if keep.sum() < 10:
+        raise SetAside("fewer than 10 grid points left outside gaps")
+    return ResampledTrial(
+        offset=est,
+        t0_host_s=float(t0),
+        t_s=k[keep] / p.rate_hz,
+        volts=v[keep],
+        force_n=f[keep],
+        phase=phase[keep],
+        n_dropped_gap=int((~keep).sum()),
+    )
+
+
+@dataclass(frozen=True)
+class BatchInfo:
+    """What the stage needs from an ingested batch's batch.json."""
+
+    batch_id: str
+    unit_id: str
+    channels: tuple[str, ...]
+    units: str
+    adc_bits: int | None
+    vref_v: float | None
+    ref_units: str
+
+    @classmethod
+    def from_json(cls, meta: dict[str, Any]) -> BatchInfo:
+        s, r = meta["sensor"], meta["reference"]
+        return cls(
+            batch_id=str(meta["batch_id"]),
+            unit_id=str(s["unit_id"]),
+            channels=tuple(str(c) for c in s["channels"]),
+            units=str(s["units"]),
+            adc_bits=None if s.get("adc_bits") is None else int(s["adc_bits"]),
+            vref_v=None if s.get("vref_v") is None else float(s["vref_v"]),
+            ref_units=str(r["units"]),
+        )
+
+
+def ingested_batch_dirs(in_dir: Path) -> list[Path]:
+    """Accepted ingested batches: visible sub-folders holding trials.parquet, sorted by name.
+
+    Ingest leaves set-aside batches without trials.parquet and writes through `.staging/`.
+    """
+    if not in_dir.is_dir():
+        return []
+    return sorted(
+        p
+        for p in in_dir.iterdir()
+        if p.is_dir() and not p.name.startswith(".") and (p / "trials.parquet").is_file()
+    )
+
+
+def _by_trial(df: pd.DataFrame, time_col: str) -> dict[str, pd.DataFrame]:
+    df = df.sort_values(["trial_id", time_col], kind="stable")
+    return {str(k): g for k, g in df.groupby("trial_id", sort=True)}
+
+
+def _clean_time(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Drop repeated time stamps (keep the first), so every stream is strictly increasing."""
+    keep = np.ones(t.size, dtype=bool)
+    keep[1:] = np.diff(t) > 0
+    return (t[keep], *(a[keep] for a in arrays))
+
+
+def _num(x: float | None, fmt: str = ".6f") -> str:
+    return "" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Table, list[dict[str, Any]]]:
+    """Resample every trial of one ingested batch; returns its info, table and offsets.csv rows."""
+    info = BatchInfo.from_json(json.loads((batch_dir / "batch.json").read_text()))
+    trials = pd.read_parquet(batch_dir / "trials.parquet")
+    fsr = _by_trial(pd.read_parquet(batch_dir / "fsr.parquet"), "t_ms")
+    ref = _by_trial(pd.read_parquet(batch_dir / "ref.parquet"), "t_s")
+    columns: dict[str, list[np.ndarray]] = {name: [] for name in table_schema(info.channels).names}
+    rows: list[dict[str, Any]] = []
+    trials = trials.assign(trial_id=trials["trial_id"].astype(str)).sort_values("trial_id", kind="stable")
+    for trial in trials.to_dict("records"):
+        tid = str(trial["trial_id"])
+        truth = _truth(trial.get(TRUTH_COLUMN))
+        row: dict[str, Any] = {
+            "batch_id": info.batch_id,
+            "trial_id": tid,
+            "angle_deg": angle_name(trial["angle_deg"]),
+            "offset_s": "",
+            "quality": "",
+            "true_offset_s": _num(truth),
+            "error_s": "",
+            "n_fsr": 0,
+            "n_ref": 0,
+            "n_grid": 0,
+            "n_dropped_gap": 0,
+            "status": "ok",
+        }
+        rows.append(row)
+        try:
+            if tid not in fsr or tid not in ref:
+                raise SetAside("no estimator or no reference samples for this trial")
+            fs, rf = fsr[tid], ref[tid]
+            row["n_fsr"], row["n_ref"] = len(fs), len(rf)
+            t_fsr, volts = _clean_time(
+                fs["t_ms"].to_numpy(np.float64) / 1000.0,
+                to_volts(
+                    fs[list(info.channels)].to_numpy(np.float64), info.units, info.adc_bits, info.vref_v
+                ),
+            )
+            t_ref, force = _clean_time(
+                rf["t_s"].to_numpy(np.float64),
+                to_newtons(rf[list(AXES)].to_numpy(np.float64), info.ref_units),
+            )
+            res = resample_trial(t_fsr, volts, t_ref, force, p)
+        except SetAside as e:
+            row["status"] = f"set aside: {e}"
+            continue
+        except KeyError as e:
+            row["status"] = f"set aside: missing column {e}"
+            continue
+        row["offset_s"] = _num(res.offset.offset_s)
+        row["quality"] = _num(res.offset.quality, ".4f")
+        if truth is not None:
+            row["error_s"] = _num(res.offset.offset_s - truth)
+        row["n_grid"], row["n_dropped_gap"] = res.t_s.size, res.n_dropped_gap
+        n = res.t_s.size
+        columns["batch_id"].append(np.full(n, info.batch_id, dtype=object))
+        columns["trial_id"].append(np.full(n, tid, dtype=object))
+        columns["angle_deg"].append(np.full(n, float(trial["angle_deg"])))
+        columns["tissue_point"].append(np.full(n, str(trial["tissue_point"]), dtype=object))
+        columns["t_s"].append(res.t_s)
+        columns["phase"].append(res.phase)
+        for j, c in enumerate(info.channels):
+            columns[c].append(res.volts[:, j])
+        for j, c in enumerate(AXES):
+            columns[c].append(res.force_n[:, j])
+    schema = table_schema(info.channels)
+    arrays = [
+        pa.array(np.concatenate(columns[f.name]) if columns[f.name] else [], type=f.type) for f in schema
+    ]
+    return info, pa.Table.from_arrays(arrays, schema=schema), rows
+
+
+def _truth(value: Any) -> float | None:
+    """The simulator's true offset, when the trials table carries one."""
+    if value is None:
+        return None
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return None
+    return x if np.isfinite(x) else None
+
+
+@dataclass
+class Resampled:
+    """What `run` did: one offsets.csv row per trial and the phase durations of every trial kept."""
+
+    rows: list[dict[str, Any]]
+    durations: pd.DataFrame
+
+
+def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = _stderr) -> Resampled:
+    """Resample every accepted batch of `in_dir` into `out_dir/<batch_id>.{parquet,json}`."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: set[str] = set()
+    all_rows: list[dict[str, Any]] = []
+    durations: list[pd.DataFrame] = []
+    for batch_dir in ingested_batch_dirs(in_dir):
+        info, table, rows = process_batch(batch_dir, p)
+        write_table(table, out_dir / f"{info.batch_id}.parquet")
+        meta = {
+            "batch_id": info.batch_id,
+            "channels": list(info.channels),
+            "rate_hz": p.rate_hz,
+            "unit_id": info.unit_id,
+        }
+        (out_dir / f"{info.batch_id}.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        written |= {f"{info.batch_id}.parquet", f"{info.batch_id}.json"}
+        all_rows += rows
+        durations.append(phase_durations(table, p.rate_hz))
+        n_ok = sum(r["status"] == "ok" for r in rows)
+        errs = [abs(float(r["error_s"])) for r in rows if r["error_s"] != ""]
+        err_txt = f", offset error median {np.median(errs) * 1e3:.1f} ms" if errs else ""
+        log(
+            f"resample: {info.batch_id}: {n_ok}/{len(rows)} trials ok, {table.num_rows} grid samples{err_txt}"
+        )
+    # Files of batches that are gone would otherwise be picked up by `split`.
+    for stale in sorted(out_dir.glob("*")):
+        if stale.is_file() and stale.suffix in (".parquet", ".json") and stale.name not in written:
+            stale.unlink()
+    dur = pd.concat(durations) if durations else pd.DataFrame(columns=list(PHASES), dtype=float)
+    return Resampled(all_rows, dur)

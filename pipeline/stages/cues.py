@@ -1,0 +1,88 @@
+"""`cues` stage: the cue pack of every preset angle, and how good the cues are on held-out trials.
+
+Input: `DATA_DIR/<angle>/{train,external}.parquet` and the predict stage's `PRED_DIR` (every
+model's forces on those frames). Output in `OUT_DIR`: `packs/<angle>.json` (shipped with each
+angle's registered model; see `pipeline.cues.fit`) and `evaluation.json` (see
+`pipeline.cues.score`); the report stage renders them. Small or unusual data never stops the
+stage: what cannot be built or scored is left out and said, with why. It fails only on real
+errors: missing input folders, bad params, inconsistent channels.
+
+Usage: `python -m pipeline.stages.cues DATA_DIR PRED_DIR OUT_DIR [--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from pipeline.config import CuesParams, load_section
+from pipeline.cues.fit import Predicted, build_packs, pack_json
+from pipeline.cues.score import evaluate_cues, evaluation_json, skipped_evaluation
+from pipeline.cues.trials import read_split
+from pipeline.modelling.predictions import Predictions
+from pipeline.vocab import angle_name
+
+
+def _log(msg: str) -> None:
+    print(f"cues: {msg}", file=sys.stderr, flush=True)
+
+
+def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+    """Build the cue packs (one per preset angle) and score the cues on the external trials."""
+    started = time.perf_counter()
+    try:
+        if not params.is_file():
+            raise FileNotFoundError(f"{params}: no such params file")
+        p = load_section(CuesParams, "cues", params)
+        predictions = Predictions(pred_dir)
+        train = {a: f for a, f in read_split(data_dir, "train").items() if len(f)}
+        if not train:
+            raise FileNotFoundError(f"{data_dir}: no <angle>/train.parquet with rows (run the split stage)")
+
+        def predicted_for(preset: float) -> Predicted:
+            """The preset's models of each kind on every angle's training frame."""
+            kinds = [k for k in p.kinds if predictions.has(k, angle_name(preset))]
+            for k in sorted(set(p.kinds) - set(kinds)):
+                _log(f"warning: no {k} model at {angle_name(preset)}°: no {k} thresholds in its pack")
+            return {k: predictions.on_split(k, angle_name(preset), "train", train) for k in kinds}
+
+        packs = build_packs(train, predicted_for, p, _log)
+        available = tuple(k for k in p.kinds if all(predictions.has(k, angle_name(a)) for a in packs))
+        for k in p.kinds:
+            if k not in available:
+                _log(f"warning: {k} lacks a model for some preset angle, not evaluated")
+        if not available:
+            evaluation = skipped_evaluation(
+                f"no model kind of {list(p.kinds)} has a checkpoint (models/<kind>/<angle>/model.pt) "
+                f"for every preset angle ({', '.join(angle_name(a) for a in packs)})",
+                packs,
+                p,
+            )
+        else:
+            evaluation = evaluate_cues(
+                read_split(data_dir, "external"),
+                p.model_copy(update={"kinds": available}),
+                packs,
+                lambda kind, preset, a: predictions.get(kind, angle_name(preset), angle_name(a), "external"),
+                log=_log,
+            )
+    except (FileNotFoundError, ValueError) as e:
+        _log(f"error: {e}")
+        raise typer.Exit(1) from e
+    if evaluation.get("skipped"):
+        _log(f"warning: cue evaluation skipped: {evaluation['skipped']}")
+
+    (out_dir / "packs").mkdir(parents=True, exist_ok=True)
+    for stale in (out_dir / "packs").glob("*.json"):  # a pack of an angle no longer trained
+        stale.unlink()
+    for preset, pack in packs.items():
+        (out_dir / "packs" / f"{angle_name(preset)}.json").write_text(pack_json(pack))
+    (out_dir / "evaluation.json").write_text(evaluation_json(evaluation))
+    _log(f"done in {time.perf_counter() - started:.1f} s -> {out_dir}")
+
+
+if __name__ == "__main__":
+    typer.run(main)

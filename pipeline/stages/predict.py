@@ -1,0 +1,41 @@
+"""`predict` stage: every trained model on every processed split of every angle, computed once.
+
+Input: `DATA_DIR/<angle>/{train,val,test,external}.parquet` and `MODELS_DIR/<kind>/<angle>/model.pt`
+for the `train` section's angles and kinds. Output: `OUT_DIR/<kind>/<angle>.parquet`
+(see `pipeline.modelling.predictions`), which evaluate, cues, report and register read.
+
+Usage: `python -m pipeline.stages.predict DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from pipeline.config import TrainParams, load_section
+from pipeline.modelling.batch import predict_all
+
+
+def _log(msg: str) -> None:
+    print(f"predict: {msg}", file=sys.stderr, flush=True)
+
+
+def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+    """Predict every model on every split and write the predictions as Parquet."""
+    train = load_section(TrainParams, "train", params)
+    started = time.perf_counter()
+    try:
+        done = predict_all(data_dir, models_dir, out_dir, train.models, train.angles, _log)
+    except (FileNotFoundError, ValueError) as e:
+        _log(f"error: {e}")
+        raise typer.Exit(1) from e
+    if not done:
+        _log(f"warning: no trained model found under {models_dir}")
+    _log(f"{len(done)} model(s) predicted in {time.perf_counter() - started:.1f} s -> {out_dir}")
+
+
+if __name__ == "__main__":
+    typer.run(main)

@@ -1,0 +1,57 @@
+"""`register` stage: track every trained model in MLflow and register the best one per angle.
+
+1. Tracking (`pipeline.registry.tracking`): each model is one run of the experiment `needle-force`.
+2. Registering (`pipeline.registry.versions`, rule in `pipeline.registry.champion`): per angle, the
+   best deployable candidate becomes a version of `needle-force-<angle>`, `@champion` only if it
+   beats the current champion on today's external set, else `@challenger`.
+3. `OUT_JSON` records per angle what was registered and promoted (no run ids or paths, so a fresh
+   store gives the same file).
+
+Scores come from the predict stage's `PRED_DIR`; the store is `$MLFLOW_TRACKING_URI` or the
+project's `mlflow.db` (`pipeline.registry.store`).
+
+Usage: `python -m pipeline.stages.register MODELS_DIR DATA_DIR PRED_DIR REPORTS_DIR OUT_JSON
+[--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from pipeline.config import RegisterParams, load_section
+from pipeline.registry.store import RegistryUnreachable
+from pipeline.registry.versions import register_all
+
+
+def _log(msg: str) -> None:
+    print(f"register: {msg}", file=sys.stderr, flush=True)
+
+
+def main(
+    models_dir: Path,
+    data_dir: Path,
+    pred_dir: Path,
+    reports_dir: Path,
+    out_json: Path,
+    params: Path = Path("params.yaml"),
+) -> None:
+    """Track every trained model in MLflow and register the best per angle (champion / challenger)."""
+    from mlflow.exceptions import MlflowException
+
+    p = load_section(RegisterParams, "register", params)
+    try:
+        record = register_all(models_dir, data_dir, pred_dir, reports_dir, out_json, p, _log)
+    except (RegistryUnreachable, FileNotFoundError, ValueError) as e:
+        _log(f"error: {e}")
+        raise typer.Exit(1) from e
+    except MlflowException as e:  # the store answered, then failed: no alias moved after the failure
+        _log(f"error: MLflow registry ({e.error_code}): {e.message}")
+        raise typer.Exit(1) from e
+    _log(f"registered {len(record['registered'])} angle(s), promoted {len(record['promoted'])} -> {out_json}")
+
+
+if __name__ == "__main__":
+    typer.run(main)

@@ -1,0 +1,71 @@
+"""`report` stage: the last one; renders what the others computed into what people read.
+
+Input: `DATA_DIR` (the truth of the plotted trials), `PRED_DIR` (the stored predictions),
+`REPORTS_DIR/metrics.json` (evaluate) and `REPORTS_DIR/cues/{packs,evaluation.json}` (cues; without
+them the report has no angle-cue section).
+Output in REPORTS_DIR: `report.md` (assembled from the section functions of
+`pipeline.reporting.report` and `pipeline.reporting.cues`), `figures/` (Figs. 7-8 analogues, the
+angle-gap heatmap), `plots/{gap,profile}.csv` (DVC plots) and `cues/{summary.md, confusion.png,
+time_to_cue.png}`.
+
+Usage: `python -m pipeline.stages.report DATA_DIR PRED_DIR REPORTS_DIR [--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import typer
+
+from pipeline.config import EvaluateParams, TrainParams, load_section
+from pipeline.metrics.evaluation import gather, load_eval_sets
+from pipeline.modelling.predictions import Predictions
+from pipeline.reporting import cues, figures, report
+from pipeline.vocab import angle_name
+
+
+def _log(msg: str) -> None:
+    print(f"report: {msg}", file=sys.stderr, flush=True)
+
+
+def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path("params.yaml")) -> None:
+    """Write report.md, its figures and DVC's plot data from metrics, predictions and cue results."""
+    train = load_section(TrainParams, "train", params)
+    gaps = [float(g) for g in load_section(EvaluateParams, "evaluate", params).gaps_deg]
+    angles, models = [angle_name(a) for a in train.angles], list(train.models)
+    try:
+        metrics = json.loads((reports_dir / "metrics.json").read_text())
+        eval_sets = load_eval_sets(data_dir, angles, lambda _m: None)  # evaluate has warned already
+        scored = gather(eval_sets, Predictions(pred_dir), models, angles, lambda _m: None)
+    except FileNotFoundError as e:
+        _log(f"error: {e} (run the stages before report)")
+        raise typer.Exit(1) from e
+    cue_sections: list[str] = []
+    cues_dir = reports_dir / "cues"
+    if (cues_dir / "evaluation.json").is_file():
+        evaluation = json.loads((cues_dir / "evaluation.json").read_text())
+        packs = {float(p.stem): json.loads(p.read_text()) for p in (cues_dir / "packs").glob("*.json")}
+        cues.plot_confusion(evaluation, cues_dir / "confusion.png")
+        cues.plot_time_to_cue(evaluation, cues_dir / "time_to_cue.png")
+        cue_sections.append(cues.render_summary(evaluation, dict(sorted(packs.items()))))
+        (cues_dir / "summary.md").write_text(cue_sections[0])
+    else:
+        _log(f"warning: no {cues_dir / 'evaluation.json'} (run the cues stage): no angle-cue section")
+
+    plots = reports_dir / "plots"
+    figures.write_csv(plots / "gap.csv", figures.gap_rows(metrics, models), ["gap_deg", *models])
+    profile = figures.profile_rows(eval_sets, scored, models)
+    figures.write_csv(plots / "profile.csv", profile, ["t_s", "reference", *models])
+    fig_dir = reports_dir / "figures"
+    figures.plot_profiles(eval_sets, scored, models, fig_dir / figures.FIGURES[0])
+    figures.plot_gaps(eval_sets, scored, models, gaps, fig_dir / figures.FIGURES[1])
+    figures.plot_gap_matrix(metrics, models, fig_dir / figures.FIGURES[2])
+    text = report.render(metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections)
+    (reports_dir / "report.md").write_text(text)
+    _log(f"report.md, {len(figures.FIGURES)} figures and the cue summary -> {reports_dir}")
+
+
+if __name__ == "__main__":
+    typer.run(main)

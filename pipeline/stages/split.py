@@ -1,0 +1,35 @@
+"""`split` stage: per angle, split the resampled trials into train/val/test by trial, with
+held-out batches as the external set (`pipeline.dataset.split`).
+
+Input: the resample stage's `IN_DIR/<batch_id>.{parquet,json}`. Output: `OUT_DIR/<angle>/
+{train,val,test,external}.parquet` and `OUT_DIR/manifest.json`.
+
+Usage: `python -m pipeline.stages.split IN_DIR OUT_DIR [--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from pipeline.config import SplitParams, load_section
+from pipeline.dataset.split import run
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def main(in_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+    """Split the resampled trials per angle into train/val/test/external files."""
+    try:
+        run(in_dir, out_dir, load_section(SplitParams, "split", params), log=_log)
+    except (OSError, ValueError) as e:  # missing metadata, mixed grid rates: one clear line, not a traceback
+        _log(f"split: error: {e}")
+        raise typer.Exit(1) from e
+
+
+if __name__ == "__main__":
+    typer.run(main)

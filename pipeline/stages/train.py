@@ -1,0 +1,42 @@
+"""`train` stage: one model (ls, fnn or lstm) for one angle's processed data.
+
+Input: `DATA_DIR/train.parquet` and `DATA_DIR/val.parquet` (the split stage's; val may be empty,
+then the networks train all `max_epochs` without early stopping). Output in `OUT_DIR`:
+`model.pt` (see `pipeline.modelling.checkpoint`), `train_metrics.json`, `history.csv`.
+Only the model's own params section is read, so editing `fnn` never retrains `lstm`.
+
+Usage: `python -m pipeline.stages.train {ls|fnn|lstm} DATA_DIR OUT_DIR [--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import cast
+
+import typer
+
+from pipeline.config import PARAMS_MODELS, load_section
+from pipeline.modelling.fit import ModelParams
+from pipeline.modelling.train import train_folder
+from pipeline.vocab import KINDS
+
+
+def _log(msg: str) -> None:
+    print(f"train: {msg}", file=sys.stderr, flush=True)
+
+
+def main(model: str, data_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+    """Train one model (ls, fnn or lstm) on one angle's processed data folder."""
+    if model not in KINDS:
+        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
+    try:
+        section = cast("ModelParams", load_section(PARAMS_MODELS[model], model, params))
+        train_folder(model, section, data_dir, out_dir, _log)
+    except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback
+        _log(f"error: {e}")
+        raise typer.Exit(1) from e
+
+
+if __name__ == "__main__":
+    typer.run(main)

@@ -1,0 +1,101 @@
+"""The project's shared vocabulary: one home for each name every layer uses.
+
+Column names of the processed data, the force axes, the model kinds, how an angle is named,
+how a sample rate is estimated, how JSON outputs are rounded, and the deployable model's
+contract. Numpy only, so the simulator's client can import it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+AXES = ("fx", "fy", "fz")  # the 3-D force, N, in the reference sensor's frame
+TRIAL_KEY = ("batch_id", "trial_id")  # a trial is unique by both
+ID_COLUMNS = ("batch_id", "trial_id", "angle_deg", "tissue_point", "t_s", "phase")  # processed rows
+PHASES = ("rest", "insertion", "dwell", "retraction")
+NON_CHANNELS = frozenset({*ID_COLUMNS, *AXES})  # every other column of a processed frame is a channel
+KINDS = ("ls", "fnn", "lstm")  # model kinds, simplest first (ties go to the simpler)
+SPLITS = ("train", "val", "test", "external")
+KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
+
+# The deployable model (pipeline.modelling.export writes it, pipeline.client reads it).
+DEPLOY_FORMAT = "needlecue-deploy/1"
+INPUT_NAME = "volts"
+OUTPUT_NAME = "force_n"
+
+
+def angle_name(angle_deg: float | str) -> str:
+    """Folder and key name of an angle: 30.0 -> "30", 22.5 -> "22.5"."""
+    return f"{float(angle_deg):g}"
+
+
+def kind_label(kind: str) -> str:
+    """LS, FNN, LSTM; any other kind in capitals."""
+    return KIND_LABELS.get(kind, kind.upper())
+
+
+def sorted_angles(names: Iterable[str]) -> list[str]:
+    """Angle names in numeric order, each once."""
+    return sorted(set(names), key=lambda a: (float(a), a))
+
+
+def channels_of(frame: Any) -> list[str]:
+    """The estimator channels of a processed frame (anything with `.columns`), in column order."""
+    return [str(c) for c in frame.columns if c not in NON_CHANNELS]
+
+
+def rate_hz(t: Sequence[float] | np.ndarray, groups: np.ndarray | None = None) -> float:
+    """A stream's sample rate: 1 / the median positive time step, within each group (trial) if
+    `groups` is given; nan with fewer than two distinct times. The median is robust to jitter and
+    to dropped samples."""
+    t = np.asarray(t, dtype=np.float64)
+    if len(t) < 2:
+        return math.nan
+    if groups is None:
+        dt = np.diff(np.sort(t))
+    else:
+        groups = np.asarray(groups)
+        order = np.lexsort((t, groups))
+        dt = np.diff(t[order])[groups[order][1:] == groups[order][:-1]]
+    dt = dt[dt > 0]
+    return float(1.0 / np.median(dt)) if len(dt) else math.nan
+
+
+def jsonable(obj: Any, digits: int) -> Any:
+    """Floats rounded to `digits` decimals (NaN/inf -> None, no "-0.0"), numpy scalars to Python,
+    tuples to lists, keys to str: JSON that diffs well."""
+    if isinstance(obj, Mapping):
+        return {str(k): jsonable(v, digits) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v, digits) for v in obj]
+    if isinstance(obj, bool | np.bool_):
+        return bool(obj)
+    if isinstance(obj, int | np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        x = float(obj)
+        return round(x, digits) + 0.0 if math.isfinite(x) else None
+    return obj
+
+
+def dump_json(obj: Any, digits: int, indent: int = 2) -> str:
+    """Deterministic JSON text: rounded (see `jsonable`), sorted keys, no NaN, newline-terminated."""
+    return (
+        json.dumps(jsonable(obj, digits), indent=indent, sort_keys=True, ensure_ascii=False, allow_nan=False)
+        + "\n"
+    )
+
+
+def file_sha256(paths: Sequence[Path]) -> str:
+    """SHA-256 of the concatenated bytes of files (the train and val parquet files, a model.onnx)."""
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(Path(p).read_bytes())
+    return h.hexdigest()

@@ -1,0 +1,114 @@
+"""The package's import graph, read statically (every `import`, at the top or inside a function):
+which project files a module can load. `python -m tests.architecture` prints, per dvc.yaml stage,
+the code deps that dvc.yaml must list."""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+from functools import cache
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "pipeline"
+
+
+def module_file(module: str) -> Path | None:
+    """The file of a project module (`pipeline.cues.fit` -> pipeline/cues/fit.py), None if not ours."""
+    parts = module.split(".")
+    if parts[0] != PACKAGE:
+        return None
+    base = REPO.joinpath(*parts)
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(REPO).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module named by an import statement in `path` (absolute names; `from a import b` gives
+    both `a` and `a.b`, since b may be a module)."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+            out.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return out
+
+
+@cache
+def project_imports(path: Path) -> frozenset[Path]:
+    """The project files `path` imports directly, with the `__init__.py` of every package on the way
+    (importing `a.b.c` runs `a/__init__.py` and `a/b/__init__.py`)."""
+    out: set[Path] = set()
+    for module in imported_modules(path):
+        parts = module.split(".")
+        for i in range(1, len(parts) + 1):
+            found = module_file(".".join(parts[:i]))
+            if found is not None:
+                out.add(found)
+    return frozenset(out - {path})
+
+
+def closure(path: Path) -> set[Path]:
+    """`path` and every project file it can load, transitively."""
+    seen: set[Path] = set()
+    todo = [path]
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        todo.extend(project_imports(p))
+    return seen
+
+
+def stage_modules() -> dict[str, Path]:
+    """{dvc.yaml stage name: the file of the module its cmd runs (`python -m MODULE ...`)}."""
+    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    out = {}
+    for name, stage in stages.items():
+        match = re.match(r"python -m ([\w.]+)", stage["cmd"])
+        if match is None:
+            raise ValueError(f"dvc.yaml stage {name!r}: cmd does not run `python -m MODULE`")
+        found = module_file(match.group(1))
+        if found is None:
+            raise ValueError(f"dvc.yaml stage {name!r}: no module {match.group(1)}")
+        out[name] = found
+    return out
+
+
+def code_deps(stage_file: Path) -> list[str]:
+    """The project files a stage's process can load, as dvc.yaml lists them (sorted, repo-relative):
+    `python -m a.b.c` runs the packages' `__init__.py` on the way, then the module and its imports."""
+    parts = module_name(stage_file).split(".")
+    inits = [module_file(".".join(parts[:i])) for i in range(1, len(parts))]
+    files = set().union(*(closure(p) for p in [*inits, stage_file] if p is not None))
+    return sorted(p.relative_to(REPO).as_posix() for p in files)
+
+
+def listed_code_deps(stage: dict) -> list[str]:
+    """The deps of a dvc.yaml stage that are project code."""
+    return sorted(d for d in stage.get("deps", []) if str(d).startswith(f"{PACKAGE}/"))
+
+
+def main() -> None:
+    for name, path in stage_modules().items():
+        print(f"{name}:")
+        for dep in code_deps(path):
+            print(f"  - {dep}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

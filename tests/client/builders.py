@@ -1,0 +1,107 @@
+"""What the client's tests build: synthetic processed trials, tiny models, and registered versions."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import FNNParams, LSParams, LSTMParams
+from pipeline.modelling import export
+from pipeline.modelling.predict import Predictor
+from pipeline.registry import store
+from pipeline.vocab import AXES
+
+UNREACHABLE = "http://127.0.0.1:9"  # the discard port: connection refused at once
+CHANNELS = ["fsr1", "fsr2", "fsr3"]
+TINY = {
+    "ls": LSParams(),
+    "fnn": FNNParams(hidden=(8, 8), max_epochs=6, patience=3, batch_size=64),
+    "lstm": LSTMParams(window=6, hidden=6, max_epochs=3, patience=2, batch_size=64),
+}
+
+
+@dataclass(frozen=True)
+class Registered:
+    uri: str  # the client tests' own MLflow store
+    checkpoint: dict  # the LSTM registered there as needle-force-30@champion, version 1, with a cue pack
+
+
+class Clock:
+    """The client's poll clock (`force._monotonic`), moved by hand instead of sleeping."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+
+def cue_trials(
+    angle: float, n_trials: int = 2, batch: str = "b1", seed: int = 0, n: int = 90
+) -> pd.DataFrame:
+    """Processed-split rows at one insertion angle: 1 s at rest, then loading. The rest reading and the
+    direction the volts move in both depend on the angle, as on the real estimator, so the cue tracker's
+    angle estimate can tell the angles apart."""
+    rng = np.random.default_rng(seed + int(angle))
+    direction = np.array([1.0 + angle / 30, 1.0, 1.0 - angle / 60])
+    rest = 0.3 + 0.004 * angle * np.array([1.0, -0.5, 0.2])
+    t = np.arange(n) / 30.0
+    load = np.clip(t - 1.0, 0, None) ** 1.5
+    parts = []
+    for k in range(n_trials):
+        v = rest * np.exp(0.3 * load[:, None] * direction) + 0.001 * rng.normal(size=(n, 3))
+        a = np.radians(angle)
+        parts.append(
+            pd.DataFrame(
+                {
+                    "batch_id": batch,
+                    "trial_id": f"t{k:02d}",
+                    "angle_deg": float(angle),
+                    "tissue_point": "p1",
+                    "t_s": t,
+                    "phase": np.where(t < 1.0, "rest", "insertion"),
+                    **{c: v[:, i] for i, c in enumerate(CHANNELS)},
+                    "fx": 0.2 * load * np.sin(a) + 0.05 * v[:, 0],
+                    "fy": 0.1 * load,
+                    "fz": -0.5 * load * np.cos(a),
+                }
+            )
+        )
+    return pd.concat(parts, ignore_index=True)
+
+
+def cue_predictions(checkpoint: dict, train_by_angle: Mapping[float, pd.DataFrame]) -> dict[str, dict]:
+    """`build_cue_pack`'s `predicted`: {kind: {angle: forces}}, the model on every angle's training frame
+    (its volts only, as a deployed model sees them)."""
+    predictor = Predictor(checkpoint)
+    return {
+        predictor.kind: {
+            a: predictor.predict(frame.drop(columns=list(AXES))) for a, frame in train_by_angle.items()
+        }
+    }
+
+
+def register(uri: str, root: Path, checkpoint: dict, pack: dict | None = None, angle: float = 30.0) -> str:
+    """Log `checkpoint` as ONNX in store `uri` (artifacts under `root`), register it, make it champion."""
+    import mlflow
+
+    client = store.connect(uri)
+    name = store.model_name(angle)
+    exp = mlflow.get_experiment_by_name(store.EXPERIMENT)
+    exp_id = (
+        exp.experiment_id
+        if exp
+        else mlflow.create_experiment(store.EXPERIMENT, artifact_location=(root / "artifacts").as_uri())
+    )
+    with mlflow.start_run(experiment_id=exp_id):
+        info = export.log_onnx_model(checkpoint, pack)
+    version = mlflow.register_model(info.model_uri, name).version
+    client.set_registered_model_alias(name, store.CHAMPION, version)
+    return str(version)

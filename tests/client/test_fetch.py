@@ -1,0 +1,102 @@
+"""Fetching from the registry into a cache that survives going offline, and follows the alias."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+
+from pipeline import client as fc
+from pipeline.modelling.checkpoint import checkpoint_sha256
+from pipeline.modelling.export import to_onnx
+from pipeline.modelling.fit import fit
+from pipeline.registry import store
+from tests.client.builders import TINY, UNREACHABLE, Registered, cue_trials, register
+
+
+def test_fetch_downloads_once_and_falls_back_to_the_copy_when_offline(
+    registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # given: an empty cache
+    cache = tmp_path / "cache"
+    # when: fetching the champion
+    folder = fc.fetch(30, cache_dir=cache, tracking_uri=registered.uri)
+    # then: the model folder and a version.json saying what it is, and no temp folders left over
+    assert folder == cache / "needle-force-30" / "champion"
+    version = json.loads((folder / "version.json").read_text())
+    assert (version["name"], version["version"], version["alias"]) == ("needle-force-30", "1", "champion")
+    assert version["run_id"] and version["checkpoint_sha256"] == checkpoint_sha256(registered.checkpoint)
+    assert (folder / "model.onnx").read_bytes() == to_onnx(registered.checkpoint)
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["champion"]
+
+    # when: fetching again with the same version registered (a download would fail loudly)
+    def no_download(**_kwargs):
+        raise AssertionError("downloaded the version already cached")
+
+    monkeypatch.setattr("mlflow.artifacts.download_artifacts", no_download)
+    # then: the cached copy is reused
+    assert fc.fetch(30, cache_dir=cache, tracking_uri=registered.uri) == folder
+
+    # when: the registry is unreachable, over HTTP and as a sqlite file in a missing folder
+    with caplog.at_level(logging.WARNING, logger="pipeline.client"):
+        offline = fc.fetch(30, cache_dir=cache, tracking_uri=UNREACHABLE)
+        gone = fc.fetch(30, cache_dir=cache, tracking_uri=f"sqlite:///{tmp_path / 'nope' / 'mlflow.db'}")
+    # then: the local copy is used, with a warning saying so
+    assert offline == gone == folder
+    assert caplog.text.count("offline") == 2 and str(folder) in caplog.text
+
+
+def test_fetch_offline_without_a_copy_names_the_model_and_the_cache(tmp_path: Path) -> None:
+    # given: an unreachable registry and an empty cache
+    cache = tmp_path / "cache"
+    # when / then: a RegistryUnreachable naming the model URI, the store and where a copy would be
+    with pytest.raises(store.RegistryUnreachable) as err:
+        fc.fetch(45, cache_dir=cache, tracking_uri=UNREACHABLE)
+    message = str(err.value)
+    assert "models:/needle-force-45@champion" in message and UNREACHABLE in message
+    assert str(cache / "needle-force-45" / "champion") in message
+
+
+def test_fetch_of_an_unknown_alias_or_angle_is_a_clear_error(registered: Registered, tmp_path: Path) -> None:
+    # given: a registry holding needle-force-30@champion only
+    # when / then: another alias or angle is ModelNotFound, naming it (no silent fallback)
+    with pytest.raises(fc.ModelNotFound, match="'needle-force-30' with the alias 'challenger'"):
+        fc.fetch(30, "challenger", cache_dir=tmp_path, tracking_uri=registered.uri)
+    with pytest.raises(fc.ModelNotFound, match="needle-force-60"):
+        fc.fetch(60, cache_dir=tmp_path, tracking_uri=registered.uri)
+
+
+def test_fetch_replaces_the_copy_when_the_alias_moves(
+    registered: Registered, tmp_path: Path, mlflow_store: str
+) -> None:
+    # given: version 1 (an FNN) of this test's store fetched
+    cache = tmp_path / "cache"
+    train = cue_trials(30, 3)
+    register(mlflow_store, tmp_path, fit("fnn", TINY["fnn"], train).checkpoint)
+    first = fc.ForceClient.from_registry(30, cache_dir=cache, tracking_uri=mlflow_store)
+    # when: fetching version 1 of another store (the package's LSTM), then version 2 (an LS model) made
+    # champion here
+    other = fc.ForceClient.from_registry(30, cache_dir=cache, tracking_uri=registered.uri)
+    register(mlflow_store, tmp_path, fit("ls", TINY["ls"], train).checkpoint)
+    second = fc.ForceClient.from_registry(30, cache_dir=cache, tracking_uri=mlflow_store)
+    # then: each fetch swaps in the model it resolved (another store's "v1" is another model), whole,
+    # with no temp folders left beside it; without a cue pack the client gives forces and no cues
+    assert (first.kind, first.version["version"]) == ("fnn", "1")
+    assert (other.kind, other.version["version"]) == ("lstm", "1")
+    assert (second.kind, second.version["version"]) == ("ls", "2")
+    assert sorted(p.name for p in (cache / "needle-force-30").iterdir()) == ["champion"]
+    assert not second.has_cues and second.step([0.3, 0.3, 0.3]).cue is None
+
+
+def test_a_default_store_that_is_not_there_is_unreachable_not_created(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: the client run outside the project, where no mlflow.db exists, with no local copy
+    store_uri = f"sqlite:///{tmp_path / 'elsewhere' / 'mlflow.db'}"
+    (tmp_path / "elsewhere").mkdir()
+    # when / then: it says the registry cannot be reached, and creates no empty store there
+    with pytest.raises(store.RegistryUnreachable, match="no such database"):
+        fc.fetch(30, cache_dir=tmp_path / "cache", tracking_uri=store_uri)
+    assert not (tmp_path / "elsewhere" / "mlflow.db").exists()

@@ -1,0 +1,188 @@
+"""The client on a simulator's install, for real: a fresh venv holding client-requirements.txt alone,
+the project on PYTHONPATH, fetching a model through a real MLflow server over HTTP and stepping it.
+
+What this test does is what README's "Installing just the client on a simulator" tells a simulator
+maker to do; change one with the other. Slow (it builds a venv: about a minute).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.config import CuesParams
+from pipeline.cues.fit import build_cue_pack
+from pipeline.modelling import export
+from pipeline.modelling.fit import fit
+from pipeline.modelling.predict import Predictor
+from pipeline.registry import store
+from tests.client.builders import TINY, cue_predictions, cue_trials
+
+ROOT = Path(__file__).resolve().parents[2]
+REQUIREMENTS = ROOT / "client-requirements.txt"
+HEAVY = ("torch", "sklearn", "typer", "matplotlib", "great_expectations", "pandas")
+VOLTS = [0.4, 0.5, 0.6]
+SERVER_START_S = 90.0  # a fresh sqlite store is migrated at start-up: seconds, not minutes
+INSTALL_S = 300.0  # venv and pip from the index, once per run of this test
+
+# What a simulator runs, in the light venv.
+SIMULATOR = """
+import importlib.util, json, sys
+from pipeline.client import ForceClient
+
+uri, cache, heavy, volts = sys.argv[1], sys.argv[2], sys.argv[3].split(","), json.loads(sys.argv[4])
+client = ForceClient.from_registry(30, tracking_uri=uri, cache_dir=cache)
+client.check_stream(list(client.channels), client.rate_hz)
+client.reset()
+frame = client.step(volts)
+print(json.dumps({
+    "force_n": frame.force_n.tolist(),
+    "cue": None if frame.cue is None else frame.cue.cue,
+    "version": client.version,
+    "loaded": sorted(m for m in heavy if m in sys.modules),
+    "installed": sorted(m for m in heavy if importlib.util.find_spec(m) is not None),
+}))
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _run(
+    cmd: list[str], timeout: float, env: dict[str, str] | None = None, cwd: Path | None = None
+) -> subprocess.CompletedProcess[str]:
+    """Run `cmd` to its end within `timeout` seconds; a failure shows its output."""
+    run = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=cwd, check=False)
+    assert run.returncode == 0, (
+        f"{cmd[:4]} exited {run.returncode}:\n{run.stdout[-3000:]}\n{run.stderr[-3000:]}"
+    )
+    return run
+
+
+@contextlib.contextmanager
+def mlflow_server(root: Path) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    """`mlflow server` (the project's venv) on a sqlite store in `root`, serving its artifacts from
+    `root/artifacts`, on 127.0.0.1 only; started in a session of its own, stopped with all its workers."""
+    port = _free_port()
+    log = (root / "server.log").open("wb")
+    proc = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "mlflow", "server"),
+            *("--backend-store-uri", f"sqlite:///{root / 'mlflow.db'}"),
+            *("--artifacts-destination", (root / "artifacts").as_uri()),
+            "--serve-artifacts",
+            *("--host", "127.0.0.1", "--port", str(port), "--workers", "1"),
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,  # its own process group: the workers it forks are stopped with it
+        env={k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")},
+    )
+    try:
+        yield f"http://127.0.0.1:{port}", proc
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=15)
+        log.close()
+
+
+def _wait_until_up(uri: str, proc: subprocess.Popen[bytes], log: Path) -> None:
+    deadline = time.monotonic() + SERVER_START_S
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            pytest.fail(f"mlflow server exited {proc.returncode}:\n{log.read_text()[-3000:]}")
+        with contextlib.suppress(OSError), urllib.request.urlopen(f"{uri}/health", timeout=2) as r:
+            if r.status == 200:
+                return
+        time.sleep(0.25)
+    pytest.fail(f"mlflow server not up after {SERVER_START_S:g} s:\n{log.read_text()[-3000:]}")
+
+
+def _register_through(uri: str) -> tuple[dict, str]:
+    """A tiny 30° LS model with a cue pack, logged and registered as needle-force-30@champion through
+    the server (its artifacts uploaded to it); returns the checkpoint and the experiment's artifact
+    location."""
+    import mlflow
+
+    train = cue_trials(30, 3)
+    checkpoint = fit("ls", TINY["ls"], train).checkpoint
+    pack = build_cue_pack({30: train}, 30, CuesParams(), cue_predictions(checkpoint, {30: train}))
+    client = store.connect(uri)
+    exp_id = store.experiment_id(client)  # over HTTP the server picks the location: its artifact proxy
+    with mlflow.start_run(experiment_id=exp_id):
+        info = export.log_onnx_model(checkpoint, pack)
+    name = store.model_name(30)
+    version = mlflow.register_model(info.model_uri, name).version
+    client.set_registered_model_alias(name, store.CHAMPION, version)
+    return checkpoint, client.get_experiment(exp_id).artifact_location
+
+
+@pytest.mark.slow
+def test_a_venv_of_client_requirements_alone_fetches_through_a_server_and_steps(tmp_path: Path) -> None:
+    started = time.monotonic()
+    server_root = tmp_path / "server"
+    server_root.mkdir()
+    with mlflow_server(server_root) as (uri, server):
+        # given: the light venv of a simulator, built while the server starts
+        venv = tmp_path / "venv"
+        _run([sys.executable, "-m", "venv", str(venv)], timeout=120)
+        python = str(venv / "bin" / "python")
+        pip_log = tmp_path / "pip.log"
+        with pip_log.open("wb") as log:
+            pip = subprocess.Popen(
+                [python, "-m", "pip", "install", "-q", "-r", str(REQUIREMENTS)],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        try:
+            # and, meanwhile: a model registered through the server, its artifacts served by it
+            _wait_until_up(uri, server, server_root / "server.log")
+            checkpoint, artifacts = _register_through(uri)
+            assert artifacts.startswith("mlflow-artifacts:"), artifacts
+            code = pip.wait(timeout=max(INSTALL_S - (time.monotonic() - started), 1.0))
+        finally:
+            if pip.poll() is None:
+                pip.kill()
+                pip.wait()
+        assert code == 0, f"pip install -r {REQUIREMENTS.name} exited {code}:\n{pip_log.read_text()[-3000:]}"
+
+        # when: the simulator, in the light venv with the project on PYTHONPATH, fetches and steps it
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("MLFLOW_", "PYTHON"))}
+        env["PYTHONPATH"] = str(ROOT)
+        cache = tmp_path / "cache"
+        run = _run(
+            [python, "-c", SIMULATOR, uri, str(cache), ",".join(HEAVY), json.dumps(VOLTS)],
+            timeout=120,
+            env=env,
+            cwd=tmp_path,  # importable through PYTHONPATH only, not the working directory
+        )
+    out = json.loads(run.stdout.splitlines()[-1])
+    # then: the venv really is light, the model came through the server, and the force is the model's
+    assert out["installed"] == [] and out["loaded"] == [], out
+    assert (out["version"]["version"], out["version"]["tracking_uri"]) == ("1", uri)
+    assert (cache / "needle-force-30" / "champion" / "model.onnx").is_file()
+    expected = Predictor(checkpoint).predict_arrays(np.array([VOLTS]))[0]
+    np.testing.assert_allclose(out["force_n"], expected, rtol=1e-4, atol=1e-6)
+    assert out["cue"] == "wait"
+    print(f"light install, server and fetch: {time.monotonic() - started:.0f} s")

@@ -1,0 +1,152 @@
+"""The runtime tracker: causal, right on identifiable angles, debounced, falls back when it must."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.config import CuesParams
+from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.tracker import CueTracker
+from tests.cues.synthetic import (
+    CHANNELS,
+    end_of_insertion,
+    make_split,
+    make_trial,
+    run_tracker,
+)
+
+
+def test_tracker_from_round_tripped_pack_behaves_the_same(pack30: dict) -> None:
+    # given: the pack and its JSON copy
+    copy = json.loads(json.dumps(pack30))
+    trial = make_trial(15, seed=77, batch_id="x", trial_id="x1")
+    # when: both track the same trial
+    a = run_tracker(CueTracker(pack30, 30), trial)
+    b = run_tracker(CueTracker(copy, 30), trial)
+    # then: the same states
+    assert a == b
+
+
+def test_pack_is_only_for_its_own_preset_angle(pack30: dict) -> None:
+    # given: the 30° pack / when: a tracker is asked for 45° / then: a clear error
+    with pytest.raises(ValueError, match="preset angle 30"):
+        CueTracker(pack30, 45)
+    with pytest.raises(ValueError, match="needlecue-cues/1"):
+        CueTracker({"format": "other"}, 30)
+
+
+def test_tracker_is_causal(pack30: dict) -> None:
+    # given: a trial, and the same trial whose second half is replaced by something else
+    trial = make_trial(45, seed=5, batch_id="x", trial_id="x1")
+    half = len(trial) // 2
+    other = trial.copy()
+    rng = np.random.default_rng(0)
+    other.loc[half:, list(CHANNELS)] = rng.uniform(0.2, 1.5, (len(trial) - half, 3))
+    other.loc[half:, ["fx", "fy", "fz"]] = rng.uniform(-3, 3, (len(trial) - half, 3))
+    tracker = CueTracker(pack30, 30)
+    # when: tracking both
+    full = run_tracker(tracker, trial)
+    changed = run_tracker(tracker, other)
+    # then: the states before the change are identical (the future never leaks into the past)
+    assert full[:half] == changed[:half]
+
+
+@pytest.mark.parametrize(
+    ("true_angle", "expected"), [(30, "continue"), (15, "correct"), (45, "correct"), (0, "stop")]
+)
+def test_tracker_cues_by_deviation(pack30: dict, true_angle: int, expected: str) -> None:
+    # given: a fresh (held-out) trial at the true angle, the preset being 30°
+    trial = make_trial(true_angle, seed=900 + true_angle, batch_id="held", trial_id="h1")
+    # when: tracking it frame by frame
+    states = run_tracker(CueTracker(pack30, 30), trial)
+    end = int(np.flatnonzero(trial["phase"].to_numpy() == "insertion")[-1])
+    # then: the cue at the end of the insertion matches the deviation, with the right angle estimate
+    assert states[end].cue == expected
+    assert states[end].angle_est_deg == pytest.approx(true_angle)
+    assert states[0].cue == "wait"  # no evidence yet on the first frame
+    assert states[end].reason
+
+
+def test_tracker_debounces(pack30: dict) -> None:
+    # given: a 30° trial tracked with the default 0.2 s debounce
+    trial = make_trial(30, seed=3, batch_id="x", trial_id="x1")
+    states = run_tracker(CueTracker(pack30, 30), trial)
+    cues_seq = [s.cue for s in states]
+    t = trial["t_s"].to_numpy()
+    # then: every cue shown lasts at least the debounce time (or to the end of the trial)
+    changes = [i for i in range(1, len(cues_seq)) if cues_seq[i] != cues_seq[i - 1]] + [len(cues_seq) - 1]
+    for a, b in itertools.pairwise(changes):
+        assert t[b] - t[a] >= 0.2 - 1e-9 or b == len(cues_seq) - 1
+
+
+def test_force_above_range_means_stop(pack30: dict) -> None:
+    # given: an on-angle trial whose predicted force is far above anything seen in training
+    trial = make_trial(30, seed=4, batch_id="x", trial_id="x1")
+    force = trial[["fx", "fy", "fz"]].to_numpy() * 10
+    # when: tracking it / then: the combined cue stops for the force, the paper method too
+    states = run_tracker(CueTracker(pack30, 30), trial, force)
+    end = int(np.flatnonzero(trial["phase"].to_numpy() == "insertion")[-1])
+    assert states[end].cue == "stop"
+    assert "force" in states[end].reason
+
+
+@pytest.mark.parametrize(("true_angle", "expected"), [(30, "continue"), (45, "correct")])
+def test_two_angle_tracker_gives_the_right_cue(two_angle_pack: dict, true_angle: int, expected: str) -> None:
+    # given: a held-out trial, the preset being 30°
+    trial = make_trial(true_angle, seed=700 + true_angle, batch_id="held", trial_id="h1")
+    # when: tracking it
+    states = run_tracker(CueTracker(two_angle_pack, 30), trial)
+    # then: the right cue and angle estimate at the end of the insertion
+    end = end_of_insertion(trial)
+    assert (states[end].cue, states[end].angle_est_deg) == (expected, true_angle)
+
+
+@pytest.mark.parametrize(
+    ("angles", "per_batch", "why"),
+    [((30,), 3, "only 30° has training trials"), ((30, 45), 1, "more than 3 in all")],
+    ids=["one angle", "too few trials"],
+)
+def test_without_an_estimator_the_tracker_falls_back_to_the_paper_method(
+    params: CuesParams, angles: tuple, per_batch: int, why: str
+) -> None:
+    # given: training data an angle estimator cannot be fitted on
+    train = {float(a): make_split(a, ["b1"], per_batch, seed=3) for a in angles}
+    logs: list[str] = []
+    # when: building the 30° pack and tracking an on-angle trial with both methods
+    pack = build_cue_pack(train, 30, params, log=logs.append)
+    trial = make_trial(30, seed=31, batch_id="held", trial_id="h1")
+    tracker = CueTracker(pack, 30)
+    states = run_tracker(tracker, trial)
+    paper = run_tracker(CueTracker(pack, 30, method="paper"), trial)
+    # then: a pack without an estimator that says why (strict JSON, as the registry needs), a warning,
+    # and a combined cue that is the paper method's, its reason saying the angle estimate is unavailable
+    assert pack["angle_estimator"] is None and why in pack["unavailable"]["angle_estimator"]
+    json.dumps(pack, allow_nan=False)
+    assert any(m.startswith("warning: no angle estimator") for m in logs)
+    assert [s.cue for s in states] == [s.cue for s in paper]
+    end = end_of_insertion(trial)
+    assert states[end].cue == paper[end].cue != "wait" and states[end].angle_est_deg is None
+    assert all(s.reason.startswith("angle estimate unavailable") for s in states[1:])
+    assert why in states[end].reason and "paper method: predicted force" in states[end].reason
+
+
+def test_without_a_contact_there_is_no_profile_and_the_tracker_says_so(params: CuesParams) -> None:
+    # given: training trials at the preset angle whose volts never move (no contact detected)
+    flat = make_split(30, ["b1"], 3, seed=4)
+    flat[list(CHANNELS)] = 0.5
+    train = {30.0: flat, 45.0: make_split(45, ["b1"], 3, seed=4)}
+    # when: building the 30° pack and tracking a trial
+    pack = build_cue_pack(train, 30, params)
+    states = run_tracker(
+        CueTracker(pack, 30, method="paper"), make_trial(30, seed=5, batch_id="x", trial_id="1")
+    )
+    # then: no profile, no thresholds, each with its reason, and a paper method that waits saying why
+    assert pack["standard_profile"] is None and pack["thresholds"]["profile"] == {}
+    assert "contact" in pack["unavailable"]["standard_profile"]
+    json.dumps(pack, allow_nan=False)
+    assert {s.cue for s in states} == {"wait"}
+    assert "standard profile unavailable" in states[-1].reason

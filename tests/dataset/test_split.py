@@ -1,0 +1,127 @@
+"""The split: per angle, by trial, deterministic, held-out batches external only."""
+
+from __future__ import annotations
+
+import json
+
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.config import SplitParams
+from pipeline.dataset import split as sp
+from pipeline.vocab import AXES, ID_COLUMNS, SPLITS
+from tests.dataset.resampled import CHANNELS, files_of, make_input, trials_in, write_resampled
+
+
+def test_every_trial_lands_in_exactly_one_split_and_held_out_batches_only_in_external(tmp_path):
+    # Given two angles of training trials and a held-out batch per angle
+    src = make_input(tmp_path / "in")
+    # When the stage splits them
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    # Then each angle folder has all four files, no trial twice, held-out trials only in external
+    assert sorted(manifest["angles"]) == ["30", "45"]
+    for angle in ("30", "45"):
+        seen: set[tuple[str, str]] = set()
+        for name in SPLITS:
+            trials = trials_in(tmp_path / "out" / angle / f"{name}.parquet")
+            assert trials, (angle, name)
+            assert not trials & seen
+            seen |= trials
+            assert all(("heldout" in b) == (name == "external") for b, _ in trials)
+            listed = {(d["batch_id"], d["trial_id"]) for d in manifest["angles"][angle]["splits"][name]}
+            assert listed == trials
+        assert len(seen) == 20
+        # 16 internal trials: 5 % -> 1 in val, 10 % -> 2 in test (rounded), the rest train
+        assert manifest["angles"][angle]["n_trials"] == {"train": 13, "val": 1, "test": 2, "external": 4}
+    # And the samples of one trial are never split up: each split holds whole trials
+    train = pq.read_table(tmp_path / "out/30/train.parquet").to_pandas()
+    assert list(train.columns) == [*ID_COLUMNS, *CHANNELS, *AXES]
+    assert manifest["angles"]["30"]["n_samples"]["train"] == len(train)
+    assert manifest["rate_hz"] == 30.0 and manifest["set_aside"] == []
+
+
+def test_two_runs_give_byte_identical_files(tmp_path):
+    # Given the same input
+    src = make_input(tmp_path / "in")
+    # When split twice
+    sp.run(src, tmp_path / "a", SplitParams())
+    sp.run(src, tmp_path / "b", SplitParams())
+    # Then every file is byte-identical, manifest included (a different seed gives another split)
+    assert files_of(tmp_path / "a") == files_of(tmp_path / "b")
+    sp.run(src, tmp_path / "c", SplitParams(seed=1))
+    assert files_of(tmp_path / "a") != files_of(tmp_path / "c")
+
+
+def test_more_data_at_45_leaves_angle_30_byte_identical(tmp_path):
+    # Given a split, and the same data plus two more trials at 45 deg
+    sp.run(make_input(tmp_path / "in1"), tmp_path / "a", SplitParams())
+    sp.run(make_input(tmp_path / "in2", extra_45=2), tmp_path / "b", SplitParams())
+    a, b = files_of(tmp_path / "a"), files_of(tmp_path / "b")
+    # Then angle 30's files do not change at all, and angle 45 has the new trials
+    at_30 = [k for k in a if k.startswith("30/")]
+    assert len(at_30) == 4 and all(a[k] == b[k] for k in at_30)
+    ma = json.loads(a["manifest.json"])
+    mb = json.loads(b["manifest.json"])
+    assert ma["angles"]["30"] == mb["angles"]["30"]
+    assert sum(mb["angles"]["45"]["n_trials"].values()) == sum(ma["angles"]["45"]["n_trials"].values()) + 2
+
+
+def test_a_batch_with_other_channels_is_set_aside_at_its_angle(tmp_path):
+    # Given angle 30 with 16 trials on (fsr1..3) and 2 trials from a batch with 4 other channels
+    src = make_input(tmp_path / "in")
+    write_resampled(src, "lab-bench-a", {"t001": 30.0, "t002": 30.0}, channels=["l", "r", "t", "b"])
+    # When split
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    # Then the majority's channels are kept, the others set aside with a clear reason
+    assert manifest["angles"]["30"]["channels"] == CHANNELS
+    aside = manifest["set_aside"]
+    assert [(s["batch_id"], s["trial_id"]) for s in aside] == [
+        ("lab-bench-a", "t001"),
+        ("lab-bench-a", "t002"),
+    ]
+    assert "differ from the channels" in aside[0]["reason"] and "angle 30" in aside[0]["reason"]
+    for name in SPLITS:
+        table = pq.read_table(tmp_path / "out" / "30" / f"{name}.parquet")
+        assert "lab-bench-a" not in set(table.column("batch_id").to_pylist())
+        assert table.column_names == [*ID_COLUMNS, *CHANNELS, *AXES]
+
+
+def test_empty_splits_are_written_with_the_schema(tmp_path):
+    # Given an angle with 2 training trials and no held-out batch
+    src = tmp_path / "in"
+    src.mkdir()
+    write_resampled(src, "lab-a", {"t1": 60.0, "t2": 60.0}, channels=["v"])
+    # When split
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    # Then all four files exist; the empty ones have the same columns and types
+    full = pq.read_schema(tmp_path / "out/60/train.parquet")
+    for name in ("val", "test", "external"):
+        table = pq.read_table(tmp_path / "out/60" / f"{name}.parquet")
+        assert table.num_rows == 0 and table.schema.equals(full)
+    assert manifest["angles"]["60"]["n_trials"] == {"train": 2, "val": 0, "test": 0, "external": 0}
+
+
+@pytest.mark.parametrize(
+    ("n", "expected"),
+    [
+        (0, (0, 0, 0)),
+        (1, (1, 0, 0)),
+        (2, (2, 0, 0)),
+        (3, (1, 1, 1)),
+        (10, (8, 1, 1)),
+        (20, (17, 1, 2)),
+        (40, (34, 2, 4)),
+    ],
+)
+def test_split_sizes_round_and_keep_one_in_val_and_test_from_three_trials(n, expected):
+    # Given n internal trials and the paper's 5 % / 10 %, then the counts are as documented
+    assert sp.split_sizes(n, 0.05, 0.10) == expected
+
+
+def test_the_split_of_an_angle_depends_on_seed_and_angle_only():
+    # Given the same trials listed in a different order
+    keys = [("b1", f"t{k}") for k in range(12)]
+    p = SplitParams()
+    # Then the assignment is the same; another angle name shuffles differently
+    assert sp.assign(keys, "30", p) == sp.assign(list(reversed(keys)), "30", p)
+    assert any(sp.assign(keys, "30", p)[s] != sp.assign(keys, "45", p)[s] for s in ("train", "test"))

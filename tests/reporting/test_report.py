@@ -1,0 +1,62 @@
+"""report.md's computed statements: verdicts follow the numbers, never written in advance."""
+
+from __future__ import annotations
+
+from pipeline.metrics.paper import Finding, findings
+from pipeline.reporting.report import render
+from tests.metrics.fakes import ErrorFn, in_memory_metrics
+
+
+def network_error(ls: float, fnn: float, lstm: float) -> ErrorFn:
+    """Base error per model at its own angle, growing by 0.1 N per 15° of gap."""
+    base = {"ls": ls, "fnn": fnn, "lstm": lstm}
+    return lambda model, train, data: base[model] + 0.1 * abs(train - data) / 15
+
+
+def finding(metrics: dict, start: str) -> Finding:
+    return next(f for f in findings(metrics) if f.claim.startswith(start))
+
+
+def test_report_states_ls_is_worse_when_it_is():
+    # given LS 20 %, FNN 5 %, LSTM 6 % at every angle (times 1, 2, 3 per axis)
+    m = in_memory_metrics(network_error(0.20, 0.05, 0.06))
+    report = render(m)
+    # then the statement counts every angle and agrees with the paper
+    assert (
+        "LS is worse than both networks (FNN, LSTM, each where it has results) on every axis at 6 of 6"
+        in report
+    )
+    assert "exceptions" not in finding(m, "LS is worse").ours.text
+    assert "**LS is worse than the networks at every angle (Table I): agree.**" in report
+    assert "**FNN beats LSTM at 30° (Table III): agree.**" in report
+    assert "**FNN error grows with the angle gap (Table II): agree.**" in report
+    assert "- yes: LSTM: 12.00% (0°) → 32.00% (15°) → 52.00% (30°): grows with the gap." in report
+
+
+def test_report_states_exceptions_when_ls_is_not_worse():
+    # given LS better than the FNN at 30° only, and an LSTM better than the FNN everywhere
+    def error(model: str, train: float, data: float) -> float:
+        if model == "ls" and train == 30:
+            return 0.01
+        return network_error(0.20, 0.05, 0.04)(model, train, data)
+
+    m = in_memory_metrics(error)
+    report = render(m)
+    # then the count, the exceptions and the verdicts follow the numbers
+    ls = finding(m, "LS is worse")
+    assert ls.ours.holds is False and ls.verdict == "disagree"
+    assert "on every axis at 5 of 6 angles; exceptions: 30° Fx (LS 1.00% vs FNN 5.00%, LSTM 4.00%)" in report
+    assert "**FNN beats LSTM at 30° (Table III): disagree.**" in report
+    assert "at 30°: FNN 10.00% vs LSTM 8.00% (mean over axes); FNN lower on 0 of 3 axes" in report
+
+
+def test_report_says_no_when_error_does_not_grow_with_the_gap():
+    # given a FNN that is worse at its own angle than anywhere else
+    def error(model: str, train: float, data: float) -> float:
+        return 0.5 if train == data else 0.05
+
+    m = in_memory_metrics(error, models=("fnn",))
+    report = render(m)
+    assert finding(m, "FNN error grows").verdict == "disagree"
+    assert "- no: FNN: 100.00% (0°) → 10.00% (15°) → 10.00% (30°): does not grow with the gap." in report
+    assert "cannot compare" in report  # no LS, no LSTM: those claims cannot be checked

@@ -1,0 +1,139 @@
+"""Ingest's batch folders and cache: input roots, duplicates, reuse of unchanged batches, crash
+safety, and checking folders without writing."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from pipeline.config import IngestParams
+from pipeline.rig import ingest
+from tests.helpers import tree_hash
+from tests.rig.batches import TRIALS, A, copy_batch, drop_column, run, set_cell
+
+# --------------------------------------------------------------------------- folders and roots
+
+
+def test_duplicate_batch_id_in_second_root_is_set_aside(raw_dir, lab_bench_a, tmp_path):
+    # Given the same batch in the raw and the simulated folder
+    sim = tmp_path / "sim"
+    shutil.copytree(lab_bench_a, sim / A)
+    # When both are ingested
+    result = run([raw_dir, sim], tmp_path / "out")
+    # Then the raw copy is used and the second is set aside with a Problem naming it
+    assert result.accepted == [A]
+    dup = [b for b in result.batches if b.action == "duplicate"]
+    assert len(dup) == 1 and dup[0].source_dir == sim / A
+    assert "already read from" in dup[0].problems[0].reason and dup[0].problems[0].file == str(sim / A)
+    assert json.loads((tmp_path / "out" / A / "batch.json").read_text())["source_dir"] == str(raw_dir / A)
+
+
+def test_batch_folder_with_an_invalid_name_is_set_aside(raw_dir, lab_bench_a, tmp_path):
+    # Given a batch folder (and batch_id) with a space in its name
+    copy_batch(lab_bench_a, raw_dir, "lab bench")
+    # When ingested / Then it is set aside for its id, the other batch goes through
+    result = run([raw_dir], tmp_path / "out")
+    assert result.accepted == [A] and result.set_aside == ["lab bench"]
+    assert "does not match" in result.problems[0].reason
+
+
+def test_missing_folders_have_no_batches(tmp_path):
+    # Given neither input folder exists / When ingested / Then nothing happens, no error
+    result = run([tmp_path / "nope", tmp_path / "nada"], tmp_path / "out")
+    assert result.batches == [] and list((tmp_path / "out").iterdir()) == []
+
+
+def test_output_inside_an_input_folder_is_refused(raw_dir):
+    # Given an output folder under the raw folder / When ingest starts / Then it refuses
+    with pytest.raises(ValueError, match="overlaps"):
+        run([raw_dir], raw_dir / "ingested")
+
+
+# --------------------------------------------------------------------------- incremental
+
+
+def test_unchanged_batch_is_reused_without_parsing(raw_dir, lab_bench_a, tmp_path, monkeypatch):
+    # Given a first ingest
+    out = tmp_path / "out"
+    first = run([raw_dir], out)
+    assert first.parsed == [A]
+    stored = tree_hash(out)
+
+    # When it runs again with parsing made impossible
+    def no_parse(*_a, **_k):
+        raise AssertionError("an unchanged batch was parsed")
+
+    with monkeypatch.context() as m:
+        m.setattr(ingest, "parse_batch", no_parse)
+        second = run([raw_dir], out)
+    # Then the batch is reused and its outputs are untouched
+    assert second.reused == [A] and second.parsed == []
+    assert second.batches[0].trials_accepted == TRIALS
+    assert tree_hash(out) == stored
+    # When a second batch arrives, only that one is parsed
+    copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    third = run([raw_dir], out)
+    assert third.parsed == ["lab-bench-b"] and third.reused == [A]
+    # When a byte of a file changes, that batch is parsed again
+    set_cell(raw_dir / "lab-bench-b" / "t001.ref.csv", 5, "fx", "1.5")
+    fourth = run([raw_dir], out)
+    assert fourth.parsed == ["lab-bench-b"] and fourth.reused == [A]
+    # When the ingest params change, everything is parsed again
+    assert run([raw_dir], out, IngestParams(min_samples=20)).parsed == [A, "lab-bench-b"]
+    # When a batch is removed from the raw folder, its output goes too
+    shutil.rmtree(raw_dir / A)
+    fifth = run([raw_dir], out, IngestParams(min_samples=20))
+    assert fifth.removed == [A] and not (out / A).exists() and fifth.reused == ["lab-bench-b"]
+
+
+def test_set_aside_batch_is_not_parsed_again_either(raw_dir, tmp_path, monkeypatch):
+    # Given a batch set aside for a bad batch.yaml
+    (raw_dir / A / "batch.yaml").write_text("format: [\n")
+    out = tmp_path / "out"
+    assert run([raw_dir], out).set_aside == [A]
+    assert sorted(p.name for p in (out / A).iterdir()) == ["fingerprint.json", "problems.json"]
+    # When ingest runs again / Then it is reused, problems and all
+    monkeypatch.setattr(ingest, "parse_batch", lambda *a, **k: pytest.fail("parsed"))
+    again = run([raw_dir], out)
+    assert again.reused == [A] and again.set_aside == [A] and "not valid YAML" in again.problems[0].reason
+
+
+def test_crash_while_writing_leaves_no_matching_fingerprint(raw_dir, tmp_path, monkeypatch):
+    # Given an ingested batch that then changes
+    out = tmp_path / "out"
+    run([raw_dir], out)
+    set_cell(raw_dir / A / "t001.fsr.csv", 5, "left", "0.5")
+    # When writing its new outputs fails half way
+    with monkeypatch.context() as m:
+        m.setattr(ingest, "_write_parquet", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
+        with pytest.raises(OSError):
+            run([raw_dir], out)
+    # Then the next run parses it again (no stale fingerprint matches) and writes the new value
+    again = run([raw_dir], out)
+    assert again.parsed == [A]
+    fsr = pd.read_parquet(out / A / "fsr.parquet")
+    assert fsr.loc[fsr.trial_id == "t001", "left"].iloc[3] == 0.5
+    assert sorted(p.name for p in out.iterdir()) == [A]
+
+
+# --------------------------------------------------------------------------- check
+
+
+def test_check_folders_reports_problems_and_writes_nothing(raw_dir, lab_bench_a, tmp_path):
+    # Given a good fixture and a broken copy
+    bad = copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    drop_column(bad / "t001.fsr.csv", "left")
+    before = tree_hash(tmp_path)
+    # When they are checked (as a folder of batches and as one batch folder)
+    problems = ingest.check_folders([raw_dir], IngestParams())
+    single = ingest.check_folders([lab_bench_a], IngestParams())
+    # Then exactly the broken file is reported, and nothing was written anywhere
+    assert [(p.batch_id, Path(p.file).name, p.column) for p in problems] == [
+        ("lab-bench-b", "t001.fsr.csv", "left")
+    ]
+    assert single == []
+    assert tree_hash(tmp_path) == before

@@ -1,0 +1,556 @@
+"""Reading rig-log/1 batches: a good hand-made batch goes through; every kind of bad input is set
+aside precisely."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from pipeline.rig.format import BatchMeta
+from pipeline.rig.problems import MAX_PER_COLUMN
+from tests.helpers import tree_hash
+from tests.rig.batches import (
+    CHANNELS,
+    TRIALS,
+    A,
+    cell,
+    copy_batch,
+    drop_column,
+    lines_of,
+    replace_in,
+    run,
+    set_cell,
+    to_counts,
+    write_lines,
+)
+
+# --------------------------------------------------------------------------- the good batch
+
+
+def test_good_fixture_is_ingested_in_raw_units_with_metadata_kept(raw_dir, tmp_path):
+    # Given the hand-made volts/mN batch
+    before = tree_hash(raw_dir)
+    # When it is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then it is accepted without problems, trials sorted, extra column and unknown keys kept
+    assert result.accepted == [A] and result.problems == [] and result.parsed == [A]
+    out = tmp_path / "out" / A
+    trials = pd.read_parquet(out / "trials.parquet")
+    assert list(trials.columns) == ["trial_id", "angle_deg", "tissue_point", "note_offset_ms"]
+    assert trials["trial_id"].tolist() == TRIALS
+    assert trials["angle_deg"].tolist() == [30.0, 30.0, 45.0]
+    assert trials["note_offset_ms"].tolist() == ["120", "-80", "200"]
+    meta = json.loads((out / "batch.json").read_text())
+    assert meta["operator"] == "bench fixture" and meta["sensor"]["supply_v"] == 5.0
+    assert meta["source_dir"] == str(raw_dir / A)
+    BatchMeta.model_validate({k: v for k, v in meta.items() if k != "source_dir"})
+    # ... streams in raw units (volts, mN), channel order as in batch.yaml, float64
+    fsr = pd.read_parquet(out / "fsr.parquet")
+    assert list(fsr.columns) == ["trial_id", "t_ms", *CHANNELS]
+    assert all(fsr[c].dtype == "float64" for c in ["t_ms", *CHANNELS])
+    first = pd.read_csv(raw_dir / A / "t001.fsr.csv")
+    pd.testing.assert_frame_equal(
+        fsr[fsr.trial_id == "t001"].drop(columns="trial_id").reset_index(drop=True), first.astype("float64")
+    )
+    ref = pd.read_parquet(out / "ref.parquet")
+    assert list(ref.columns) == ["trial_id", "t_s", "fx", "fy", "fz"]
+    assert ref["fz"].max() > 500  # mN, not converted to N
+    assert sorted(ref.trial_id.unique()) == TRIALS
+    assert json.loads((out / "problems.json").read_text()) == []
+    assert set(json.loads((out / "gx_results.json").read_text())) == {"trials", "fsr", "ref", "streams"}
+    # ... and the raw folder is untouched
+    assert tree_hash(raw_dir) == before
+
+
+def test_same_input_gives_the_same_output_bytes(raw_dir, tmp_path):
+    # Given one raw folder
+    # When it is ingested twice into two fresh output folders
+    run([raw_dir], tmp_path / "out1")
+    run([raw_dir], tmp_path / "out2")
+    # Then every output file is byte-identical
+    assert tree_hash(tmp_path / "out1") == tree_hash(tmp_path / "out2")
+
+
+def test_tolerated_variations_are_accepted(raw_dir, tmp_path):
+    # Given a batch with a BOM + CRLF trials.csv, reordered fsr columns with an extra one,
+    # blank lines, and torques in every reference stream
+    b = raw_dir / A
+    (b / "trials.csv").write_bytes(b"\xef\xbb\xbf" + (b / "trials.csv").read_bytes().replace(b"\n", b"\r\n"))
+    for t in TRIALS:
+        rows = [r.split(",") for r in lines_of(b / f"{t}.fsr.csv")]
+        order = [4, 2, 0, 1, 3]  # bottom, right, t_ms, left, top
+        write_lines(
+            b / f"{t}.fsr.csv",
+            [",".join([*(r[i] for i in order), "21.5" if k else "temp_c"]) for k, r in enumerate(rows)]
+            + [""],
+        )
+        ref = lines_of(b / f"{t}.ref.csv")
+        write_lines(b / f"{t}.ref.csv", [ref[0] + ",tx,ty,tz", *(r + ",0.1,0.2,0.3" for r in ref[1:])])
+    # When it is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then it is accepted; the extra column is a warning; columns come out in batch.yaml order
+    assert result.problems == [] and result.accepted == [A]
+    # ... one warning line for the three files, not one per file
+    assert [w for w in result.batches[0].warnings if "temp_c" in w] == [
+        f"{raw_dir / A}: extra column(s) 'temp_c' ignored: t001.fsr.csv, t002.fsr.csv, t003.fsr.csv"
+    ]
+    fsr = pd.read_parquet(tmp_path / "out" / A / "fsr.parquet")
+    assert list(fsr.columns) == ["trial_id", "t_ms", *CHANNELS]
+    ref = pd.read_parquet(tmp_path / "out" / A / "ref.parquet")
+    assert list(ref.columns) == ["trial_id", "t_s", "fx", "fy", "fz", "tx", "ty", "tz"]
+
+
+def test_counts_batch_keeps_integer_counts(raw_dir, tmp_path):
+    # Given the batch rewritten as 10-bit ADC counts
+    to_counts(raw_dir / A)
+    # When it is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then counts come out unconverted (integers in [0, 1023], as float64)
+    assert result.problems == []
+    fsr = pd.read_parquet(tmp_path / "out" / A / "fsr.parquet")
+    values = fsr[CHANNELS].to_numpy()
+    assert (values == values.round()).all() and values.min() >= 0 and values.max() <= 1023
+
+
+# --------------------------------------------------------------------------- bad input corpus
+
+
+@dataclass(frozen=True)
+class Bad:
+    """Break one thing in lab-bench-a; expect this Problem and this much set aside."""
+
+    id: str
+    mutate: Callable[[Path], None]
+    file: str  # file name the Problem must name
+    reason: str  # substring of its reason
+    line: int | None = None  # expected line, if any
+    column: str | None = None  # expected column, if any
+    batch: bool = False  # whole batch set aside?
+    trials: tuple[str, ...] = ("t002",)  # trials set aside (if not the whole batch)
+    accepted: tuple[str, ...] | None = None  # default: the other trials
+
+
+def _fsr(t: str = "t002") -> str:
+    return f"{t}.fsr.csv"
+
+
+def _ref(t: str = "t002") -> str:
+    return f"{t}.ref.csv"
+
+
+def _dup_time(b: Path) -> None:
+    set_cell(b / _fsr(), 20, "t_ms", cell(b / _fsr(), 19, "t_ms"))
+
+
+def _time_back(b: Path, name: str, col: str) -> None:
+    set_cell(b / name, 30, col, "0.0001")
+
+
+def _few_samples(b: Path) -> None:
+    write_lines(b / _fsr(), lines_of(b / _fsr())[:6])
+
+
+def _slow_rate(b: Path) -> None:
+    rows = [r.split(",") for r in lines_of(b / _fsr())]
+    write_lines(
+        b / _fsr(), [",".join(rows[0])] + [",".join([str(float(r[0]) * 1000), *r[1:]]) for r in rows[1:]]
+    )
+
+
+def _not_utf8(b: Path) -> None:
+    data = (b / _ref()).read_bytes().split(b"\n")
+    data[4] = data[4] + b"\xff"
+    (b / _ref()).write_bytes(b"\n".join(data))
+
+
+def _counts_then(line: int, value: str) -> Callable[[Path], None]:
+    def mutate(b: Path) -> None:
+        to_counts(b)
+        set_cell(b / _fsr(), line, "top", value)
+
+    return mutate
+
+
+def _malformed(b: Path) -> None:
+    rows = lines_of(b / _fsr())
+    rows[11] += ",0.5"
+    write_lines(b / _fsr(), rows)
+
+
+def _drop_header(b: Path) -> None:
+    write_lines(b / _fsr(), lines_of(b / _fsr())[1:])
+
+
+def _all_refs_gone(b: Path) -> None:
+    for t in TRIALS:
+        (b / _ref(t)).unlink()
+
+
+BAD = [
+    # batch.yaml: the whole batch is set aside
+    Bad(
+        "missing batch.yaml",
+        lambda b: (b / "batch.yaml").unlink(),
+        "batch.yaml",
+        "missing batch.yaml",
+        batch=True,
+    ),
+    Bad(
+        "batch.yaml not YAML",
+        lambda b: replace_in(
+            b / "batch.yaml", "channels: [left, right, top, bottom]", "channels: [left, right, top, bottom"
+        ),
+        "batch.yaml",
+        "not valid YAML",
+        line=8,
+        batch=True,
+    ),
+    Bad(
+        "batch.yaml not a mapping",
+        lambda b: (b / "batch.yaml").write_text("- rig-log/1\n"),
+        "batch.yaml",
+        "must be a mapping",
+        line=1,
+        batch=True,
+    ),
+    Bad(
+        "batch_id differs from folder",
+        lambda b: replace_in(b / "batch.yaml", "batch_id: lab-bench-a", "batch_id: lab-bench-z"),
+        "batch.yaml",
+        "differs from the folder name",
+        line=2,
+        batch=True,
+    ),
+    Bad(
+        "unknown format",
+        lambda b: replace_in(b / "batch.yaml", "rig-log/1", "rig-log/2"),
+        "batch.yaml",
+        "key format",
+        line=1,
+        batch=True,
+    ),
+    Bad(
+        "sensor.units missing",
+        lambda b: replace_in(b / "batch.yaml", "  units: volts\n", ""),
+        "batch.yaml",
+        "key sensor.units: Field required",
+        line=6,
+        batch=True,
+    ),
+    Bad(
+        "counts without adc_bits",
+        lambda b: replace_in(b / "batch.yaml", "units: volts", "units: counts"),
+        "batch.yaml",
+        "adc_bits",
+        line=6,
+        batch=True,
+    ),
+    Bad(
+        "wrong type in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "units: mN", "units: kN"),
+        "batch.yaml",
+        "key reference.units",
+        line=12,
+        batch=True,
+    ),
+    Bad(
+        "duplicate key in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "operator:", "batch_id: x\noperator:"),
+        "batch.yaml",
+        "'batch_id' appears twice",
+        line=15,
+        batch=True,
+    ),
+    Bad(
+        "channel named like an ingest column",
+        lambda b: replace_in(b / "batch.yaml", "bottom]", "trial_id]"),
+        "batch.yaml",
+        "reserved",
+        line=7,
+        batch=True,
+    ),
+    Bad(
+        "impossible date in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "recorded: 2025-11-20", "recorded: 2025-13-45"),
+        "batch.yaml",
+        "month must be in 1..12",
+        batch=True,
+    ),
+    # trials.csv
+    Bad(
+        "missing trials.csv",
+        lambda b: (b / "trials.csv").unlink(),
+        "trials.csv",
+        "missing trials.csv",
+        batch=True,
+    ),
+    Bad(
+        "trials.csv without tissue_point",
+        lambda b: drop_column(b / "trials.csv", "tissue_point"),
+        "trials.csv",
+        "missing column 'tissue_point'",
+        line=1,
+        column="tissue_point",
+        batch=True,
+    ),
+    Bad(
+        "trials.csv without rows",
+        lambda b: write_lines(b / "trials.csv", lines_of(b / "trials.csv")[:1]),
+        "trials.csv",
+        "lists no trials",
+        batch=True,
+    ),
+    Bad("every trial unusable", _all_refs_gone, "trials.csv", "no usable trial", batch=True),
+    Bad(
+        "bad trial_id",
+        lambda b: set_cell(b / "trials.csv", 3, "trial_id", "t 002"),
+        "trials.csv",
+        "does not match",
+        line=3,
+        column="trial_id",
+        trials=("t 002",),
+        accepted=("t001", "t003"),
+    ),
+    Bad(
+        "trial_id that is a path",
+        lambda b: set_cell(b / "trials.csv", 3, "trial_id", "../t002"),
+        "trials.csv",
+        "does not match",
+        line=3,
+        column="trial_id",
+        trials=("../t002",),
+        accepted=("t001", "t003"),
+    ),
+    Bad(
+        "text angle",
+        lambda b: set_cell(b / "trials.csv", 3, "angle_deg", "thirty"),
+        "trials.csv",
+        "text 'thirty' in a number column",
+        line=3,
+        column="angle_deg",
+    ),
+    Bad(
+        "missing angle",
+        lambda b: set_cell(b / "trials.csv", 3, "angle_deg", ""),
+        "trials.csv",
+        "missing value",
+        line=3,
+        column="angle_deg",
+    ),
+    Bad(
+        "angle out of range",
+        lambda b: set_cell(b / "trials.csv", 3, "angle_deg", "3000"),
+        "trials.csv",
+        "not an angle",
+        line=3,
+        column="angle_deg",
+    ),
+    Bad(
+        "empty tissue_point",
+        lambda b: set_cell(b / "trials.csv", 3, "tissue_point", " "),
+        "trials.csv",
+        "tissue_point is empty",
+        line=3,
+        column="tissue_point",
+    ),
+    Bad(
+        "duplicate trial_id",
+        lambda b: write_lines(b / "trials.csv", [*lines_of(b / "trials.csv"), "t002,P3,45,0"]),
+        "trials.csv",
+        "listed more than once",
+        line=5,
+        column="trial_id",
+    ),
+    Bad(
+        "trials.csv row with too many fields",
+        lambda b: replace_in(b / "trials.csv", "t002,P2,30,-80", "t002,P2,30,-80,x"),
+        "trials.csv",
+        "row has 5 fields, the header has 4",
+        line=3,
+    ),
+    # trials vs files
+    Bad("trial without its fsr file", lambda b: (b / _fsr()).unlink(), _fsr(), "is missing"),
+    Bad("trial without its ref file", lambda b: (b / _ref()).unlink(), _ref(), "is missing"),
+    Bad(
+        "stream file without a trial row",
+        lambda b: shutil.copy(b / _fsr("t001"), b / _fsr("t009")),
+        _fsr("t009"),
+        "no row for trial 't009'",
+        trials=(),
+    ),
+    # stream structure
+    Bad("empty fsr file", lambda b: (b / _fsr()).write_text(""), _fsr(), "empty file"),
+    Bad(
+        "fsr header only", lambda b: write_lines(b / _fsr(), lines_of(b / _fsr())[:1]), _fsr(), "empty stream"
+    ),
+    Bad(
+        "fsr lacks a channel",
+        lambda b: drop_column(b / _fsr(), "top"),
+        _fsr(),
+        "missing column 'top'",
+        line=1,
+        column="top",
+    ),
+    Bad(
+        "fsr with extra-only columns",
+        lambda b: replace_in(b / _fsr(), "t_ms,left,right,top,bottom", "a,b,c,d,e"),
+        _fsr(),
+        "missing column 't_ms'",
+        line=1,
+        column="t_ms",
+    ),
+    Bad("fsr without header row", _drop_header, _fsr(), "is the header row missing?", line=1, column="t_ms"),
+    Bad(
+        "ref lacks a force column",
+        lambda b: drop_column(b / _ref(), "fz"),
+        _ref(),
+        "missing column 'fz'",
+        line=1,
+        column="fz",
+    ),
+    Bad(
+        "ref column twice",
+        lambda b: replace_in(b / _ref(), "t_s,fx,fy,fz", "t_s,fx,fy,fy"),
+        _ref(),
+        "column 'fy' appears 2 times",
+        line=1,
+        column="fy",
+    ),
+    Bad("fsr row with a field too many", _malformed, _fsr(), "row has 6 fields, the header has 5", line=12),
+    Bad("ref not UTF-8", _not_utf8, _ref(), "not UTF-8", line=5),
+    # values
+    Bad(
+        "text in a number column",
+        lambda b: set_cell(b / _fsr(), 10, "right", "abc"),
+        _fsr(),
+        "text 'abc' in a number column",
+        line=10,
+        column="right",
+    ),
+    Bad(
+        "NaN value",
+        lambda b: set_cell(b / _ref(), 40, "fy", "NaN"),
+        _ref(),
+        "missing value",
+        line=40,
+        column="fy",
+    ),
+    Bad(
+        "empty cell",
+        lambda b: set_cell(b / _fsr(), 7, "left", ""),
+        _fsr(),
+        "missing value",
+        line=7,
+        column="left",
+    ),
+    Bad(
+        "infinite value",
+        lambda b: set_cell(b / _ref(), 8, "fx", "inf"),
+        _ref(),
+        "not a finite number",
+        line=8,
+        column="fx",
+    ),
+    Bad(
+        "count above the ADC range",
+        _counts_then(15, "1024"),
+        _fsr(),
+        "outside the ADC range [0, 1023]",
+        line=15,
+        column="top",
+    ),
+    Bad("negative count", _counts_then(16, "-1"), _fsr(), "outside the ADC range", line=16, column="top"),
+    Bad("fractional count", _counts_then(17, "511.5"), _fsr(), "not an integer", line=17, column="top"),
+    # time and rate
+    Bad(
+        "duplicate timestamp",
+        _dup_time,
+        _fsr(),
+        "time does not increase: step of 0 ms",
+        line=20,
+        column="t_ms",
+    ),
+    Bad(
+        "fsr time goes back",
+        lambda b: _time_back(b, _fsr(), "t_ms"),
+        _fsr(),
+        "time does not increase",
+        line=30,
+        column="t_ms",
+    ),
+    Bad(
+        "ref time goes back",
+        lambda b: _time_back(b, _ref(), "t_s"),
+        _ref(),
+        "time does not increase",
+        line=30,
+        column="t_s",
+    ),
+    Bad("too few samples", _few_samples, _fsr(), "only 5 samples"),
+    Bad("implausible rate", _slow_rate, _fsr(), "sample rate", column="t_ms"),
+]
+
+
+@pytest.mark.parametrize("case", BAD, ids=[c.id for c in BAD])
+def test_bad_input_is_set_aside_precisely(case: Bad, raw_dir: Path, lab_bench_a: Path, tmp_path: Path):
+    # Given lab-bench-a with exactly one thing broken (plus an intact second batch when the
+    # whole batch is expected to go)
+    b = raw_dir / A
+    case.mutate(b)
+    if case.batch:
+        copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    before = tree_hash(raw_dir)
+    # When the folder is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then a Problem names the file (and line/column) with the reason
+    mine = [p for p in result.problems if p.batch_id == A]
+    hits = [
+        p
+        for p in mine
+        if Path(p.file).name == case.file
+        and case.reason in p.reason
+        and (case.line is None or p.line == case.line)
+        and (case.column is None or p.column == case.column)
+    ]
+    assert hits, "\n".join(map(str, mine))
+    outcome = next(o for o in result.batches if o.batch_id == A)
+    out = tmp_path / "out"
+    if case.batch:
+        # ... the batch is set aside (a folder without trials.parquet), the other one goes on
+        assert not outcome.accepted and A in result.set_aside
+        assert result.accepted == ["lab-bench-b"]
+        assert not (out / A / "trials.parquet").exists() and (out / A / "problems.json").exists()
+    else:
+        # ... only the broken trial is set aside; the others go through to the Parquet files
+        assert outcome.accepted
+        expected = list(case.accepted or [t for t in TRIALS if t not in case.trials])
+        assert outcome.trials_accepted == expected
+        assert outcome.trials_set_aside == sorted(case.trials)
+        assert pd.read_parquet(out / A / "trials.parquet")["trial_id"].tolist() == expected
+        assert sorted(pd.read_parquet(out / A / "fsr.parquet")["trial_id"].unique()) == expected
+        assert sorted(pd.read_parquet(out / A / "ref.parquet")["trial_id"].unique()) == expected
+        assert not {p.trial_id for p in mine} & set(expected)
+    stored = [tuple(p.values()) for p in json.loads((out / A / "problems.json").read_text())]
+    assert [tuple(p.to_dict().values()) for p in mine] == stored
+    # ... and nothing under the raw folder changed
+    assert tree_hash(raw_dir) == before
+
+
+def test_many_bad_cells_are_summarised_but_all_set_aside(raw_dir, tmp_path):
+    # Given a trial whose whole 'left' column is text
+    f = raw_dir / A / _fsr()
+    rows = [r.split(",") for r in lines_of(f)]
+    write_lines(f, [",".join(rows[0])] + [",".join([r[0], "x", *r[2:]]) for r in rows[1:]])
+    # When it is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then a few lines are listed one by one, the rest in one summary line; t002 is set aside
+    left = [p for p in result.problems if p.column == "left"]
+    assert len(left) == MAX_PER_COLUMN + 1
+    assert f"and {len(rows) - 1 - MAX_PER_COLUMN} more" in left[-1].reason
+    assert result.batches[0].trials_accepted == ["t001", "t003"]

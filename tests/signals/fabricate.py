@@ -1,0 +1,196 @@
+"""Trials fabricated for the signal-processing tests (`fabricate`), not taken from the simulator.
+
+A needle force profile (nonlinear spring, puncture drop, friction, dwell relaxation, retraction
+pull, exit) seen by an FSR tripod that is nonlinear (threshold + saturating conductance), partly
+lagged (silicone creep: 30 % with a 1.5 s time constant), 10-bit quantised, host-stamped with
+jitter and dropped samples; and by a reference sensor on its own clock with mN noise.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.signal import lfilter
+
+from pipeline.config import ResampleParams
+from pipeline.signals.resample import ResampledTrial, resample_trial
+from pipeline.signals.units import to_volts
+
+FSR_HZ = 30.0
+REF_HZ = 100.0
+PARAMS = ResampleParams()
+NEEDLE = np.array([0.4, 0.5, -0.77]) / np.linalg.norm([0.4, 0.5, -0.77])  # into the tissue
+_E1 = np.cross(NEEDLE, [0.0, 0.0, 1.0])
+E1 = _E1 / np.linalg.norm(_E1)
+E2 = np.cross(NEEDLE, E1)
+
+
+@dataclass
+class Fabricated:
+    """One fabricated trial as the rig would log it, plus its truth."""
+
+    t_ms: np.ndarray  # host clock, jittered, some samples dropped
+    counts: np.ndarray  # (n, channels), 10-bit ADC counts
+    t_s: np.ndarray  # DAQ clock, uniform
+    force: np.ndarray  # (m, 3), N
+    offset_s: float  # reference stamp t_s happened at host time t_s + offset_s
+    bounds: tuple[float, float, float, float]  # host times: insertion, dwell, retraction, exit
+
+    def phase_at(self, t_host: np.ndarray) -> np.ndarray:
+        """True phase at host times (force-based: rest before contact and after the exit)."""
+        t0, t1, t2, t3 = self.bounds
+        out = np.full(t_host.shape, "rest", dtype=object)
+        out[(t_host >= t0) & (t_host < t1)] = "insertion"
+        out[(t_host >= t1) & (t_host < t2)] = "dwell"
+        out[(t_host >= t2) & (t_host < t3)] = "retraction"
+        return out
+
+
+def needle_force(
+    t: np.ndarray, t0: float, dwell_s: float, puncture_mm: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Force along the needle (N) and the tip's share (drives the bevel's lateral force)."""
+    t1, t2 = t0 + 10.0, t0 + 10.0 + dwell_s
+    t3 = t2 + 5.0
+    d = np.clip(t - t0, 0.0, 10.0)  # depth at 1 mm/s
+    if puncture_mm is not None:  # nonlinear spring, rupture, then cutting + friction
+        push = np.where(d < puncture_mm, 0.05 * d + 0.02 * d**2, 0.2 + 0.04 * d)
+    else:
+        push = 0.06 * d
+    f1 = push[np.searchsorted(t, t1) - 1] if t1 <= t[-1] else 0.6
+    relax = 1.0 - 0.2 * (1.0 - np.exp(-np.clip(t - t1, 0.0, None) / 0.5))
+    f2 = f1 * (1.0 - 0.2 * (1.0 - np.exp(-dwell_s / 0.5)))
+    tr = np.clip(t - t2, 0.0, None)
+    unload = np.exp(-tr / 0.15)
+    pull = np.minimum(0.25 * tr, 0.3)
+    retract = f2 * unload - pull * (1.0 - unload)
+    pull_end = min(0.25 * 5.0, 0.3)
+    rebound = -pull_end * np.exp(-np.clip(t - t3, 0.0, None) / 0.1)
+    f = np.select(
+        [t < t0, t < t1, t < t2, t < t3],
+        [0.0 * t, push, f1 * relax, retract],
+        rebound,
+    )
+    tip = np.select([t < t0, t < t2, t < t3], [0.0 * t, f, f2 * unload], 0.0 * t)
+    return f, tip
+
+
+def fabricate(
+    seed: int,
+    offset_s: float,
+    n_channels: int = 3,
+    *,
+    dwell_s: float = 0.8,
+    puncture: bool = True,
+    duration_s: float = 21.0,
+    drop_p: float = 0.005,
+    jitter_ms: float = 2.0,
+) -> Fabricated:
+    rng = np.random.default_rng(seed)
+    dt = 0.001
+    t = np.arange(-1.0, duration_s + 1.0, dt)  # host time, fine grid
+    # Events fall anywhere between samples, as on a rig (a fixed phase would bias the test).
+    rest_s = float(rng.uniform(1.5, 2.5))
+    puncture_mm = float(rng.uniform(3.5, 5.0)) if puncture else None
+    f, tip = needle_force(t, rest_s, dwell_s, puncture_mm)
+    force = f[:, None] * NEEDLE + 0.15 * tip[:, None] * E1  # on the tissue, tissue frame
+    force[t < 0] = 0.0
+
+    # FSR tripod: axial share on all, lateral differentially, on a 0.49 N preload.
+    az = np.radians(90.0 + 360.0 * np.arange(n_channels) / n_channels)
+    load = (
+        0.49
+        + (force @ NEEDLE)[:, None] / 3
+        + 1.05 * ((force @ E1)[:, None] * np.cos(az) + (force @ E2)[:, None] * np.sin(az))
+    )
+    a = np.exp(-dt / 1.5)  # silicone creep: 30 % of each change arrives with a 1.5 s lag
+    lagged = lfilter([1 - a], [1, -a], load - load[0], axis=0) + load[0]
+    load = np.clip(0.7 * load + 0.3 * lagged, 0.0, None)  # contact loss: no tension
+    conductance = load / 34.0 / (1.0 + np.exp(-(load - 0.15) / 0.01))  # 1/kOhm, thresholded
+    volts = 5.0 / (1.0 + (1.0 / (conductance + 1e-4) + 1.62) / 10.0)  # divider, R_M = 10 kOhm
+
+    t_sample = np.arange(0.0, duration_s, 1.0 / FSR_HZ)
+    keep = rng.random(t_sample.size) >= drop_p
+    keep[[0, -1]] = True
+    t_sample = t_sample[keep]
+    v = np.stack([np.interp(t_sample, t, volts[:, k]) for k in range(n_channels)], axis=1)
+    v += rng.normal(0.0, 0.0015, v.shape)
+    counts = np.clip(np.round(v / 5.0 * 1023), 0, 1023)
+    stamps = t_sample + rng.uniform(-jitter_ms, jitter_ms, t_sample.size) * 1e-3
+    stamps = np.maximum.accumulate(stamps)
+
+    t_s = np.arange(0.0, duration_s, 1.0 / REF_HZ)
+    ref = np.stack([np.interp(t_s + offset_s, t, force[:, k]) for k in range(3)], axis=1)
+    ref += rng.normal(0.0, 0.003, ref.shape)
+    t1 = rest_s + 10.0
+    bounds = (rest_s, t1, t1 + dwell_s, t1 + dwell_s + 5.0)
+    return Fabricated(np.round(stamps * 1e3, 3), counts, t_s, ref, offset_s, bounds)
+
+
+def volts_of(fab: Fabricated) -> np.ndarray:
+    return to_volts(fab.counts, "counts", 10, 5.0)
+
+
+def resample_fab(fab: Fabricated, params: ResampleParams = PARAMS) -> ResampledTrial:
+    return resample_trial(fab.t_ms / 1e3, volts_of(fab), fab.t_s, fab.force, params)
+
+
+def write_ingested(
+    root: Path,
+    batch_id: str,
+    trials: dict[str, Fabricated],
+    *,
+    channels: list[str],
+    units: str = "counts",
+    ref_units: str = "N",
+    angle: float = 30.0,
+    with_truth: bool = True,
+) -> Path:
+    """An ingested batch folder as the ingest stage writes it."""
+    folder = root / batch_id
+    folder.mkdir(parents=True)
+    meta = {
+        "format": "rig-log/1",
+        "batch_id": batch_id,
+        "sensor": {
+            "unit_id": f"unit-{batch_id}",
+            "channels": channels,
+            "units": units,
+            "adc_bits": 10 if units == "counts" else None,
+            "vref_v": 5.0 if units == "counts" else None,
+        },
+        "reference": {"units": ref_units, "model": "fabricated"},
+        "robot": None,
+    }
+    (folder / "batch.json").write_text(json.dumps(meta))
+    rows = {
+        "trial_id": list(trials),
+        "angle_deg": [angle] * len(trials),
+        "tissue_point": ["p1"] * len(trials),
+    }
+    if with_truth:
+        rows["sim_clock_offset_s"] = [f"{fab.offset_s:.6f}" for fab in trials.values()]
+    pd.DataFrame(rows).to_parquet(folder / "trials.parquet")
+    fsr, ref = [], []
+    for tid, fab in trials.items():
+        values = fab.counts if units == "counts" else volts_of(fab)
+        fsr.append(
+            pd.DataFrame({"trial_id": tid, "t_ms": fab.t_ms, **dict(zip(channels, values.T, strict=True))})
+        )
+        scale = 1e3 if ref_units == "mN" else 1.0
+        ref.append(
+            pd.DataFrame(
+                {
+                    "trial_id": tid,
+                    "t_s": fab.t_s,
+                    **dict(zip(["fx", "fy", "fz"], fab.force.T * scale, strict=True)),
+                }
+            )
+        )
+    pd.concat(fsr).to_parquet(folder / "fsr.parquet")
+    pd.concat(ref).to_parquet(folder / "ref.parquet")
+    return folder

@@ -1,0 +1,47 @@
+"""One trial resampled: set aside outside the offset window, a uniform grid from zero, gaps dropped."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.signals.filters import SetAside
+from tests.signals.fabricate import PARAMS, fabricate, resample_fab
+
+
+def test_offset_outside_the_search_window_is_set_aside():
+    # Given a clock offset larger than the search window
+    fab = fabricate(seed=5, offset_s=0.45)
+    narrow = PARAMS.model_copy(update={"max_offset_s": 0.2})
+    # When the trial is resampled, then it is set aside with the reason, not silently misaligned
+    with pytest.raises(SetAside, match="edge of the"):
+        resample_fab(fab, narrow)
+
+
+@pytest.mark.parametrize("rate_hz", [30.0, 20.0])
+def test_grid_is_uniform_at_rate_hz_and_starts_at_zero(rate_hz):
+    # Given a fabricated trial
+    fab = fabricate(seed=7, offset_s=-0.15, drop_p=0.0)
+    # When it is resampled at rate_hz
+    res = resample_fab(fab, PARAMS.model_copy(update={"rate_hz": rate_hz}))
+    # Then t_s runs 0, 1/rate, 2/rate, ... and both streams are on it
+    n = res.t_s.size
+    np.testing.assert_array_equal(res.t_s, np.arange(n) / rate_hz)
+    assert res.volts.shape == (n, 3) and res.force_n.shape == (n, 3)
+    assert n >= (21.0 - 0.15 - 0.1) * rate_hz - 2
+
+
+def test_grid_points_in_a_long_gap_are_dropped():
+    # Given a trial whose estimator stream lost 0.6 s (8.0 - 8.6 s host time)
+    fab = fabricate(seed=8, offset_s=0.05, drop_p=0.0)
+    hole = (fab.t_ms >= 8000) & (fab.t_ms < 8600)
+    fab.t_ms, fab.counts = fab.t_ms[~hole], fab.counts[~hole]
+    # When it is resampled
+    res = resample_fab(fab)
+    # Then the grid points inside the gap are gone, and counted
+    t_host = res.t_s + res.t0_host_s
+    assert not np.any((t_host > 8.0) & (t_host < 8.59))
+    assert 17 <= res.n_dropped_gap <= 20  # 0.63 s between the samples either side, at 30 Hz
+    # And the 33 ms gaps of single dropped samples are not gaps
+    fab2 = fabricate(seed=8, offset_s=0.05, drop_p=0.05)
+    assert resample_fab(fab2).n_dropped_gap == 0

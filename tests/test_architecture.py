@@ -1,0 +1,77 @@
+"""The layout's rules: stages are entry points nothing imports; the simulator's client loads none of
+the training code; dvc.yaml lists exactly the code each stage runs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import yaml
+
+from tests.architecture import (
+    PACKAGE,
+    REPO,
+    closure,
+    code_deps,
+    imported_modules,
+    listed_code_deps,
+    module_name,
+    stage_modules,
+)
+
+HEAVY = ("torch", "sklearn", "typer", "matplotlib", "great_expectations")
+
+
+def test_nothing_in_the_package_or_the_benchmarks_imports_a_stage() -> None:
+    # given: every module of the package and every benchmark script (the stage tests under
+    # tests/stages/ are the one place that loads a stage: they drive its command line)
+    files = [*REPO.joinpath(PACKAGE).rglob("*.py"), *REPO.joinpath("benchmarks").glob("*.py")]
+    # when: reading their imports
+    offenders = {
+        module_name(f) if f.is_relative_to(REPO / PACKAGE) else f.name: sorted(
+            m for m in imported_modules(f) if m.startswith(f"{PACKAGE}.stages")
+        )
+        for f in files
+    }
+    # then: no stage module is imported anywhere
+    assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def test_every_stage_module_is_run_by_dvc_and_is_thin() -> None:
+    # given: the stage modules on disk and the ones dvc.yaml runs
+    on_disk = {p for p in REPO.joinpath(PACKAGE, "stages").glob("*.py") if p.name != "__init__.py"}
+    # then: each is a stage of dvc.yaml, and each stays an entry point (about 150 lines at most)
+    assert on_disk == set(stage_modules().values())
+    assert {p.name: n for p in on_disk if (n := len(p.read_text().splitlines())) > 150} == {}
+
+
+def test_importing_the_client_loads_no_training_code() -> None:
+    # given: a fresh interpreter / when: it imports the client / then: none of the heavy packages
+    code = f"import sys, pipeline.client; print(' '.join(m for m in {HEAVY!r} if m in sys.modules))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
+    assert done.stdout.strip() == ""
+
+
+def test_the_client_package_imports_no_training_module() -> None:
+    # given: the project files the client can load, by static reading (function-local imports too)
+    loaded = {module_name(p) for p in closure(REPO / PACKAGE / "client" / "__init__.py")}
+    # then: the runtime cue tracker, the shared names and the registry's store, never the training side
+    training = ("pipeline.modelling", "pipeline.metrics", "pipeline.reporting", "pipeline.stages")
+    training += ("pipeline.rig", "pipeline.signals", "pipeline.sim", "pipeline.dataset")
+    assert sorted(m for m in loaded if m.startswith(training)) == []
+
+
+def test_dvc_yaml_lists_exactly_the_code_each_stage_imports() -> None:
+    # given: dvc.yaml's stages and, for each, the project files its module can load
+    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    # when: comparing them with the code deps dvc.yaml lists
+    wrong = {
+        name: {
+            "missing": sorted(set(code_deps(path)) - set(listed_code_deps(stages[name]))),
+            "extra": sorted(set(listed_code_deps(stages[name])) - set(code_deps(path))),
+        }
+        for name, path in stage_modules().items()
+    }
+    # then: no stage misses a file it runs, and none lists one it does not (`python -m tests.architecture`
+    # prints the lists to paste)
+    assert {k: v for k, v in wrong.items() if v["missing"] or v["extra"]} == {}
