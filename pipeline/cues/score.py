@@ -9,13 +9,10 @@ is right and stays right to the end. The insertion's start and end come from the
 from __future__ import annotations
 
 import math
-import multiprocessing
-import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -24,12 +21,9 @@ from pipeline.config import CuesParams
 from pipeline.cues.tracker import CUES, METHODS, REFERENCE, VERDICTS, CueTracker, cue_for_deviation
 from pipeline.cues.trials import Trial, trials_of
 from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
+from pipeline.workers import WORKERS, ordered_map
 
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
-T = TypeVar("T")
-# The tracker is pure Python, one frame at a time: scoring ~1M frames is the stage's work, so it
-# runs on both cores of the 2-core machines this project targets.
-WORKERS = min(2, os.cpu_count() or 1)
 DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages
 Log = Callable[[str], None]
 # (kind, preset angle, true angle) -> the preset model's forces on that angle's external frame
@@ -196,15 +190,6 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
     return runs, estimates, n_updates, seconds
 
 
-def _map(fn: Callable[[_Job], T], jobs: Sequence[_Job]) -> list[T]:
-    """`fn` over `jobs` in order, on WORKERS processes (fresh interpreters: nothing inherited but the
-    jobs themselves); the results do not depend on how many."""
-    if WORKERS < 2 or len(jobs) < 2:
-        return [fn(job) for job in jobs]
-    with ProcessPoolExecutor(WORKERS, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return list(pool.map(fn, jobs))
-
-
 def evaluate_cues(
     external: Mapping[float, pd.DataFrame],
     params: CuesParams,
@@ -240,6 +225,8 @@ def evaluate_cues(
             "no external trial has frames labelled 'insertion' (nothing to score)", packs, params
         )
     with_estimator = all(p.get("angle_estimator") for p in packs.values())
+    # The tracker is pure Python, one frame at a time: scoring ~1M frames is this stage's work,
+    # so the (kind, preset) jobs run on every core.
     jobs: list[_Job] = []
     for preset, pack in sorted(packs.items()):
         # the paper's comparison on the measured force: not deployable, its upper bound
@@ -259,7 +246,7 @@ def evaluate_cues(
     runs: list[Run] = []
     angle_conf: dict[tuple[float, float], int] = {}
     n_updates, seconds = 0, 0.0
-    for job, (job_runs, estimates, n, busy) in zip(jobs, _map(_track, jobs), strict=True):
+    for job, (job_runs, estimates, n, busy) in zip(jobs, ordered_map(_track, jobs), strict=True):
         runs += job_runs
         for key in estimates:
             angle_conf[key] = angle_conf.get(key, 0) + 1

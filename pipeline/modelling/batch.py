@@ -16,6 +16,7 @@ from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predict import Predictor, load_predictor
 from pipeline.modelling.predictions import SplitFiles, prediction_table, write_predictions
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
+from pipeline.workers import WORKERS, ordered_map
 
 Log = Callable[[str], None]
 
@@ -47,6 +48,24 @@ def predict_model(
     return parts
 
 
+_FRAMES: dict[tuple[str, str], pd.DataFrame] = {}  # a worker's copy of the split frames
+
+
+def _set_frames(frames: dict[tuple[str, str], pd.DataFrame]) -> None:
+    _FRAMES.clear()
+    _FRAMES.update(frames)
+
+
+def _predict_one(job: tuple[str, str, Path, Path]) -> tuple[int, float, list[str]]:
+    """One model's predictions on every split, written to its file: (rows, seconds, warnings)."""
+    kind, angle, model_dir, target = job
+    started = time.perf_counter()
+    warnings: list[str] = []
+    blocks = predict_model(load_predictor(model_dir), _FRAMES, f"{kind}/{angle}", warnings.append)
+    rows = write_predictions(blocks, target)
+    return rows, time.perf_counter() - started, warnings
+
+
 def predict_all(
     data_dir: Path,
     models_dir: Path,
@@ -54,9 +73,12 @@ def predict_all(
     kinds: Iterable[str],
     angles: Iterable[float | str],
     log: Log,
+    workers: int = WORKERS,
 ) -> list[tuple[str, str]]:
     """Predict every (kind, angle) model that has a checkpoint on every split of every angle and
-    write `out_dir/<kind>/<angle>.parquet`; returns the (kind, angle) pairs predicted."""
+    write `out_dir/<kind>/<angle>.parquet`, on `workers` processes (each model's forward passes keep
+    the one thread they were trained with, so the numbers do not depend on it); returns the
+    (kind, angle) pairs predicted."""
     files = SplitFiles(data_dir)
     frames = {
         (angle, split): files.frame(angle, split)
@@ -64,7 +86,7 @@ def predict_all(
         for split in SPLITS
         if files.path(angle, split).is_file()
     }
-    done = []
+    jobs = []
     for kind in kinds:
         for angle in sorted_angles(angle_name(a) for a in angles):
             model_dir = Path(models_dir) / kind / angle
@@ -73,9 +95,11 @@ def predict_all(
             if not (model_dir / CHECKPOINT_FILE).is_file():
                 log(f"warning: no {model_dir / CHECKPOINT_FILE}, {kind} at {angle}° skipped")
                 continue
-            started = time.perf_counter()
-            blocks = predict_model(load_predictor(model_dir), frames, f"{kind}/{angle}", log)
-            rows = write_predictions(blocks, target)
-            done.append((kind, angle))
-            log(f"{kind}/{angle}: {rows} rows predicted ({time.perf_counter() - started:.1f} s)")
-    return done
+            jobs.append((kind, angle, model_dir, target))
+    for (kind, angle, _, _), (rows, seconds, warnings) in zip(
+        jobs, ordered_map(_predict_one, jobs, workers, _set_frames, (frames,)), strict=True
+    ):
+        for warning in warnings:
+            log(warning)
+        log(f"{kind}/{angle}: {rows} rows predicted ({seconds:.1f} s)")
+    return [(kind, angle) for kind, angle, _, _ in jobs]

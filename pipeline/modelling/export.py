@@ -170,6 +170,29 @@ def input_example(checkpoint: dict[str, Any]) -> np.ndarray:
     return rows.astype(np.float32)
 
 
+def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: np.ndarray) -> None:
+    """Run the graph on `example` with onnxruntime, as the client will, and check that it gives the
+    checkpoint's own newtons (the Predictor's, within float32 rounding); ValueError if not."""
+    import onnxruntime as ort
+
+    from pipeline.modelling.predict import Predictor
+
+    session = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
+    got = session.run(None, {INPUT_NAME: example})[0]
+    n_in = example.shape[-1]
+    # the LSTM's example rows are windows: predict each as a trial of its own, keep its last sample
+    volts = example.reshape(-1, n_in)
+    trials = np.repeat(np.arange(len(example)), volts.shape[0] // len(example))
+    expected = Predictor(checkpoint).predict_arrays(volts, trials)
+    expected = expected.reshape(len(example), -1, expected.shape[-1])[:, -1]
+    tolerance = 1e-5 * max(float(np.abs(expected).max()), 1.0)
+    if got.shape != expected.shape or not np.allclose(got, expected, rtol=0, atol=tolerance):
+        raise ValueError(
+            f"the exported {checkpoint['kind']} graph does not compute what its checkpoint does: "
+            f"{got.tolist()} against {expected.tolist()} N on the input example"
+        )
+
+
 def log_onnx_model(
     checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None, *, name: str = "model"
 ) -> ModelInfo:
@@ -182,8 +205,10 @@ def log_onnx_model(
 
     if mlflow.active_run() is None:
         raise RuntimeError(f"log_onnx_model({name!r}) needs an active MLflow run (mlflow.start_run())")
-    proto = onnx.load_from_string(to_onnx(checkpoint))
+    model = to_onnx(checkpoint)
     example = input_example(checkpoint)
+    verify_onnx(checkpoint, model, example)  # MLflow's own check below only sees that it runs
+    proto = onnx.load_from_string(model)
     n_out = len(checkpoint["targets"])
     signature = ModelSignature(
         inputs=Schema([TensorSpec(np.dtype(np.float32), (-1, *example.shape[1:]), INPUT_NAME)]),

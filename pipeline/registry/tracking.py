@@ -19,6 +19,7 @@ from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
 from pipeline.modelling.predictions import SplitFiles
 from pipeline.registry.candidates import Trained
+from pipeline.reporting.loss import loss_curve_png
 from pipeline.vocab import AXES
 
 if TYPE_CHECKING:
@@ -86,26 +87,32 @@ def git_commit(root: Path) -> str:
     return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
-def _loss_curve(t: Trained, path: Path) -> bool:
-    history = t.folder / HISTORY_FILE
-    if not history.is_file():
-        return False
-    import matplotlib
+class Datasets:
+    """The MLflow datasets of the split files, each described once: the kinds of one angle log the
+    same four sets, and describing one (MLflow infers its schema value by value) is the slowest
+    step of tracking. The same object logged again gives the same record."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def __init__(self, files: SplitFiles) -> None:
+        self.files = files
+        self._made: dict[tuple[str, str], Any] = {}
 
-    h = pd.read_csv(history)
-    fig, ax = plt.subplots(figsize=(5, 3.2))
-    ax.plot(h["epoch"], h["train_loss"], label="train")
-    if h["val_loss"].notna().any():
-        ax.plot(h["epoch"], h["val_loss"], label="validation")
-    ax.set(xlabel="epoch", ylabel="scaled MSE", yscale="log", title=f"{t.angle}° {t.kind}")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=90, metadata={"Software": None})
-    plt.close(fig)
-    return True
+    def get(self, angle: str, split: str) -> Any | None:
+        """The dataset of one split file, None when it has no rows (MLflow cannot digest those)."""
+        if (angle, split) not in self._made:
+            import mlflow.data
+
+            frame = self.files.frame(angle, split)
+            dataset = None
+            if not frame.empty:
+                with warnings.catch_warnings():  # MLflow registers its local-file source twice, then warns
+                    warnings.filterwarnings(
+                        "ignore", message="The specified dataset source can be interpreted"
+                    )
+                    dataset = mlflow.data.from_pandas(
+                        frame, source=str(self.files.path(angle, split)), name=f"{angle}°-{split}"
+                    )
+            self._made[(angle, split)] = dataset
+        return self._made[(angle, split)]
 
 
 def find_run(client: MlflowClient, exp_id: str, sha: str) -> Any | None:
@@ -123,7 +130,7 @@ def track(
     client: MlflowClient,
     t: Trained,
     exp_id: str,
-    files: SplitFiles,
+    datasets: Datasets,
     metrics: Mapping[str, Any],
     cue_pack: dict[str, Any] | None,
     figures: list[Path],
@@ -132,7 +139,6 @@ def track(
 ) -> tuple[str, str, bool]:
     """Log `t` as a run (unless a run of the same model exists): (run_id, model_uri, newly_logged)."""
     import mlflow
-    import mlflow.data
     from mlflow.entities import Metric
 
     from pipeline.modelling.export import log_onnx_model
@@ -162,15 +168,9 @@ def track(
             ("test", "test"),
             ("external", "external"),
         ):
-            frame = files.frame(t.angle, split)
-            if frame.empty:  # nothing to describe (and MLflow cannot digest an empty frame)
-                continue
-            with warnings.catch_warnings():  # MLflow registers its local-file source twice, then warns
-                warnings.filterwarnings("ignore", message="The specified dataset source can be interpreted")
-                dataset = mlflow.data.from_pandas(
-                    frame, source=str(files.path(t.angle, split)), name=f"{t.angle}°-{split}"
-                )
-            mlflow.log_input(dataset, context=context)
+            dataset = datasets.get(t.angle, split)
+            if dataset is not None:
+                mlflow.log_input(dataset, context=context)
         mlflow.log_metrics(run_metrics(t, metrics))
         history = t.folder / HISTORY_FILE
         if history.is_file():
@@ -185,7 +185,7 @@ def track(
                 client.log_batch(run.info.run_id, metrics=steps[i : i + 1000])
         with tempfile.TemporaryDirectory() as tmp:
             curve = Path(tmp) / "loss_curve.png"
-            if _loss_curve(t, curve):
+            if loss_curve_png(t.folder / HISTORY_FILE, f"{t.angle}° {t.kind}", curve):
                 mlflow.log_artifact(str(curve), artifact_path="figures")
         for fig in figures:
             mlflow.log_artifact(str(fig), artifact_path="figures")

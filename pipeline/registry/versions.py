@@ -31,7 +31,7 @@ from pipeline.registry.store import (
     model_name,
     versions,
 )
-from pipeline.registry.tracking import TAG, git_commit, track
+from pipeline.registry.tracking import TAG, Datasets, git_commit, track
 from pipeline.vocab import AXES
 
 if TYPE_CHECKING:
@@ -202,6 +202,7 @@ def register_all(
     figures = sorted((reports_dir / "figures").glob("*.png"))
     files = SplitFiles(data_dir)
     trained = collect(models_dir, files, Predictions(pred_dir), params.candidates, log)
+    datasets = Datasets(files)
     commit = git_commit(Path.cwd())
 
     logged: dict[tuple[str, str], tuple[str, str]] = {}
@@ -213,7 +214,7 @@ def register_all(
     for i, t in enumerate(trained, start=1):
         pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
         pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
-        run_id, uri, new = track(client, t, exp_id, files, metrics, pack, figures, commit, log)
+        run_id, uri, new = track(client, t, exp_id, datasets, metrics, pack, figures, commit, log)
         logged[(t.kind, t.angle)] = (run_id, uri)
         n_new += new
         if not new:

@@ -139,7 +139,7 @@ def _rows(res: Mapping[str, Any], kinds: Sequence[str]) -> list[tuple[str, str, 
     return out
 
 
-def render_summary(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, Any]]) -> str:
+def angle_cues(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, Any]]) -> str:
     """The `## Angle cues` section of the report (image links relative to `reports/`). What the stage
     could not build or score is listed, with why, right under the description."""
     not_done = _not_done(evaluation, packs)

@@ -49,7 +49,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
         packs = {float(p.stem): json.loads(p.read_text()) for p in (cues_dir / "packs").glob("*.json")}
         cues.plot_confusion(evaluation, cues_dir / "confusion.png")
         cues.plot_time_to_cue(evaluation, cues_dir / "time_to_cue.png")
-        cue_sections.append(cues.render_summary(evaluation, dict(sorted(packs.items()))))
+        cue_sections.append(cues.angle_cues(evaluation, dict(sorted(packs.items()))))
         (cues_dir / "summary.md").write_text(cue_sections[0])
     else:
         _log(f"warning: no {cues_dir / 'evaluation.json'} (run the cues stage): no angle-cue section")

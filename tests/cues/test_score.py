@@ -107,7 +107,7 @@ def test_evaluation_without_an_estimator_scores_the_paper_method_only(
     assert set(ev["results"]["ls"]) == {"paper"}
     assert ev["angle_estimate_at_insertion_end"] is None
     assert ev["unavailable"] == {"30": {"angle_estimator": "a reason"}}
-    summary = cue_report.render_summary(json.loads(evaluation_json(ev)), {30.0: pack})
+    summary = cue_report.angle_cues(json.loads(evaluation_json(ev)), {30.0: pack})
     assert "**No angle estimator** (a reason)" in summary and "| LS | profile comparison (paper) |" in summary
     cue_report.plot_confusion(ev, tmp_path / "c.png")
     cue_report.plot_time_to_cue(ev, tmp_path / "t.png")

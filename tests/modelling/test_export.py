@@ -174,3 +174,13 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     assert "model.onnx" in files and "MLmodel" in files
     assert not [f for f in files if f.endswith((".pkl", ".pickle")) or "python_model" in f], files
     assert np.isfinite(run_onnx((folder / "model.onnx").read_bytes(), x)).all()
+
+
+def test_a_graph_that_computes_something_else_is_refused_before_logging(checkpoints) -> None:
+    # given: the FNN's own graph, and the LS model's graph passed off as the FNN's
+    fnn, ls = checkpoints["fnn"], checkpoints["ls"]
+    example = export.input_example(fnn)
+    # when / then: its own graph passes, the other one is refused, naming the kind
+    export.verify_onnx(fnn, export.to_onnx(fnn), example)
+    with pytest.raises(ValueError, match="exported fnn graph does not compute what its checkpoint does"):
+        export.verify_onnx(fnn, export.to_onnx(ls), example)

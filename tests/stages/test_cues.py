@@ -49,7 +49,7 @@ def render(out: Path) -> str:
     packs = {float(p.stem): json.loads(p.read_text()) for p in sorted((out / "packs").glob("*.json"))}
     cue_report.plot_confusion(evaluation, out / "confusion.png")
     cue_report.plot_time_to_cue(evaluation, out / "time_to_cue.png")
-    return cue_report.render_summary(evaluation, packs)
+    return cue_report.angle_cues(evaluation, packs)
 
 
 def test_stage_writes_deterministic_outputs(tmp_path: Path, train_by_angle: dict) -> None:

@@ -1,0 +1,39 @@
+"""Running independent jobs on the machine's cores: `ordered_map` gives the results in job order,
+so what a stage writes never depends on how many worker processes computed it.
+
+Workers are fresh interpreters (`spawn`): nothing is inherited from the stage's process but the
+jobs and the initializer's arguments, so no lock or thread pool (BLAS, OpenMP) is copied mid-use.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any, TypeVar
+
+J = TypeVar("J")
+R = TypeVar("R")
+# The project's machines have 2 cores; more workers than cores only adds start-up time.
+WORKERS = min(2, os.cpu_count() or 1)
+
+
+def ordered_map(
+    fn: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int = WORKERS,
+    initializer: Callable[..., None] | None = None,
+    initargs: tuple[Any, ...] = (),
+) -> list[R]:
+    """`[fn(job) for job in jobs]`, on up to `workers` processes when there is more than one job.
+    `fn` and `initializer` must be module-level functions (they are pickled by name)."""
+    if workers < 2 or len(jobs) < 2:
+        if initializer is not None:
+            initializer(*initargs)
+        return [fn(job) for job in jobs]
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(
+        min(workers, len(jobs)), mp_context=context, initializer=initializer, initargs=initargs
+    ) as pool:
+        return list(pool.map(fn, jobs))
