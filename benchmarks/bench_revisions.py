@@ -1,7 +1,7 @@
 """Two revisions of the project side by side: cold `dvc repro` wall time, per-stage times, and
 whether they produce the same outputs (metrics.json and every stage output DVC hashes).
 
-    python benchmarks/bench_revisions.py OLD_REV [NEW_REV]   (NEW_REV defaults to the work tree)
+    python benchmarks/bench_revisions.py OLD_REV [NEW_REV]   (NEW_REV defaults to HEAD)
 
 Each revision runs from a fresh clone in a temp folder with this venv's tools and its own MLflow
 store, one after the other in this one process (the machine is shared: compare figures of one run).
@@ -27,26 +27,10 @@ REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 
-def checkout(rev: str | None, dest: Path) -> Path:
-    """A clone of REPO at `rev`, or a copy of the work tree (tracked and untracked, not ignored)."""
-    if rev is None:
-        files = (
-            subprocess.run(
-                ["git", "ls-files", "-co", "--exclude-standard", "-z"],
-                cwd=REPO,
-                capture_output=True,
-                check=True,
-            )
-            .stdout.decode()
-            .split("\0")
-        )
-        for name in filter(None, files):
-            if (REPO / name).is_file():
-                (dest / name).parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(REPO / name, dest / name)
-    else:
-        subprocess.run(["git", "clone", "-q", str(REPO), str(dest)], check=True)
-        subprocess.run(["git", "checkout", "-q", rev], cwd=dest, check=True)
+def checkout(rev: str, dest: Path) -> Path:
+    """A clone of REPO at `rev` (committed work only: a clone is what a user gets)."""
+    subprocess.run(["git", "clone", "-q", str(REPO), str(dest)], check=True)
+    subprocess.run(["git", "checkout", "-q", rev], cwd=dest, check=True)
     return dest
 
 
@@ -91,7 +75,7 @@ def outputs(root: Path) -> dict[str, str]:
     return {o["path"]: o["md5"] for stage in lock.values() for o in stage.get("outs", [])}
 
 
-def main(old: str, new: str | None = None) -> None:
+def main(old: str, new: str = "HEAD") -> None:
     with tempfile.TemporaryDirectory() as tmp:
         runs = {}
         for label, rev in (("old", old), ("new", new)):
@@ -99,7 +83,7 @@ def main(old: str, new: str | None = None) -> None:
             seconds, stages = repro(root)
             runs[label] = (root, seconds, stages)
             parts = ", ".join(f"{k} {v:.1f} s" for k, v in stages.items())
-            print(f"{label} ({rev or 'work tree'}): cold dvc repro {seconds:.1f} s ({parts})")
+            print(f"{label} ({rev}): cold dvc repro {seconds:.1f} s ({parts})")
         (old_root, t_old, _), (new_root, t_new, _) = runs["old"], runs["new"]
         print(f"new / old: {t_new / t_old:.2f}x")
         a, b = outputs(old_root), outputs(new_root)
