@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -46,23 +45,6 @@ def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> lis
         force = f_all[idx] if f_all is not None else np.full((len(idx), 3), np.nan)
         out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx))
     return out
-
-
-def read_split(processed_dir: Path, split: str) -> dict[float, pd.DataFrame]:
-    """{angle: frame} of one split over the angle folders of `processed_dir` that have it."""
-    if not processed_dir.is_dir():
-        raise FileNotFoundError(f"{processed_dir}: no such folder (run the split stage first)")
-    out = {}
-    for folder in processed_dir.iterdir():
-        path = folder / f"{split}.parquet"
-        if not path.is_file():
-            continue
-        try:
-            angle = float(folder.name)
-        except ValueError:
-            continue
-        out[angle] = pd.read_parquet(path)
-    return dict(sorted(out.items()))
 
 
 def trials_rate_hz(trials: Sequence[Trial]) -> float:

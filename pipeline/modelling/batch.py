@@ -12,9 +12,10 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from pipeline.dataset.splits import SplitFiles
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predict import Predictor, load_predictor
-from pipeline.modelling.predictions import SplitFiles, prediction_table, write_predictions
+from pipeline.modelling.predictions import prediction_table, write_predictions
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
 from pipeline.workers import WORKERS, ordered_map
 

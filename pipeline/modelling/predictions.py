@@ -17,11 +17,10 @@ from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
+from pipeline.vocab import AXES, angle_name, sorted_angles
 
 SCHEMA = pa.schema(
     [
@@ -31,34 +30,6 @@ SCHEMA = pa.schema(
         *((axis, pa.float64()) for axis in AXES),
     ]
 )
-
-
-class SplitFiles:
-    """The processed split files, `DATA_DIR/<angle>/<split>.parquet`, each read at most once."""
-
-    def __init__(self, data_dir: Path) -> None:
-        self.data_dir = Path(data_dir)
-        self._frames: dict[tuple[str, str], pd.DataFrame] = {}
-
-    def path(self, angle: str, split: str) -> Path:
-        return self.data_dir / angle / f"{split}.parquet"
-
-    def angles(self) -> list[str]:
-        """Every angle folder that holds a split file."""
-        if not self.data_dir.is_dir():
-            raise FileNotFoundError(f"{self.data_dir}: no such folder (run the split stage first)")
-        return sorted_angles(
-            p.name for p in self.data_dir.iterdir() if any(self.path(p.name, s).is_file() for s in SPLITS)
-        )
-
-    def frame(self, angle: str, split: str) -> pd.DataFrame:
-        """One split file's rows; FileNotFoundError if the split stage did not write it."""
-        if (angle, split) not in self._frames:
-            path = self.path(angle, split)
-            if not path.is_file():
-                raise FileNotFoundError(f"{path}: missing (run the split stage first)")
-            self._frames[angle, split] = pd.read_parquet(path)
-        return self._frames[angle, split]
 
 
 def prediction_table(angle: str, split: str, force: np.ndarray) -> pa.Table:

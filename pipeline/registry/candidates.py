@@ -11,9 +11,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.checkpoint import checkpoint_sha256, load_checkpoint, read_train_metrics
-from pipeline.modelling.predictions import Predictions, SplitFiles
+from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import AXES, KINDS
 
 Log = Callable[[str], None]

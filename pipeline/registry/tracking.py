@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
-from pipeline.modelling.predictions import SplitFiles
 from pipeline.registry.candidates import Trained
 from pipeline.reporting.loss import loss_curve_png
 from pipeline.vocab import AXES

@@ -13,11 +13,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import RegisterParams
+from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.batch import predict_frame
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pipeline.modelling.predict import Predictor
-from pipeline.modelling.predictions import Predictions, SplitFiles
+from pipeline.modelling.predictions import Predictions
 from pipeline.registry.candidates import Trained, collect, kind_rank
 from pipeline.registry.champion import best_per_angle, decide
 from pipeline.registry.store import (

@@ -21,7 +21,7 @@ import typer
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import evaluate_cues, evaluation_json, skipped_evaluation
-from pipeline.cues.trials import read_split
+from pipeline.dataset.splits import SplitFiles
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import angle_name
 
@@ -38,7 +38,8 @@ def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("par
             raise FileNotFoundError(f"{params}: no such params file")
         p = load_section(CuesParams, "cues", params)
         predictions = Predictions(pred_dir)
-        train = {a: f for a, f in read_split(data_dir, "train").items() if len(f)}
+        files = SplitFiles(data_dir)
+        train = {a: f for a, f in files.by_angle("train").items() if len(f)}
         if not train:
             raise FileNotFoundError(f"{data_dir}: no <angle>/train.parquet with rows (run the split stage)")
 
@@ -63,7 +64,7 @@ def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("par
             )
         else:
             evaluation = evaluate_cues(
-                read_split(data_dir, "external"),
+                files.by_angle("external"),
                 p.model_copy(update={"kinds": available}),
                 packs,
                 lambda kind, preset, a: predictions.get(kind, angle_name(preset), angle_name(a), "external"),
