@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup repro test lint bench ui clean
+.PHONY: setup repro verify test lint bench ui clean
 
 setup: $(VENV)/.installed
 
@@ -17,6 +17,10 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 
 repro: setup          ## install, then run the whole pipeline on the built-in simulated rig
 	$(BIN)/dvc repro
+
+verify: repro         ## the pipeline, then: nothing out of date and dvc.lock byte for byte the committed one
+	$(BIN)/dvc status --quiet || { $(BIN)/dvc status; echo "verify: dvc status: stages out of date"; exit 1; }
+	git diff --exit-code --stat dvc.lock || { echo "verify: this machine wrote another dvc.lock (docs/reproducibility.md)"; exit 1; }
 
 test: setup           ## lint and run the test suite
 	$(BIN)/ruff check .

@@ -1,7 +1,10 @@
 """Two revisions of the project side by side: cold `dvc repro` wall time, per-stage times, and
 whether they produce the same outputs (metrics.json and every stage output DVC hashes).
 
-    python benchmarks/bench_revisions.py OLD_REV [NEW_REV]   (NEW_REV defaults to HEAD)
+    python benchmarks/bench_revisions.py OLD_REV [NEW_REV] [--save-lock PATH]   (NEW_REV: HEAD)
+
+`--save-lock PATH` copies NEW_REV's dvc.lock to PATH: the lock of a fresh clone (cold ingest
+cache, fresh MLflow store), which is the one to commit (docs/reproducibility.md).
 
 Each revision runs from a fresh clone in a temp folder with this venv's tools and its own MLflow
 store, one after the other in this one process (the machine is shared: compare figures of one run).
@@ -75,7 +78,7 @@ def outputs(root: Path) -> dict[str, str]:
     return {o["path"]: o["md5"] for stage in lock.values() for o in stage.get("outs", [])}
 
 
-def main(old: str, new: str = "HEAD") -> None:
+def main(old: str, new: str = "HEAD", save_lock: Path | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         runs = {}
         for label, rev in (("old", old), ("new", new)):
@@ -95,7 +98,16 @@ def main(old: str, new: str = "HEAD") -> None:
         m_old = json.loads((old_root / "reports" / "metrics.json").read_text())
         m_new = json.loads((new_root / "reports" / "metrics.json").read_text())
         print(f"metrics.json numbers identical: {m_old == m_new}")
+        if save_lock is not None:
+            shutil.copy(new_root / "dvc.lock", save_lock)
+            print(f"{new}'s dvc.lock saved to {save_lock}")
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:3])
+    args = sys.argv[1:]
+    lock_to = None
+    if "--save-lock" in args:
+        i = args.index("--save-lock")
+        lock_to = Path(args[i + 1])
+        del args[i : i + 2]
+    main(*args[:2], save_lock=lock_to)

@@ -74,27 +74,38 @@ def closure(path: Path) -> set[Path]:
     return seen
 
 
+LAUNCHER = f"{PACKAGE}.run"
+
+
 def stage_modules() -> dict[str, Path]:
-    """{dvc.yaml stage name: the file of the module its cmd runs (`python -m MODULE ...`)}."""
+    """{dvc.yaml stage name: the file of the stage module its cmd runs (`python -m pipeline.run STAGE`)}."""
     stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     out = {}
     for name, stage in stages.items():
-        match = re.match(r"python -m ([\w.]+)", stage["cmd"])
+        match = re.match(rf"python -m {re.escape(LAUNCHER)} (\w+)", stage["cmd"])
         if match is None:
-            raise ValueError(f"dvc.yaml stage {name!r}: cmd does not run `python -m MODULE`")
-        found = module_file(match.group(1))
+            raise ValueError(f"dvc.yaml stage {name!r}: cmd does not run `python -m {LAUNCHER} STAGE`")
+        found = module_file(f"{PACKAGE}.stages.{match.group(1)}")
         if found is None:
-            raise ValueError(f"dvc.yaml stage {name!r}: no module {match.group(1)}")
+            raise ValueError(f"dvc.yaml stage {name!r}: no stage module {match.group(1)}")
         out[name] = found
     return out
 
 
-def code_deps(stage_file: Path) -> list[str]:
-    """The project files a stage's process can load, as dvc.yaml lists them (sorted, repo-relative):
-    `python -m a.b.c` runs the packages' `__init__.py` on the way, then the module and its imports."""
-    parts = module_name(stage_file).split(".")
+def _process_files(module_file_: Path) -> set[Path]:
+    """The project files `python -m MODULE` can load: the packages' `__init__.py` on the way, then
+    the module and its imports."""
+    parts = module_name(module_file_).split(".")
     inits = [module_file(".".join(parts[:i])) for i in range(1, len(parts))]
-    files = set().union(*(closure(p) for p in [*inits, stage_file] if p is not None))
+    return set().union(*(closure(p) for p in [*inits, module_file_] if p is not None))
+
+
+def code_deps(stage_file: Path) -> list[str]:
+    """The project files a stage's processes can load, as dvc.yaml lists them (sorted, repo-relative):
+    the launcher's, then the stage module's it execs."""
+    launcher = module_file(LAUNCHER)
+    assert launcher is not None
+    files = _process_files(launcher) | _process_files(stage_file)
     return sorted(p.relative_to(REPO).as_posix() for p in files)
 
 

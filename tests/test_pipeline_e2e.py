@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -15,45 +12,9 @@ import yaml
 from mlflow import MlflowClient
 
 from tests.helpers import tree_hash
-
-REPO = Path(__file__).resolve().parents[1]
-LAB_BATCH = REPO / "tests" / "fixtures" / "rig-log" / "lab-bench-a"
-SMALL_SIM = {
-    "angles_deg": [15, 45],
-    "train_batches": 1,
-    "trials_per_angle": 4,
-    "heldout_trials_per_angle": 2,
-}
+from tests.projects import LAB_BATCH, SMALL_SIM, make_project, make_tiny_project, run
 
 pytestmark = pytest.mark.slow
-
-
-def make_project(root: Path, simulate: dict) -> Path:
-    """A throw-away copy of the project (code, dvc.yaml, params.yaml) with its own DVC repo."""
-    root.mkdir()
-    for name in ("dvc.yaml", ".dvcignore"):
-        if (REPO / name).exists():
-            shutil.copy(REPO / name, root / name)
-    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
-    params["simulate"].update(simulate)
-    if "angles_deg" in simulate:  # train only the angles the small rig records
-        params["train"]["angles"] = simulate["angles_deg"]
-    if not params["simulate"].get("enabled", True):
-        params["train"]["angles"] = [30, 45]  # the hand-written lab batch's angles
-    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    (root / "data" / "raw").mkdir(parents=True)
-    run(root, "dvc", "init", "--no-scm", "-q")
-    run(root, "dvc", "config", "core.analytics", "false")
-    return root
-
-
-def run(root: Path, *cmd: str) -> str:
-    """Run a command of the venv (dvc, python) in the copy; fail with its output if it fails."""
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    done = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, f"{' '.join(cmd)} failed:\n{done.stdout}\n{done.stderr}"
-    return done.stdout + done.stderr
 
 
 def test_repro_builds_per_angle_datasets_then_does_nothing(tmp_path):
@@ -120,27 +81,10 @@ def test_a_lab_folder_goes_through_with_params_only(tmp_path):
     assert "lab-bench-a: reused" in out, out
 
 
-TINY_MODELS = {
-    "fnn": {"max_epochs": 3, "patience": 2},
-    "lstm": {"max_epochs": 2, "patience": 1},
-}
-
-
 def changed_stages(root: Path) -> set[str]:
     """Stage names `dvc status` reports as changed."""
     out = run(root, "dvc", "status", "--json")
     return set(json.loads(out[out.index("{") :]))
-
-
-def make_tiny_project(root: Path) -> tuple[Path, dict]:
-    """make_project on the small rig with few-epoch networks (for tests of the DAG, not of accuracy);
-    returns the folder and its params."""
-    root = make_project(root, SMALL_SIM)
-    params = yaml.safe_load((root / "params.yaml").read_text())
-    for model, update in TINY_MODELS.items():
-        params[model].update(update)
-    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    return root, params
 
 
 def test_changing_one_models_params_reruns_only_that_model(tmp_path):

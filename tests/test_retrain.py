@@ -16,7 +16,7 @@ from mlflow import MlflowClient
 from pipeline import retrain
 from pipeline.config import IngestParams
 from tests.helpers import tree_hash
-from tests.test_pipeline_e2e import LAB_BATCH, make_tiny_project, run
+from tests.projects import LAB_BATCH, make_tiny_project, run
 
 
 def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> None:

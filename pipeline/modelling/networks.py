@@ -82,14 +82,18 @@ def _set_deterministic(mode: bool, warn_only: bool = False) -> None:
 
 @contextmanager
 def deterministic_torch(seed: int | None = None, threads: int | None = None) -> Iterator[None]:
-    """Fixed thread count, deterministic algorithms and (optionally) a seeded global RNG, all
-    restored on exit so a caller's own torch state is untouched."""
+    """Fixed thread count, deterministic algorithms, oneDNN off and (optionally) a seeded global RNG,
+    all restored on exit so a caller's own torch state is untouched. oneDNN (torch's CPU LSTM) picks
+    its kernels and blocking by the CPU it finds; without it, torch's own kernels and MKL run, whose
+    code paths `pipeline.run` pins, so the weights are the same bytes on any machine."""
     import torch
 
     prev_threads = torch.get_num_threads()
+    prev_onednn = torch.backends.mkldnn.enabled
     prev_det = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     torch.set_num_threads(threads or TRAIN_THREADS)
+    torch.backends.mkldnn.enabled = False
     _set_deterministic(True)
     try:
         with torch.random.fork_rng(devices=[]):
@@ -98,4 +102,5 @@ def deterministic_torch(seed: int | None = None, threads: int | None = None) -> 
             yield
     finally:
         _set_deterministic(prev_det, warn_only=prev_warn)
+        torch.backends.mkldnn.enabled = prev_onednn
         torch.set_num_threads(prev_threads)

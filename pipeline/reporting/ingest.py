@@ -32,7 +32,10 @@ def summary_md(result: IngestResult) -> str:
             if b.accepted
             else "**set aside**"
         )
-        lines.append(f"- `{b.batch_id}` ({b.source_dir}, {b.action}): {state}")
+        # whether a batch was parsed now or reused from the cache goes to the log, not here: the
+        # summary is a stage output, the same bytes whatever the cache held (docs/reproducibility.md)
+        dup = ", duplicate" if b.action == "duplicate" else ""
+        lines.append(f"- `{b.batch_id}` ({b.source_dir}{dup}): {state}")
     problems = result.problems
     lines += ["", f"## Problems ({len(problems)})", ""]
     lines += [f"- {p}" for p in problems] or ["None."]

@@ -7,7 +7,7 @@ angle's registered model; see `pipeline.cues.fit`) and `evaluation.json` (see
 stage: what cannot be built or scored is left out and said, with why. It fails only on real
 errors: missing input folders, bad params, inconsistent channels.
 
-Usage: `python -m pipeline.stages.cues DATA_DIR PRED_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run cues DATA_DIR PRED_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

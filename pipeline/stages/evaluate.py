@@ -4,7 +4,7 @@ Input: `DATA_DIR/<angle>/{external,test}.parquet` (the truth) and the predict st
 (the predictions); nothing is predicted here. Output: `METRICS_JSON` (see
 `pipeline.metrics.evaluation`); the report stage renders it.
 
-Usage: `python -m pipeline.stages.evaluate DATA_DIR PRED_DIR METRICS_JSON [--params params.yaml]`.
+Usage: `python -m pipeline.run evaluate DATA_DIR PRED_DIR METRICS_JSON [--params params.yaml]`.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ has no batches). Anything that is not rig-log/1 (`docs/rig-log-format.md`) becom
 naming file, line and column; that trial (or the whole batch) is set aside and the rest goes on.
 Unchanged batches are reused, not parsed again. The input folders are only read.
 
-Usage: `python -m pipeline.stages.ingest RAW_DIR SIM_DIR OUT_DIR REPORT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run ingest RAW_DIR SIM_DIR OUT_DIR REPORT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Input: `DATA_DIR/<angle>/{train,val,test,external}.parquet` and `MODELS_DIR/<kin
 for the `train` section's angles and kinds. Output: `OUT_DIR/<kind>/<angle>.parquet`
 (see `pipeline.modelling.predictions`), which evaluate, cues, report and register read.
 
-Usage: `python -m pipeline.stages.predict DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run predict DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

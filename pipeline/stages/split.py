@@ -4,7 +4,7 @@ held-out batches as the external set (`pipeline.dataset.split`).
 Input: the resample stage's `IN_DIR/<batch_id>.{parquet,json}`. Output: `OUT_DIR/<angle>/
 {train,val,test,external}.parquet` and `OUT_DIR/manifest.json`.
 
-Usage: `python -m pipeline.stages.split IN_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run split IN_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

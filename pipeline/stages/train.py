@@ -5,7 +5,7 @@ then the networks train all `max_epochs` without early stopping). Output in `OUT
 `model.pt` (see `pipeline.modelling.checkpoint`), `train_metrics.json`, `history.csv`.
 Only the model's own params section is read, so editing `fnn` never retrains `lstm`.
 
-Usage: `python -m pipeline.stages.train {ls|fnn|lstm} DATA_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations
