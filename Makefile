@@ -22,9 +22,9 @@ verify: repro         ## the pipeline, then: nothing out of date and dvc.lock by
 	$(BIN)/dvc status --quiet || { $(BIN)/dvc status; echo "verify: dvc status: stages out of date"; exit 1; }
 	git diff --exit-code --stat dvc.lock || { echo "verify: this machine wrote another dvc.lock (docs/reproducibility.md)"; exit 1; }
 
-test: setup           ## lint and run the test suite
+test: setup           ## lint and run the test suite (on both cores: the slow tests are mostly waiting on dvc)
 	$(BIN)/ruff check .
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n 2
 
 lint: setup
 	$(BIN)/ruff check .
