@@ -18,9 +18,9 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 repro: setup          ## install, then run the whole pipeline on the built-in simulated rig
 	$(BIN)/dvc repro
 
-verify: repro         ## the pipeline, then: nothing out of date and dvc.lock byte for byte the committed one
+verify: repro         ## the pipeline, then: nothing out of date; dvc.lock and metrics.json byte for byte the committed ones
 	$(BIN)/dvc status --quiet || { $(BIN)/dvc status; echo "verify: dvc status: stages out of date"; exit 1; }
-	git diff --exit-code --stat dvc.lock || { echo "verify: this machine wrote another dvc.lock (docs/reproducibility.md)"; exit 1; }
+	git diff --exit-code --stat -- dvc.lock reports/metrics.json || { echo "verify: this machine wrote another dvc.lock (docs/reproducibility.md)"; exit 1; }
 
 test: setup           ## lint and run the test suite (on both cores: the slow tests are mostly waiting on dvc)
 	$(BIN)/ruff check .
