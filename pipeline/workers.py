@@ -15,8 +15,16 @@ from typing import Any, TypeVar
 
 J = TypeVar("J")
 R = TypeVar("R")
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (a container's or `taskset`'s limit, not the machine's)."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity else os.cpu_count() or 1
+
+
 # The project's machines have 2 cores; more workers than cores only adds start-up time.
-WORKERS = min(2, os.cpu_count() or 1)
+WORKERS = min(2, usable_cpus())
 
 
 def ordered_map(

@@ -14,10 +14,11 @@ import yaml
 
 from pipeline import run as launcher
 from tests.machines import LEVELS, switchable_levels
-from tests.projects import SMALL_SIM, make_project, run
+from tests.projects import make_tiny_project, run
 
 REPO = Path(__file__).resolve().parents[1]
-TARGETS = ("train@15-ls", "train@15-fnn", "train@15-lstm")  # the data stages, then a small training
+# the data stages, a small training of every model, predictions on both cores and the cue scoring
+TARGETS = ("cues",)
 
 
 def test_pinned_env_keeps_a_machines_own_masks_and_adds_ours() -> None:
@@ -83,9 +84,10 @@ def out_hashes(root: Path) -> dict[str, str]:
     return {f"{name}/{o['path']}": o["md5"] for name, stage in lock.items() for o in stage.get("outs", [])}
 
 
-def repro_as(root: Path, level: str, targets: tuple[str, ...] = TARGETS) -> dict[str, str]:
-    """`dvc repro` of `targets` on the emulated `level`."""
-    run(root, "dvc", "repro", *targets, env=LEVELS[level])
+def repro_as(root: Path, level: str, targets: tuple[str, ...] = TARGETS, cores: int = 0) -> dict[str, str]:
+    """`dvc repro` of `targets` on the emulated `level` (and on `cores` CPUs, `taskset`'s limit)."""
+    prefix = ("taskset", "-c", ",".join(map(str, range(cores)))) if cores else ()
+    run(root, *prefix, "dvc", "repro", *targets, env=LEVELS[level])
     return out_hashes(root)
 
 
@@ -100,10 +102,14 @@ def test_every_emulated_machine_writes_the_same_bytes(tmp_path: Path) -> None:
     # given: a small project, and every instruction-set level this machine can switch to (the
     # highest is this machine's own)
     levels = switchable_levels()
-    # when: the data stages and a small training run on each, as dvc.yaml runs them
-    hashes = {level: repro_as(make_project(tmp_path / level, SMALL_SIM), level) for level in levels}
+    # when: the data stages, a small training, the predictions and the cues run on each, as
+    # dvc.yaml runs them; and once more on the lowest level with one core (no worker processes)
+    hashes = {level: repro_as(make_tiny_project(tmp_path / level)[0], level) for level in levels}
+    hashes["one core"] = repro_as(make_tiny_project(tmp_path / "one-core")[0], levels[0], cores=1)
     # then: every output is byte-identical
-    assert len(next(iter(hashes.values()))) >= len(TARGETS) + 4
+    stages = {out.split("/")[0] for out in hashes["one core"]}
+    assert {"simulate", "ingest", "resample", "split", "predict", "cues"} <= stages
+    assert len([s for s in stages if s.startswith("train@")]) == 6  # 2 angles x 3 models
     assert differing(hashes) == {}, f"levels tried: {levels}"
 
 
@@ -115,7 +121,7 @@ def test_without_the_pin_the_emulated_machines_differ(tmp_path: Path) -> None:
         pytest.skip(f"this machine can switch to {levels} only: nothing to compare")
     hashes = {}
     for level in (levels[0], levels[-1]):
-        root = make_project(tmp_path / level, SMALL_SIM)
+        root = make_tiny_project(tmp_path / level)[0]
         dvc_yaml = root / "dvc.yaml"
         unpinned = dvc_yaml.read_text().replace("python -m pipeline.run ", "python -m pipeline.stages.")
         dvc_yaml.write_text(unpinned)
