@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 # numpy 2.4's run-time dispatch targets above its x86-64-v2 baseline
@@ -37,26 +37,26 @@ PINNED = {
 STAGES = Path(__file__).parent / "stages"
 
 
-def _merged(existing: str, ours: tuple[str, ...], sep: str) -> str:
-    """`existing`'s items and ours, each once, in order (a machine's own mask stays in force)."""
-    items = [i for i in existing.replace(",", " ").split() if i] if sep == " " else existing.split(sep)
-    return sep.join(dict.fromkeys([i for i in items if i] + list(ours)))
+def _union(existing: Iterable[str], ours: Iterable[str]) -> list[str]:
+    """`existing`'s items, then ours, each once (a machine's own mask stays in force)."""
+    return list(dict.fromkeys([*(i for i in existing if i), *ours]))
 
 
 def _glibc_tunables(existing: str) -> str:
     """GLIBC_TUNABLES (`name=value:name=value`) with our features masked in `glibc.cpu.hwcaps`."""
-    ours = tuple(f"-{f}" for f in GLIBC_ABOVE_V2)
     tunables = [t for t in existing.split(":") if t]
     hwcaps = [t for t in tunables if t.startswith("glibc.cpu.hwcaps=")]
     others = [t for t in tunables if not t.startswith("glibc.cpu.hwcaps=")]
-    masks = _merged(",".join(t.split("=", 1)[1] for t in hwcaps), ours, ",")
-    return ":".join([*others, f"glibc.cpu.hwcaps={masks}"])
+    theirs = (mask for t in hwcaps for mask in t.split("=", 1)[1].split(","))
+    masks = _union(theirs, (f"-{f}" for f in GLIBC_ABOVE_V2))
+    return ":".join([*others, f"glibc.cpu.hwcaps={','.join(masks)}"])
 
 
 def pinned_env(env: Mapping[str, str]) -> dict[str, str]:
     """`env` with the numeric libraries pinned to x86-64-v2 code paths and one thread."""
     out = {k: v for k, v in env.items() if k != "NPY_ENABLE_CPU_FEATURES"}  # it would contradict ours
-    out["NPY_DISABLE_CPU_FEATURES"] = _merged(env.get("NPY_DISABLE_CPU_FEATURES", ""), NUMPY_DISPATCH, " ")
+    disabled = env.get("NPY_DISABLE_CPU_FEATURES", "").replace(",", " ").split()  # numpy takes either
+    out["NPY_DISABLE_CPU_FEATURES"] = " ".join(_union(disabled, NUMPY_DISPATCH))
     out["GLIBC_TUNABLES"] = _glibc_tunables(env.get("GLIBC_TUNABLES", ""))
     out.update(PINNED)
     return out

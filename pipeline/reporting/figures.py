@@ -19,6 +19,7 @@ from pipeline.vocab import AXES, TRIAL_KEY, kind_label, sorted_angles
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 FIGURES = ("fig7_profiles.png", "fig8_gaps.png", "gap_matrix.png")
 
@@ -72,6 +73,15 @@ def write_csv(path: Path, rows: list[dict[str, str]], columns: Sequence[str]) ->
         w.writerows(rows)
 
 
+def _finish_profiles(fig: Figure, grid: np.ndarray, path: Path) -> None:
+    """Time axis labels on the bottom row, one legend above the grid, then save."""
+    for ax in grid[-1]:
+        ax.set_xlabel("t (s)")
+    handles, labels = grid[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside upper center", ncols=len(labels))
+    save_png(fig, path)
+
+
 def _profile_panels(
     axes_row: Sequence[Axes],
     es: EvalSet,
@@ -106,11 +116,7 @@ def plot_profiles(eval_sets: Mapping[str, EvalSet], preds: Scored, models: Seque
         for k, ax in enumerate(grid[r]):
             ax.set_title(f"{angle}° models, {es.source} trial {trial}: F{AXES[k][1]}", fontsize=9)
         grid[r][0].set_ylabel("force (N)")
-    for ax in grid[-1]:
-        ax.set_xlabel("t (s)")
-    handles, labels = grid[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside upper center", ncols=len(labels))
-    save_png(fig, path)
+    _finish_profiles(fig, grid, path)
 
 
 def gap_examples(
@@ -167,11 +173,7 @@ def plot_gaps(
                 f"{train_angle}° models on a {data_angle}° trial ({gap:g}° gap): F{AXES[k][1]}", fontsize=9
             )
         grid[r][0].set_ylabel("force (N)")
-    for ax in grid[-1]:
-        ax.set_xlabel("t (s)")
-    handles, labels = grid[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside upper center", ncols=len(labels))
-    save_png(fig, path)
+    _finish_profiles(fig, grid, path)
 
 
 def plot_gap_matrix(metrics: Mapping[str, Any], models: Sequence[str], path: Path) -> None:
