@@ -77,7 +77,7 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
     from pipeline.modelling.inputs import window_index
     from pipeline.modelling.predict import Predictor
 
-    client = ForceClient.from_registry(angle, tracking_uri=uri, cache_dir=cache)
+    client = ForceClient.from_registry(angle, tracking_uri=uri, cache_dir=cache, cues_uncalibrated=True)
     ext_file = root / "data" / "processed" / str(angle) / "external.parquet"
     if not ext_file.is_file():
         print(f"  {angle}°: no {ext_file}: skipped")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -36,20 +36,28 @@ def simulate_batch(
     batch_id: Annotated[str, typer.Argument(help="the new batch's id (its folder name)")],
     angles: Annotated[str, typer.Option(help="comma-separated insertion angles (deg)")] = "15",
     trials: Annotated[int, typer.Option(help="trials (tissue points) per angle")] = 7,
+    unit: Annotated[
+        str | None,
+        typer.Option(help="the estimator unit that records it (default: the first of simulate.units)"),
+    ] = None,
+    purpose: Annotated[
+        str, typer.Option(help="batch.yaml purpose: training, or calibration (kept out of the splits)")
+    ] = "training",
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Simulate one new tissue cast recorded with the same estimator, as a lab would deliver it."""
+    """Simulate one new tissue cast recorded by one estimator unit, as a lab would deliver it."""
     from pipeline.config import SimulateParams, load_section
     from pipeline.sim import rig as stage
 
     p = load_section(SimulateParams, "simulate", params) if params.exists() else SimulateParams()
     try:
         angle_list = tuple(float(a) for a in angles.split(","))
-        n = stage.write_new_batch(p, raw_dir, batch_id, angle_list, trials)
     except ValueError as e:
         typer.echo(f"error: --angles {angles!r}: {e}", err=True)
         raise typer.Exit(2) from e
-    except FileExistsError as e:
+    try:
+        n = stage.write_new_batch(p, raw_dir, batch_id, angle_list, trials, unit_id=unit, purpose=purpose)
+    except (ValueError, FileExistsError) as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e
     typer.echo(f"wrote {raw_dir / batch_id}: {len(angle_list) * trials} trials, {n} estimator samples")
@@ -91,6 +99,166 @@ def check(
     raise typer.Exit(1 if problems else 0)
 
 
+def _section(model: Any, name: str, params: Path) -> Any:
+    """One params.yaml section, or its defaults when there is no params file (a simulator's machine)."""
+    from pipeline.config import load_section
+
+    return load_section(model, name, params) if params.exists() else model()
+
+
+def _fail(message: str, code: int = 1) -> typer.Exit:
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(code)
+
+
+def _calibration_rows(batch_dir: Path, unit_id: str | None, params: Path) -> tuple[str, Any, list[str]]:
+    """Check one batch like `needlecue check` (its problems printed), ingest and resample it in a temp
+    folder: (its unit, its resampled rows, the trials set aside). typer.Exit(1) if nothing is usable."""
+    import tempfile
+
+    import pandas as pd
+
+    from pipeline.config import IngestParams, ResampleParams
+    from pipeline.rig.expectations import Validator
+    from pipeline.rig.ingest import fingerprint, write_batch
+    from pipeline.rig.reader import parse_batch
+    from pipeline.signals import resample
+    from pipeline.vocab import CALIBRATION
+
+    ingest = _section(IngestParams, "ingest", params)
+    parsed = parse_batch(batch_dir, ingest, Validator(ingest))
+    for problem in parsed.problems:
+        typer.echo(str(problem))
+    if not parsed.accepted or parsed.meta is None:
+        raise _fail(
+            f"{batch_dir}: nothing usable ({len(parsed.problems)} problem(s)); fix them and run again"
+        )
+    unit = parsed.meta.sensor.unit_id
+    if unit_id is not None and unit_id != unit:
+        raise _fail(f"{batch_dir} was recorded by unit {unit!r} (batch.yaml sensor.unit_id), not {unit_id!r}")
+    if parsed.meta.purpose != CALIBRATION:
+        typer.echo(
+            f"warning: {batch_dir}: purpose {parsed.meta.purpose!r}, not {CALIBRATION!r}: calibrating anyway",
+            err=True,
+        )
+    aside = [f"{parsed.batch_id}/{t}: see the problems above" for t in parsed.trials_set_aside]
+    with tempfile.TemporaryDirectory(prefix="needlecue-calibrate-") as tmp:
+        work = Path(tmp)
+        write_batch(work / "ingested", parsed, fingerprint(batch_dir, ingest))
+        resampled = resample.run(
+            work / "ingested", work / "resampled", _section(ResampleParams, "resample", params), log=_quiet
+        )
+        aside += [
+            f"{r['batch_id']}/{r['trial_id']}: {r['status']}" for r in resampled.rows if r["status"] != "ok"
+        ]
+        data = work / "resampled" / f"{parsed.batch_id}.parquet"
+        rows = pd.read_parquet(data) if data.is_file() else pd.DataFrame()
+    if rows.empty:
+        for line in aside:
+            typer.echo(f"set aside {line}")
+        raise _fail(f"{batch_dir}: no trial could be aligned and resampled")
+    return unit, rows, aside
+
+
+def _quiet(_message: str) -> None:
+    pass
+
+
+def _print_calibration(doc: dict[str, Any], champions: dict[str, Any], aside: list[str]) -> None:
+    """Loss before and after per kind, the angles used and missing, what was set aside, and which
+    champions the calibration does not cover."""
+    from pipeline.registry.units import uncovered_angles
+
+    typer.echo(f"unit {doc['unit_id']}: {len(doc['trials'])} trial(s) of {', '.join(doc['batches']) or '-'}")
+    for kind, t in sorted(doc["transforms"].items()):
+        kept = f"; identity kept: {t['identity_kept']}" if t.get("identity_kept") else ""
+        through = ", ".join(t.get("fitted_through") or [])
+        typer.echo(
+            f"  {kind}: loss {t['loss_before']:.4f} -> {t['loss_after']:.4f} (through {through}°){kept}"
+        )
+    used, missing = ", ".join(doc["angles_used"]) or "-", ", ".join(doc["angles_missing"]) or "-"
+    typer.echo(f"angles used: {used}; missing: {missing}")
+    for line in [*aside, *(f"{s['file']}: {s['reason']}" for s in doc["set_aside"])]:
+        typer.echo(f"set aside {line}")
+    for angle in uncovered_angles(doc, champions):
+        kind = champions[angle]["kind"]
+        typer.echo(
+            f"not calibrated: the {kind} champion at {angle}° (no usable trial where {kind} is champion)"
+        )
+
+
+@app.command()
+def calibrate(
+    batch_dir: Annotated[
+        Path, typer.Argument(help="the unit's calibration batch: one rig-log/1 batch folder")
+    ],
+    unit_id: Annotated[
+        str | None,
+        typer.Option("--unit-id", help="check that this unit recorded the batch (batch.yaml sensor.unit_id)"),
+    ] = None,
+    params: ParamsOption = Path("params.yaml"),
+    tracking_uri: Annotated[
+        str | None,
+        typer.Option("--tracking-uri", help="MLflow store (default: $MLFLOW_TRACKING_URI or mlflow.db)"),
+    ] = None,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="fit and print, register nothing")] = False,
+) -> None:
+    """Calibrate an estimator unit from its short calibration batch, through today's champions
+    (needle-force-<angle>@champion), and register it as needle-unit-<unit>@current for the simulator.
+
+    The batch is checked like `needlecue check` (problems printed as file:line), then ingested and
+    resampled in a temp folder; each champion is loaded from the checkpoint its run logged. Exit 1:
+    nothing usable in the batch, another unit than --unit-id, or nothing to calibrate; 2: not a folder,
+    or the registry is unreachable.
+    """
+    from mlflow.exceptions import MlflowException
+
+    from pipeline.calibration.unit import calibrate_unit
+    from pipeline.config import CalibrateParams
+    from pipeline.registry import store, units
+
+    def say(message: str) -> None:
+        typer.echo(f"calibrate: {message}", err=True)
+
+    if not batch_dir.is_dir():
+        raise _fail(f"not a folder: {batch_dir}", 2)
+    unit, rows, aside = _calibration_rows(batch_dir, unit_id, params)
+    try:
+        client = store.connect(tracking_uri, must_exist=True)
+        champions = units.champion_models(client)
+        if not champions:
+            raise _fail(f"the registry at {client.tracking_uri} has no needle-force-<angle>@champion")
+        models = units.champion_predictors(client, champions, say)
+    except store.RegistryUnreachable as e:
+        raise _fail(str(e), 2) from e
+    except MlflowException as e:
+        raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
+    for kind, by_angle in models.items():
+        for angle, predictor in list(by_angle.items()):
+            lacking = [c for c in predictor.channels if c not in rows.columns]
+            if lacking:
+                say(
+                    f"the {kind} champion at {angle}° reads {list(predictor.channels)}: "
+                    f"the batch has no {lacking}"
+                )
+                del by_angle[angle]
+    p = _section(CalibrateParams, "calibrate", params)
+    doc = calibrate_unit(unit, rows, models, list(champions), p, say)
+    _print_calibration(doc, champions, aside)
+    if not doc["transforms"]:
+        raise _fail("nothing calibrated: no usable calibration trial at an angle with a champion")
+    name = store.unit_model_name(unit)
+    if dry_run:
+        typer.echo(f"dry run: {name} not registered")
+        return
+    try:
+        entry = units.register_unit(client, doc, units.document_bytes(doc), say)
+    except MlflowException as e:
+        raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
+    state = "registered" if entry["action"] == "registered" else "already registered"
+    typer.echo(f"{state}: {name} version {entry['version']} (@{store.UNIT_ALIAS})")
+
+
 @app.command()
 def replay(
     trial: Annotated[
@@ -106,19 +274,26 @@ def replay(
     model_dir: Annotated[
         Path | None, typer.Option("--model-dir", help="an already-fetched model folder (skips the registry)")
     ] = None,
+    unit_id: Annotated[
+        str | None,
+        typer.Option("--unit-id", help="the estimator unit that recorded it: its calibration is applied"),
+    ] = None,
     out: Annotated[
         Path | None, typer.Option("--out", help="PNG to write (default: replay-<batch>-<trial>.png)")
     ] = None,
 ) -> None:
     """Replay a recorded trial through the simulator's client as if live: cue timeline, RMSE and a plot.
 
-    Exit 1 on a bad input (file, trial, model folder, stream mismatch), 2 if the registry is unreachable
-    and there is no local copy of the model.
+    With --unit-id the unit's registered calibration (needle-unit-<unit>@current) is applied, as on the
+    simulator; without it, or when it was made with other models, the force is uncalibrated and there
+    are no cues. Exit 1 on a bad input (file, trial, model folder, stream mismatch), 2 if the registry is
+    unreachable and there is no local copy of the model.
     """
     import pandas as pd
 
     from pipeline.client import ForceClient
     from pipeline.client import replay as rp
+    from pipeline.client.force import CALIBRATE_FIX
     from pipeline.registry.store import RegistryUnreachable
     from pipeline.vocab import channels_of, rate_hz
 
@@ -145,12 +320,21 @@ def replay(
 
     try:
         if model_dir is not None:
-            client = ForceClient.from_dir(model_dir)
+            calibration = None
+            if unit_id is not None:  # the unit's registered calibration, if there is one
+                from pipeline.calibration.document import FILE
+                from pipeline.client import ModelNotFound, fetch_unit
+
+                try:
+                    calibration = fetch_unit(unit_id) / FILE
+                except (ModelNotFound, RegistryUnreachable) as e:
+                    typer.echo(f"warning: no calibration of unit {unit_id}: {e}", err=True)
+            client = ForceClient.from_dir(model_dir, calibration=calibration, unit_id=unit_id)
             if angle is not None and client.angle_deg != angle:
                 raise fail(f"--angle {angle:g} but the model in {model_dir} is for {client.angle_deg:g}°")
         else:
             assert angle is not None
-            client = ForceClient.from_registry(angle, alias)
+            client = ForceClient.from_registry(angle, alias, unit_id=unit_id)
         client.check_stream(channels_of(rows), rate_hz(rows["t_s"].to_numpy()))
         result = rp.replay(rows, client)
     except RegistryUnreachable as e:
@@ -159,9 +343,19 @@ def replay(
         raise fail(str(e)) from e
 
     typer.echo(f"{key}: {len(result)} samples through {client.name}, preset angle {client.angle_deg:g}°")
+    if client.calibrated:
+        cal = client.calibration or {}
+        source = f"{cal['name']} v{cal.get('version')}" if cal.get("name") else cal.get("path", "given")
+        typer.echo(f"unit {client.unit_id}: calibrated ({source})")
+    else:
+        fix = f"to calibrate the unit, {CALIBRATE_FIX}" if unit_id else "--unit-id names the unit"
+        typer.echo(f"uncalibrated: {client.uncalibrated_reason}; {fix}")
     changes = rp.cue_changes(result)
     if changes.empty:
-        typer.echo("no cues: the model was registered without a cue pack")
+        why = "the model was registered without a cue pack"
+        if client.metadata.get("cues") is not None:
+            why = "the unit is not calibrated for this model (cues need its calibration)"
+        typer.echo(f"no cues: {why}")
     for row in changes.itertuples(index=False):
         est = "     -" if pd.isna(row.angle_est_deg) else f"{row.angle_est_deg:5.0f}°"
         typer.echo(f"{row.t_s:8.2f} s  {row.cue:<8}  angle {est}  {row.reason}")

@@ -50,21 +50,46 @@ class EffectScales(Section):
     dropped_samples: float = Field(1.0, ge=0)
     clock_offset: float = Field(1.0, ge=0)
     reference_noise: float = Field(1.0, ge=0)
+    # Per-unit differences (with part_variation; all three at 0: every unit is the same)
+    alignment: float = Field(1.0, ge=0, description="connector alignment: the whole tripod rotated, 5 deg")
+    unit_drift: float = Field(1.0, ge=0, description="> 0: each unit its own drift per decade (on/off)")
 
 
 class SimulateParams(Section):
-    """`simulate`: the built-in rig simulator that stands in for a lab."""
+    """`simulate`: the built-in rig simulator that stands in for a lab.
+
+    Every tissue cast of training is recorded by each of the training `units`; held-out casts by
+    a training unit (same-unit held-out) and by each of the `new_units`, which also record a short
+    calibration batch each (`pipeline.sim.rig.plan_batches`).
+    """
 
     enabled: bool = True
     seed: int = 20240115
     angles_deg: tuple[float, ...] = (0, 15, 30, 45, 60, 75)
-    train_batches: int = Field(3, ge=0)
-    trials_per_angle: int = Field(7, ge=0, description="per angle in each training batch")
-    heldout_trials_per_angle: int = Field(21, ge=0, description="in the held-out batch of each angle")
+    train_batches: int = Field(3, ge=0, description="tissue casts, recorded at every angle by every unit")
+    trials_per_angle: int = Field(3, ge=0, description="per angle, per training cast and training unit")
+    heldout_trials_per_angle: int = Field(21, ge=0, description="in each held-out batch of an angle")
+    calibration_trials_per_angle: int = Field(1, ge=0, description="in each new unit's calibration batch")
     fsr_rate_hz: float = Field(30.0, gt=0)
     ref_rate_hz: float = Field(100.0, gt=0)
-    unit_id: str = "est-sim-001"
+    units: tuple[str, ...] = ("est-sim-001", "est-sim-002", "est-sim-003")  # training units
+    new_units: tuple[str, ...] = ("est-sim-101",)  # never in training: held-out and calibration only
     effects: EffectScales = EffectScales()
+
+    @model_validator(mode="after")
+    def _check_units(self) -> SimulateParams:
+        from pipeline.vocab import ID_PATTERN  # the rig-log/1 id pattern (sensor.unit_id, batch ids)
+
+        if not self.units:
+            raise ValueError("units: at least one training unit is needed")
+        for key, ids in (("units", self.units), ("new_units", self.new_units)):
+            if bad := [u for u in ids if ID_PATTERN.fullmatch(u) is None]:
+                raise ValueError(f"{key}: {bad} do not match the rig-log/1 id pattern {ID_PATTERN.pattern}")
+            if len(set(ids)) != len(ids):
+                raise ValueError(f"{key}: {list(ids)} lists a unit twice")
+        if both := sorted(set(self.units) & set(self.new_units)):
+            raise ValueError(f"units and new_units must be disjoint; both list {both}")
+        return self
 
 
 class IngestParams(Section):
@@ -107,10 +132,23 @@ class EvaluateParams(Section):
     gaps_deg: tuple[float, ...] = Field((15, 30), min_length=1)
 
 
+class InputParams(Section):
+    """`<model>.inputs`: what a model reads (pipeline/modelling/features.py): volts as read, or the
+    FSR conductance from inverting the divider, either relative to the trial's rest reading."""
+
+    kind: Literal["volts", "rest_volts", "conductance", "rest_conductance"] = "volts"
+    v_plus: float = Field(5.0, gt=0, description="divider supply, V")
+    r_m_kohm: float = Field(10.0, gt=0, description="divider resistor")
+    r_series_kohm: float = Field(1.62, ge=0, description="FSR series term under the silicone")
+    r_open_kohm: float = Field(10_000.0, gt=0, description="an unloaded FSR")
+    rest_s: float = Field(0.5, gt=0, description="seconds at a trial's start that define its rest reading")
+
+
 class LSParams(Section):
     """`ls`: the calibration matrix of eq. (1)-(2)."""
 
     fit_intercept: bool = False  # the paper's F = C v has none; zero volts -> zero force
+    inputs: InputParams = InputParams()
 
 
 class FNNParams(Section):
@@ -125,6 +163,7 @@ class FNNParams(Section):
     patience: int = Field(25, ge=1, description="epochs without a better validation loss before stopping")
     ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
     seed: int = 0
+    inputs: InputParams = InputParams()
 
 
 class LSTMParams(Section):
@@ -140,6 +179,7 @@ class LSTMParams(Section):
     patience: int = Field(10, ge=1, description="epochs without a better validation loss before stopping")
     ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
     seed: int = 0
+    inputs: InputParams = InputParams()
 
 
 PARAMS_MODELS: dict[str, type[Section]] = {"ls": LSParams, "fnn": FNNParams, "lstm": LSTMParams}
@@ -173,6 +213,7 @@ class CuesParams(Section):
     # force in range (combined method)
     force_check: bool = True
     force_margin: float = Field(1.5, gt=0)
+    cue_within_s: float = Field(3.0, gt=0, description="a cue is right if right, and staying so, by then")
 
     @model_validator(mode="after")
     def _check(self) -> CuesParams:
@@ -186,6 +227,18 @@ class CuesParams(Section):
         if self.min_stage > len(lv):
             raise ValueError(f"min_stage {self.min_stage} exceeds the {len(lv)} evidence levels")
         return self
+
+
+class CalibrateParams(Section):
+    """`calibrate`: a new estimator unit's input transform, fitted through the frozen shared models
+    from its calibration batch (pipeline/calibration/)."""
+
+    transform: Literal["diagonal", "full"] = "full"  # a gain per channel, or a full channel mix
+    offset: bool = False  # also an offset per channel (rest-relative inputs have none to fit)
+    ridge: float = Field(0.01, ge=0, description="pull towards the identity (per squared entry)")
+    max_iter: int = Field(200, ge=1, description="L-BFGS iterations")
+    validate_by_angle: bool = True  # keep the identity unless leave-one-angle-out says the transform helps
+    min_trial_s: float = Field(3.0, gt=0, description="a shorter calibration trial is set aside")
 
 
 class RegisterParams(Section):

@@ -1,6 +1,7 @@
 """The project's shared vocabulary: one home for each name every layer uses.
 
-Column names of the processed data, the force axes, the model kinds, how an angle is named,
+Column names of the processed data, the force axes, the model kinds, the rig-log id pattern
+(shared with `params.yaml`'s unit ids), how an angle is named,
 how a sample rate is estimated, how JSON outputs are rounded, and the deployable model's
 contract. Numpy only, so the simulator's client can import it.
 """
@@ -10,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,16 +20,23 @@ import numpy as np
 
 AXES = ("fx", "fy", "fz")  # the 3-D force, N, in the reference sensor's frame
 TRIAL_KEY = ("batch_id", "trial_id")  # a trial is unique by both
-ID_COLUMNS = ("batch_id", "trial_id", "angle_deg", "tissue_point", "t_s", "phase")  # processed rows
+# processed rows: unit_id is the estimator unit that recorded the batch (sensor.unit_id)
+ID_COLUMNS = ("batch_id", "unit_id", "trial_id", "angle_deg", "tissue_point", "t_s", "phase")
 PHASES = ("rest", "insertion", "dwell", "retraction")
 NON_CHANNELS = frozenset({*ID_COLUMNS, *AXES})  # every other column of a processed frame is a channel
 KINDS = ("ls", "fnn", "lstm")  # model kinds, simplest first (ties go to the simpler)
 SPLITS = ("train", "val", "test", "external")
+CALIBRATION = "calibration"  # batch purpose, and the processed folder of its trials (never a split)
+# rig-log/1 batch, trial and unit ids (`docs/rig-log-format.md`, section 2; `pipeline.rig.format`)
+ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
 
 # The deployable model (pipeline.modelling.export writes it, pipeline.client reads it).
-DEPLOY_FORMAT = "needlecue-deploy/1"
-INPUT_NAME = "volts"
+# /2: the graph reads the model's inputs (`inputs` in the metadata says how they are computed from
+# volts: pipeline.modelling.features); /1 graphs read raw volts. Clients read both.
+DEPLOY_FORMAT = "needlecue-deploy/2"
+DEPLOY_FORMATS = ("needlecue-deploy/1", DEPLOY_FORMAT)
+INPUT_NAME = "inputs"
 OUTPUT_NAME = "force_n"
 
 

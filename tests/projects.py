@@ -17,8 +17,11 @@ LAB_BATCH = REPO / "tests" / "fixtures" / "rig-log" / "lab-bench-a"
 SMALL_SIM = {
     "angles_deg": [15, 45],
     "train_batches": 1,
-    "trials_per_angle": 4,
+    "trials_per_angle": 2,  # x 2 units: 4 training trials per angle
     "heldout_trials_per_angle": 2,
+    "calibration_trials_per_angle": 1,
+    "units": ["est-sim-001", "est-sim-002"],
+    "new_units": ["est-sim-101"],
 }
 TINY_MODELS = {
     "fnn": {"max_epochs": 3, "patience": 2},

@@ -39,7 +39,14 @@ def test_check_refuses_a_missing_folder(tmp_path):
 def test_simulate_writes_batches_and_never_clears_a_foreign_folder(tmp_path):
     # Given a small params file
     params = tmp_path / "params.yaml"
-    small = {"angles_deg": [30], "train_batches": 1, "trials_per_angle": 1, "heldout_trials_per_angle": 1}
+    small = {
+        "angles_deg": [30],
+        "train_batches": 1,
+        "trials_per_angle": 1,
+        "heldout_trials_per_angle": 1,
+        "units": ["est-sim-001"],
+        "new_units": [],
+    }
     params.write_text(yaml.safe_dump({"simulate": small}))
     # When simulating into a new folder, then into a folder holding other data
     ok = runner.invoke(app, ["simulate", str(tmp_path / "sim"), "--params", str(params)])
@@ -48,7 +55,7 @@ def test_simulate_writes_batches_and_never_clears_a_foreign_folder(tmp_path):
     refused = runner.invoke(app, ["simulate", str(tmp_path / "lab"), "--params", str(params)])
     # Then the first writes rig-log/1 batches and the second refuses, touching nothing
     assert ok.exit_code == 0, ok.output
-    assert (tmp_path / "sim" / "sim-tissue-1" / "batch.yaml").is_file()
+    assert (tmp_path / "sim" / "sim-tissue-1-est-sim-001" / "batch.yaml").is_file()
     assert refused.exit_code == 2 and "not written by the simulator" in refused.output
     assert (tmp_path / "lab" / "keep.csv").read_text() == "x\n"
 
@@ -59,3 +66,87 @@ def test_a_typo_in_params_fails_loudly(tmp_path):
     result = runner.invoke(app, ["simulate", str(tmp_path / "sim"), "--params", str(params)])
     assert result.exit_code != 0
     assert "trails_per_angle" in str(result.exception)
+
+
+# --- needlecue calibrate ---------------------------------------------------------------------------
+
+
+def break_cell(fsr: Path) -> None:
+    """Text in the first channel of the fourth sample (line 5)."""
+    lines = fsr.read_text().splitlines()
+    cells = lines[4].split(",")
+    lines[4] = ",".join([cells[0], "oops", *cells[2:]])
+    fsr.write_text("\n".join(lines) + "\n")
+
+
+def test_calibrate_refuses_a_batch_with_nothing_usable_naming_file_and_line(tmp_path):
+    # Given a batch whose every trial has text in a number column
+    batch = tmp_path / "lab-bench-a"
+    shutil.copytree(LAB_BATCH, batch)
+    for fsr in sorted(batch.glob("*.fsr.csv")):
+        break_cell(fsr)
+    # When calibrating from it
+    result = runner.invoke(app, ["calibrate", str(batch), "--params", str(tmp_path / "none.yaml")])
+    # Then exit 1, each problem located as file:line, and nothing usable said
+    assert result.exit_code == 1, result.output
+    for trial in ("t001", "t002", "t003"):
+        assert f"{trial}.fsr.csv:5" in result.output
+    assert "nothing usable" in result.output
+    missing = runner.invoke(app, ["calibrate", str(tmp_path / "nope")])
+    assert missing.exit_code == 2 and "not a folder" in missing.output
+
+
+def test_calibrate_registers_a_new_unit_through_the_champions(tmp_path, mlflow_store):
+    # Given LS champions at 30° and 45° (registered with their checkpoints, as the register stage
+    # does), and a short simulated calibration batch of a new unit at 30° only
+    from pipeline.client import ForceClient
+    from pipeline.modelling.fit import fit
+    from tests.client.builders import TINY, cue_trials, register
+
+    for angle in (30, 45):
+        checkpoint = fit("ls", TINY["ls"], cue_trials(angle, 2)).checkpoint
+        register(mlflow_store, tmp_path, checkpoint, angle=angle, with_checkpoint=True)
+    none = str(tmp_path / "none.yaml")
+    made = runner.invoke(
+        app,
+        [
+            *("simulate-batch", str(tmp_path / "raw"), "cal-101"),
+            *("--purpose", "calibration", "--unit", "est-sim-101", "--angles", "30", "--trials", "1"),
+            *("--params", none),
+        ],
+    )
+    assert made.exit_code == 0, made.output
+    batch = str(tmp_path / "raw" / "cal-101")
+    # When: a dry run, a run naming another unit, then the real run
+    dry = runner.invoke(app, ["calibrate", batch, "--params", none, "--dry-run"])
+    other = runner.invoke(app, ["calibrate", batch, "--params", none, "--unit-id", "est-sim-999"])
+    real = runner.invoke(app, ["calibrate", batch, "--params", none, "--unit-id", "est-sim-101"])
+    # Then the dry run prints the fit and registers nothing, another unit is refused, and the real run
+    # registers version 1 @current
+    assert dry.exit_code == 0, dry.output
+    assert "dry run: needle-unit-est-sim-101 not registered" in dry.output
+    assert other.exit_code == 1 and "recorded by unit 'est-sim-101'" in other.output
+    assert real.exit_code == 0, real.output
+    assert "registered: needle-unit-est-sim-101 version 1 (@current)" in real.output
+    loss = next(line for line in real.output.splitlines() if line.startswith("  ls: loss"))
+    before, after = (float(x) for x in loss.split()[2:5:2])
+    assert after < before
+    assert "angles used: 30; missing: 45" in real.output
+    # And the simulator's client of that unit is calibrated at both angles: one LS transform serves the
+    # LS champions, 45° without a calibration trial too
+    for angle in (30, 45):
+        client = ForceClient.from_registry(angle, unit_id="est-sim-101", cache_dir=tmp_path / "cache")
+        assert client.calibrated and client.calibration["version"] == "1"
+    # And a batch recorded for training is calibrated from only with a warning
+    runner.invoke(
+        app,
+        [
+            *("simulate-batch", str(tmp_path / "raw"), "train-101", "--unit", "est-sim-101"),
+            *("--angles", "30", "--trials", "1", "--params", none),
+        ],
+    )
+    training = runner.invoke(
+        app, ["calibrate", str(tmp_path / "raw" / "train-101"), "--params", none, "--dry-run"]
+    )
+    assert training.exit_code == 0, training.output
+    assert "purpose 'training', not 'calibration'" in training.output

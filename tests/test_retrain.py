@@ -128,7 +128,9 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
     assert report["batches_set_aside"] == ["broken"]
     # only the new batches were parsed; the known ones came from the ingest cache
     ingest_lines = [line for line in done.stderr.splitlines() if "dvc: ingest [" in line]
-    assert len(ingest_lines) == 5, done.stderr  # 3 simulated batches + the two new ones
+    # 7 simulated batches (2 training casts-by-unit, 2 held-out, 2 new-unit held-out, 1 calibration)
+    # + the two new ones
+    assert len(ingest_lines) == 9, done.stderr
     for line in ingest_lines:
         assert (": parsed" in line) == ("cast-7" in line or "broken" in line), line
     # only the angle with new data retrained

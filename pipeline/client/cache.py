@@ -1,4 +1,5 @@
-"""Fetching a registered force model into the simulator's local cache.
+"""Fetching a registered force model, and an estimator unit's calibration, into the simulator's local
+cache.
 
 `fetch` resolves `models:/needle-force-<angle>@<alias>` in the registry and keeps one copy per (model,
 alias) under the cache folder: `<cache>/needle-force-<angle>/<alias>/` holding MLmodel, model.onnx and
@@ -6,7 +7,9 @@ version.json (what was fetched, from where and when). A copy is downloaded only 
 elsewhere, into a temp sibling swapped in by renames, so a reader never sees half a model. When the
 registry cannot be reached the cached copy is used with a warning, so a simulator keeps working
 offline. `poll_alias` is the quick "where does the alias point now" request of a client that follows
-its alias. mlflow is imported inside the functions that talk to the registry.
+its alias. `fetch_unit` does the same for `models:/needle-unit-<unit_id>@current`, a unit's calibration
+document: `<cache>/needle-unit-<unit_id>/<alias>/` holding calibration.json and version.json. mlflow is
+imported inside the functions that talk to the registry.
 """
 
 from __future__ import annotations
@@ -18,14 +21,16 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from pipeline.calibration.document import FILE as UNIT_FILE
+from pipeline.calibration.document import read_unit
 from pipeline.registry import store
-from pipeline.vocab import DEPLOY_FORMAT, file_sha256
+from pipeline.vocab import DEPLOY_FORMAT, DEPLOY_FORMATS, file_sha256
 
 # One logger for the whole client, named as before it was split into modules (log configs keep working).
 log = logging.getLogger("pipeline.client")
@@ -36,6 +41,8 @@ VERSION_FILE = "version.json"
 # A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
 # gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
 _POLL_HTTP_ENV = {"MLFLOW_HTTP_REQUEST_TIMEOUT": "2", "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
+MODEL_HINT = "run `make repro` to train and register the models"
+UNIT_HINT = "record a calibration batch with that unit and run `needlecue calibrate BATCH_DIR`"
 
 
 class ModelNotFound(LookupError):
@@ -67,7 +74,7 @@ def read_metadata(model_dir: Path) -> dict[str, Any]:
     except yaml.YAMLError as e:
         raise ValueError(f"{mlmodel}: not valid YAML: {e}") from e
     meta = (spec.get("metadata") or {}).get("needlecue")
-    if not isinstance(meta, dict) or meta.get("format") != DEPLOY_FORMAT:
+    if not isinstance(meta, dict) or meta.get("format") not in DEPLOY_FORMATS:
         found = meta.get("format") if isinstance(meta, dict) else None
         raise ValueError(
             f"{mlmodel}: no {DEPLOY_FORMAT} block under metadata.needlecue (found format {found!r}); "
@@ -140,11 +147,50 @@ def fetch(
 def poll_alias(name: str, alias: str, tracking_uri: str) -> Any:
     """The ModelVersion `name@alias` points to now, asked in one quick request (short timeout, no
     retries over HTTP). `RegistryUnreachable` or `ModelNotFound` as for `fetch`."""
+    hint = UNIT_HINT if name.startswith("needle-unit-") else MODEL_HINT
     with _env(_POLL_HTTP_ENV):
-        return _resolve(store.connect(tracking_uri, must_exist=True), name, alias, tracking_uri)
+        return _resolve(store.connect(tracking_uri, must_exist=True), name, alias, tracking_uri, hint)
 
 
-def _resolve(client: Any, name: str, alias: str, registry_uri: str) -> Any:
+def fetch_unit(
+    unit_id: str,
+    alias: str = store.UNIT_ALIAS,
+    *,
+    cache_dir: Path | None = None,
+    tracking_uri: str | None = None,
+) -> Path:
+    """The local folder of `models:/needle-unit-<unit_id>@<alias>`, the unit's calibration document:
+    `<cache_dir>/needle-unit-<unit_id>/<alias>/` (calibration.json, version.json), downloaded unless
+    the cached copy is already that version.
+
+    As `fetch`: an unreachable registry falls back to the cached copy with a warning (else
+    `RegistryUnreachable`); `ModelNotFound` if the unit has no calibration registered under `alias`.
+    """
+    name = store.unit_model_name(unit_id)
+    uri = f"models:/{name}@{alias}"
+    target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
+    registry_uri = tracking_uri or store.tracking_uri()
+    cached = read_version(target) if (target / UNIT_FILE).is_file() else None
+    try:
+        client = store.connect(registry_uri, must_exist=True)
+        mv = _resolve(client, name, alias, registry_uri, UNIT_HINT)
+    except store.RegistryUnreachable as e:
+        return _offline_copy(target, cached, uri, e)
+    if (
+        cached is not None
+        and cached.get("name") == name
+        and str(cached.get("version")) == str(mv.version)
+        and cached.get("source") == mv.source
+        and file_sha256([target / UNIT_FILE]) == cached.get("calibration_sha256")
+    ):
+        return target  # already that version, intact: no download
+    try:
+        return _download(mv, alias, target, registry_uri, _unit_info(unit_id))
+    except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
+        return _offline_copy(target, cached, uri, e)
+
+
+def _resolve(client: Any, name: str, alias: str, registry_uri: str, hint: str = MODEL_HINT) -> Any:
     """The ModelVersion behind `name@alias`; `ModelNotFound` if the registry has none, and
     `RegistryUnreachable` for any other failure of the registry."""
     from mlflow.exceptions import MlflowException
@@ -159,8 +205,7 @@ def _resolve(client: Any, name: str, alias: str, registry_uri: str) -> Any:
         raise store.RegistryUnreachable(f"registry at {registry_uri}: {type(e).__name__}: {e}") from e
     if mv is None:
         raise ModelNotFound(
-            f"the registry at {registry_uri} has no version of {name!r} with the alias {alias!r}; "
-            "run `make repro` to train and register the models"
+            f"the registry at {registry_uri} has no version of {name!r} with the alias {alias!r}; {hint}"
         )
     return mv
 
@@ -182,8 +227,41 @@ def _offline_copy(target: Path, cached: dict[str, Any] | None, uri: str, error: 
     return target
 
 
-def _download(mv: Any, alias: str, target: Path, registry_uri: str) -> Path:
-    """Download a model version into a temp sibling of `target`, then swap it in (never a partial copy)."""
+Describe = Callable[[Path, Any], dict[str, Any]]  # (downloaded folder, ModelVersion) -> version.json fields
+
+
+def _model_info(folder: Path, mv: Any) -> dict[str, Any]:
+    """What version.json says of a downloaded force model, beyond the version itself."""
+    missing = [f for f in ("MLmodel", "model.onnx") if not (folder / f).is_file()]
+    if missing:  # a broken registered model is an error, not a reason to go offline
+        raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
+    meta = read_metadata(folder)
+    return {
+        "checkpoint_sha256": meta.get("checkpoint_sha256"),
+        "onnx_sha256": file_sha256([folder / "model.onnx"]),
+    }
+
+
+def _unit_info(unit_id: str) -> Describe:
+    """What version.json says of a downloaded unit calibration: a checked document of that unit."""
+
+    def info(folder: Path, mv: Any) -> dict[str, Any]:
+        path = folder / UNIT_FILE
+        if not path.is_file():
+            raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {UNIT_FILE}")
+        doc = read_unit(path)
+        if doc.get("unit_id") != unit_id:
+            raise ValueError(
+                f"{mv.name} version {mv.version} holds the calibration of unit {doc.get('unit_id')!r}"
+            )
+        return {"unit_id": unit_id, "calibration_sha256": file_sha256([path])}
+
+    return info
+
+
+def _download(mv: Any, alias: str, target: Path, registry_uri: str, describe: Describe = _model_info) -> Path:
+    """Download a model version into a temp sibling of `target`, check it and describe it with
+    `describe(folder, mv)` (a broken version raises ValueError), then swap it in (never a partial copy)."""
     import mlflow
     from mlflow.exceptions import MlflowException
 
@@ -203,18 +281,13 @@ def _download(mv: Any, alias: str, target: Path, registry_uri: str) -> Path:
                 raise store.RegistryUnreachable(
                     f"downloading {mv.name} version {mv.version} from {registry_uri} failed: {e}"
                 ) from e
-        missing = [f for f in ("MLmodel", "model.onnx") if not (tmp / f).is_file()]
-        if missing:  # a broken registered model is an error, not a reason to go offline
-            raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
-        meta = read_metadata(tmp)
         info = {
             "name": mv.name,
             "version": str(mv.version),
             "alias": alias,
             "run_id": mv.run_id,
             "source": mv.source,
-            "checkpoint_sha256": meta.get("checkpoint_sha256"),
-            "onnx_sha256": file_sha256([tmp / "model.onnx"]),
+            **describe(tmp, mv),
             "tracking_uri": registry_uri,
             "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }

@@ -66,9 +66,11 @@ def time_to_cue(t: np.ndarray, right: np.ndarray, start: int, end: int) -> float
 
 
 def summarise_runs(
-    runs: Sequence[Run], continue_below: float = 7.5, stop_from: float = 22.5
+    runs: Sequence[Run], continue_below: float = 7.5, stop_from: float = 22.5, within_s: float = 3.0
 ) -> dict[str, Any]:
-    """Confusion matrices, accuracy and time to cue of tracker runs, per (kind, method)."""
+    """Confusion matrices, accuracy and time to cue of tracker runs, per (kind, method); and per true
+    cue, the share of trials whose cue was right, and stayed right, within `within_s` of the insertion's
+    start (their mean over the cues present: `balanced_within_s`)."""
     out: dict[str, Any] = {}
     for run in runs:
         true = VERDICTS.index(cue_for_deviation(run.true_angle - run.preset, continue_below, stop_from)) + 1
@@ -81,6 +83,7 @@ def summarise_runs(
                 "n": {g: 0 for g in DEVIATION_GROUPS},
                 "right_final": {g: 0 for g in DEVIATION_GROUPS},
                 "alarms": 0,
+                "in_time": np.zeros((3, 2), dtype=np.int64),  # per true cue: [trials, right within_s]
             },
         )
         seg = run.codes[run.ins_start : run.ins_end + 1]
@@ -92,6 +95,7 @@ def summarise_runs(
         d["alarms"] += int(run.alarm)
         ttc = time_to_cue(run.t, run.codes == true, run.ins_start, run.ins_end)
         d["ttc"][g].append(ttc)
+        d["in_time"][true - 1] += (1, int(ttc is not None and ttc <= within_s + 1e-9))
     result: dict[str, Any] = {}
     for kind, methods in out.items():
         for method, d in methods.items():
@@ -111,7 +115,16 @@ def summarise_runs(
                 c: (float(fin[i, i + 1] / fin[i].sum()) if fin[i].sum() else None)
                 for i, c in enumerate(VERDICTS)
             }
+            in_time = d["in_time"]
+            recall_in_time = {
+                c: (float(in_time[i, 1] / in_time[i, 0]) if in_time[i, 0] else None)
+                for i, c in enumerate(VERDICTS)
+            }
+            known = [v for v in recall_in_time.values() if v is not None]
             result.setdefault(kind, {})[method] = {
+                "within_s": within_s,
+                "recall_within_s": recall_in_time,
+                "balanced_within_s": float(np.mean(known)) if known else None,
                 "confusion_final": {
                     "rows_true": list(VERDICTS),
                     "cols_cue": list(CUES),
@@ -259,7 +272,7 @@ def evaluate_cues(
             f"{n_updates} tracker updates, {1e6 * seconds / n_updates:.1f} µs each on average "
             f"(including the evaluation loop; {WORKERS} worker process(es))"
         )
-    summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg)
+    summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg, params.cue_within_s)
     classes = sorted(external)
     out = {
         "format": "needlecue-cues-eval/1",
@@ -345,3 +358,65 @@ def _ratio(num: int, matrix: list[list[int]]) -> float | None:
 def evaluation_json(evaluation: Mapping[str, Any]) -> str:
     """Deterministic text of evaluation.json."""
     return dump_json(evaluation, DIGITS, indent=1)
+
+
+UNIT_GROUPS = ("same_unit", "new_uncalibrated", "new_calibrated")
+GROUP_KEYS = ("balanced_within_s", "recall_within_s", "within_s", "accuracy_final", "confusion_final")
+# (kind, preset angle, true angle, split) -> the preset model's forces on that angle's `split` frame
+ForcesOfSplit = Callable[[str, float, float, str], np.ndarray | None]
+
+
+def _group_mask(
+    frame: pd.DataFrame, group: str, roles: Mapping[str, str], calibrated: Mapping[str, bool]
+) -> np.ndarray:
+    if "unit_id" not in frame.columns:
+        return np.zeros(len(frame), dtype=bool)
+    units = frame["unit_id"].astype(str)
+    if group == "same_unit":
+        return units.map(lambda u: roles.get(u) == "training").to_numpy(bool)
+    return units.map(lambda u: roles.get(u, "new") != "training" and bool(calibrated.get(u))).to_numpy(bool)
+
+
+def evaluate_unit_groups(
+    external: Mapping[float, pd.DataFrame],
+    external_uncalibrated: Mapping[float, pd.DataFrame],
+    params: CuesParams,
+    packs: Mapping[float, Mapping[str, Any]],
+    forces_of: ForcesOfSplit,
+    uncalibrated_split: str,
+    roles: Mapping[str, str],
+    calibrated: Mapping[str, bool],
+) -> dict[str, Any]:
+    """The cues scored per unit group: the training units' external trials (`same_unit`), and the
+    external trials of new units that have a calibration, without it (`new_uncalibrated`: the frames of
+    `external_uncalibrated`, forces from `uncalibrated_split`) and with it (`new_calibrated`). Per
+    group, kind and method: balanced accuracy within `cue_within_s`, per-cue recall, final confusion
+    matrix."""
+    out: dict[str, Any] = {}
+    for group in UNIT_GROUPS:
+        source = {
+            float(a): f
+            for a, f in (external_uncalibrated if group == "new_uncalibrated" else external).items()
+        }
+        masks = {a: _group_mask(f, group, roles, calibrated) for a, f in source.items()}
+        frames = {a: source[a][m].reset_index(drop=True) for a, m in masks.items() if m.any()}
+        if not frames:
+            continue
+        split = uncalibrated_split if group == "new_uncalibrated" else "external"
+
+        def forces(
+            kind: str, preset: float, a: float, split: str = split, masks: dict = masks
+        ) -> np.ndarray | None:
+            full = forces_of(kind, preset, a, split)
+            if full is None and split != "external":  # that model had no calibration for these units
+                full = forces_of(kind, preset, a, "external")
+            return None if full is None else full[masks[a]]
+
+        ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None)
+        units = sorted({str(u) for f in frames.values() for u in f["unit_id"].unique()})
+        results = {
+            kind: {m: {k: r.get(k) for k in GROUP_KEYS} for m, r in methods.items()}
+            for kind, methods in (ev.get("results") or {}).items()
+        }
+        out[group] = {"units": units, "external_trials": ev.get("external_trials"), "results": results}
+    return out

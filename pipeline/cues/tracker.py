@@ -35,6 +35,26 @@ REFERENCE = "reference"  # profile thresholds calibrated on the reference force 
 MIN_VOLTS = 1e-3  # floor before taking logs (an unloaded FSR reads a few mV)
 
 
+def unit_offset(
+    pack: Mapping[str, Any], unit_id: str | None, rest_log_means: Mapping[str, Any] | None = None
+) -> list[float] | None:
+    """A unit's rest offset per channel for this pack (`pipeline.cues.units`): a training unit's from
+    the pack, a new unit's from its calibration's mean log rest readings at the angles it has; None
+    when neither is known (an uncalibrated unit)."""
+    units = pack.get("units") or {}
+    if unit_id is not None and unit_id in (units.get("offsets") or {}):
+        return [float(x) for x in units["offsets"][unit_id]]
+    reference = units.get("reference") or {}
+    pairs = [
+        (np.asarray(v, dtype=np.float64), np.asarray(reference[a]))
+        for a, v in (rest_log_means or {}).items()
+        if a in reference
+    ]
+    if not pairs:
+        return None
+    return np.mean([v - mu for v, mu in pairs], axis=0).tolist()
+
+
 def cue_for_deviation(dev_deg: float, continue_below: float = 7.5, stop_from: float = 22.5) -> str:
     """continue / correct / stop for an absolute angle deviation in degrees."""
     d = abs(dev_deg)
@@ -229,8 +249,10 @@ class CueTracker:
         *,
         model_kind: str | None = None,
         method: str = "combined",
+        unit_offset: Sequence[float] | None = None,
     ) -> None:
         check_pack(pack)
+        self.set_unit_offset(unit_offset)
         if abs(float(pack["preset_angle_deg"]) - float(preset_angle_deg)) > 1e-6:
             raise ValueError(
                 f"this cue pack is for the preset angle {pack['preset_angle_deg']:g}°, "
@@ -358,12 +380,20 @@ class CueTracker:
         self._nz += 1
 
     # -- one frame ---------------------------------------------------------------------------
+    def set_unit_offset(self, unit_offset: Sequence[float] | None) -> None:
+        """The estimator unit's rest offset per channel (`unit_offset`; None: none known): volts are
+        divided by exp(offset) before the angle estimator reads them (see pipeline.cues.units)."""
+        self._scale = None if unit_offset is None else [math.exp(-float(d)) for d in unit_offset]
+
     def update(self, t_s: float, volts: np.ndarray, force_n: np.ndarray) -> CueState:
         """Feed one frame (volts in the pack's channel order, the model's predicted force in N)."""
         t = float(t_s)
         f = _floats(force_n)
         ev = self._ev
-        changed, post = ev.push(t, _floats(volts), f)
+        v = _floats(volts)
+        if self._scale is not None:
+            v = [x * s for x, s in zip(v, self._scale, strict=True)]
+        changed, post = ev.push(t, v, f)
         if self._n_prof:
             for tp, _, fp in post:
                 self._accumulate(tp, fp)

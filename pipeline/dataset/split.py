@@ -3,17 +3,24 @@ as the external set.
 
 Input: the resample stage's `IN_DIR/<batch_id>.parquet` + `<batch_id>.json`. Output, per
 angle (folder `vocab.angle_name`): `train.parquet`, `val.parquet`, `test.parquet`,
-`external.parquet` (always all four; empty with the right schema when there is nothing),
-and `OUT_DIR/manifest.json` listing which trial went where.
+`external.parquet` (always all four; empty with the right schema when there is nothing);
+`calibration/<angle>.parquet` for each angle with calibration trials (same schema as the
+angle's split files); and `OUT_DIR/manifest.json` listing which trial went where, and each
+estimator unit's batches and role (`training` if it has rows in a train split, else `new`).
 
 Rules:
+- trials of batches with `purpose: calibration` (a new unit's short calibration session) go to
+  `calibration/` only, never to train/val/test/external, whatever the external globs say; nothing
+  about them reaches the angle folders, so adding a calibration batch leaves those byte-identical;
 - trials of batches matching a glob of `split.external_batches` form `external`;
 - the others are split by trial, never by sample (samples of one trial are strongly
   correlated, so a split by sample would leak), with a generator seeded from
   (`split.seed`, angle) alone over the sorted trial list: adding data to one angle never
   changes another angle's files;
 - one angle, one channel list: trials whose channels differ from the majority's are set
-  aside (a model per angle takes one fixed input vector).
+  aside (a model per angle takes one fixed input vector); calibration trials must have the
+  channels of their angle's other trials (the majority of calibration trials where there are
+  none).
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ import pyarrow.parquet as pq
 
 from pipeline.config import SplitParams
 from pipeline.dataset.tables import columns_for, table_schema, write_table
-from pipeline.vocab import SPLITS, angle_name, sorted_angles
+from pipeline.vocab import CALIBRATION, SPLITS, angle_name, sorted_angles
 
 MANIFEST = "manifest.json"
 
@@ -57,6 +64,8 @@ class Trial:
     angle: str  # folder name, vocab.angle_name(angle_deg)
     channels: tuple[str, ...]
     table: pa.Table
+    unit_id: str = ""  # the estimator unit that recorded the batch
+    purpose: str = "training"  # the batch's purpose: training | calibration
 
     @property
     def key(self) -> TrialKey:
@@ -79,13 +88,14 @@ def load_trials(in_dir: Path) -> tuple[list[Trial], float | None]:
         if missing:
             raise ValueError(f"{data_path}: columns {missing} missing (channels from {meta_path.name})")
         table = table.select(columns_for(channels))
-        trials += _split_by_trial(str(meta["batch_id"]), channels, table)
+        purpose = str(meta.get("purpose") or "training")
+        trials += _split_by_trial(str(meta["batch_id"]), channels, table, purpose)
     if len(rates) > 1:
         raise ValueError(f"resampled batches disagree on the grid rate: {sorted(rates)} Hz")
     return sorted(trials, key=lambda t: t.key), (rates.pop() if rates else None)
 
 
-def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table) -> list[Trial]:
+def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table, purpose: str) -> list[Trial]:
     ids = np.asarray(table.column("trial_id").to_pylist(), dtype=object)
     if ids.size == 0:
         return []
@@ -96,7 +106,8 @@ def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table) -
     for rows in np.split(order, cuts):
         part = table.take(pa.array(rows))
         angle = angle_name(part.column("angle_deg")[0].as_py())
-        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part))
+        unit = str(part.column("unit_id")[0].as_py())
+        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part, unit, purpose))
     return out
 
 
@@ -155,8 +166,18 @@ class AngleSplit:
     set_aside: list[dict[str, str]]
 
 
+def _other_channels(t: Trial, channels: tuple[str, ...], whose: str) -> dict[str, str]:
+    return {
+        "angle": t.angle,
+        "batch_id": t.batch_id,
+        "trial_id": t.trial_id,
+        "reason": f"channels {list(t.channels)} differ from the channels {list(channels)} of {whose}",
+    }
+
+
 def plan(trials: list[Trial], p: SplitParams) -> list[AngleSplit]:
-    """Group trials by angle, settle the channel list, and assign every trial a split."""
+    """Group trials by angle, settle the channel list, and assign every trial a split (the caller
+    leaves calibration trials out: see `plan_calibration`)."""
     by_angle: dict[str, list[Trial]] = {}
     for t in trials:
         by_angle.setdefault(t.angle, []).append(t)
@@ -165,23 +186,44 @@ def plan(trials: list[Trial], p: SplitParams) -> list[AngleSplit]:
         group = by_angle[angle]
         channels = majority_channels(group)
         kept = [t for t in group if t.channels == channels]
-        aside = [
-            {
-                "angle": angle,
-                "batch_id": t.batch_id,
-                "trial_id": t.trial_id,
-                "reason": f"channels {list(t.channels)} differ from the channels {list(channels)} "
-                f"of the majority of trials at angle {angle}",
-            }
-            for t in group
-            if t.channels != channels
-        ]
+        whose = f"the majority of trials at angle {angle}"
+        aside = [_other_channels(t, channels, whose) for t in group if t.channels != channels]
         external = [t for t in kept if is_external(t.batch_id, p.external_batches)]
         internal = {t.key: t for t in kept if not is_external(t.batch_id, p.external_batches)}
         keys = assign(list(internal), angle, p)
         splits = {name: [internal[k] for k in keys[name]] for name in ("train", "val", "test")}
         splits["external"] = sorted(external, key=lambda t: t.key)
         out.append(AngleSplit(angle, channels, splits, aside))
+    return out
+
+
+@dataclass
+class AngleCalibration:
+    """The calibration trials of one angle, written to `calibration/<angle>.parquet`."""
+
+    angle: str
+    channels: tuple[str, ...]
+    trials: list[Trial]
+    set_aside: list[dict[str, str]]
+
+
+def plan_calibration(trials: list[Trial], channels_of: dict[str, tuple[str, ...]]) -> list[AngleCalibration]:
+    """Group calibration trials by angle; keep those with the angle's channels (`channels_of`,
+    from the angle's split), or the calibration majority's at an angle with no other trials."""
+    by_angle: dict[str, list[Trial]] = {}
+    for t in trials:
+        by_angle.setdefault(t.angle, []).append(t)
+    out = []
+    for angle in sorted_angles(by_angle):
+        group = sorted(by_angle[angle], key=lambda t: t.key)
+        if angle in channels_of:
+            channels, whose = channels_of[angle], f"the trials at angle {angle}"
+        else:
+            channels = majority_channels(group)
+            whose = f"the majority of calibration trials at angle {angle}"
+        kept = [t for t in group if t.channels == channels]
+        aside = [_other_channels(t, channels, whose) for t in group if t.channels != channels]
+        out.append(AngleCalibration(angle, channels, kept, aside))
     return out
 
 
@@ -192,20 +234,26 @@ def split_table(trials: list[Trial], schema: pa.Schema) -> pa.Table:
     return pa.concat_tables([t.table.cast(schema) for t in trials])
 
 
+def _schema(trials: list[Trial], channels: tuple[str, ...]) -> pa.Schema:
+    """The schema of a file of these trials: the first one's, else the documented one."""
+    if trials:
+        return trials[0].table.select(columns_for(channels)).schema.remove_metadata()
+    return table_schema(channels)
+
+
 def run(in_dir: Path, out_dir: Path, p: SplitParams, *, log: Log = _stderr) -> dict[str, Any]:
-    """Write every angle's four split files and the manifest; returns the manifest."""
+    """Write every angle's four split files, the calibration files and the manifest; returns the
+    manifest."""
     trials, rate_hz = load_trials(in_dir)
-    angles = plan(trials, p)
+    angles = plan([t for t in trials if t.purpose != CALIBRATION], p)
+    calibration = plan_calibration(
+        [t for t in trials if t.purpose == CALIBRATION], {a.angle: a.channels for a in angles}
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": []}
+    schemas: dict[str, pa.Schema] = {}
     for a in angles:
-        kept = [t for ts in a.splits.values() for t in ts]
-        base = kept[0].table if kept else None
-        schema = (
-            base.select(columns_for(a.channels)).schema.remove_metadata()
-            if base is not None
-            else table_schema(a.channels)
-        )
+        schema = schemas[a.angle] = _schema([t for ts in a.splits.values() for t in ts], a.channels)
         entry: dict[str, Any] = {"channels": list(a.channels), "splits": {}, "n_samples": {}, "n_trials": {}}
         for name in SPLITS:
             table = split_table(a.splits[name], schema)
@@ -216,7 +264,19 @@ def run(in_dir: Path, out_dir: Path, p: SplitParams, *, log: Log = _stderr) -> d
         manifest["angles"][a.angle] = entry
         manifest["set_aside"] += a.set_aside
         log(_angle_table(a.angle, entry, len(a.set_aside)))
-    _remove_stale(out_dir, {a.angle for a in angles})
+    manifest["calibration"] = {}
+    for c in calibration:
+        if c.trials:  # the angle's schema, so that the calibration rows read like its split files
+            schema = schemas.get(c.angle) or _schema(c.trials, c.channels)
+            write_table(split_table(c.trials, schema), out_dir / CALIBRATION / f"{c.angle}.parquet")
+            manifest["calibration"][c.angle] = [
+                {"batch_id": t.batch_id, "trial_id": t.trial_id, "unit_id": t.unit_id} for t in c.trials
+            ]
+        manifest["set_aside"] += c.set_aside
+        units = sorted({t.unit_id for t in c.trials})
+        log(f"split: calibration, angle {c.angle}: {len(c.trials)} trials (units {', '.join(units) or '-'})")
+    manifest["units"] = _units(trials, angles)
+    _remove_stale(out_dir, {a.angle for a in angles}, set(manifest["calibration"]))
     (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     for s in manifest["set_aside"]:
         log(f"split: set aside {s['batch_id']}/{s['trial_id']}: {s['reason']}")
@@ -232,11 +292,33 @@ def _angle_table(angle: str, entry: dict[str, Any], n_aside: int) -> str:
     return "\n".join(lines)
 
 
-def _remove_stale(out_dir: Path, angles: set[str]) -> None:
-    """Drop angle folders of an earlier run that this run does not write (only our own files)."""
+def _units(trials: list[Trial], angles: list[AngleSplit]) -> dict[str, dict[str, Any]]:
+    """Each estimator unit's batches, and its role: `training` if it has rows in a train split."""
+    trained = {t.unit_id for a in angles for t in a.splits["train"] if t.table.num_rows}
+    batches: dict[str, set[str]] = {}
+    for t in trials:
+        batches.setdefault(t.unit_id, set()).add(t.batch_id)
+    return {
+        unit: {"role": "training" if unit in trained else "new", "batches": sorted(ids)}
+        for unit, ids in sorted(batches.items())
+    }
+
+
+def _remove_stale(out_dir: Path, angles: set[str], calibration: set[str]) -> None:
+    """Drop angle folders and calibration files of an earlier run that this run does not write
+    (only our own files)."""
     ours = {f"{name}.parquet" for name in SPLITS}
     for d in sorted(out_dir.iterdir()):
+        if d.name == CALIBRATION:
+            continue
         if d.is_dir() and d.name not in angles and {f.name for f in d.iterdir()} <= ours:
             for f in d.iterdir():
                 f.unlink()
             d.rmdir()
+    folder = out_dir / CALIBRATION
+    if folder.is_dir():
+        for f in sorted(folder.glob("*.parquet")):
+            if f.is_file() and f.stem not in calibration:
+                f.unlink()
+        if not any(folder.iterdir()):
+            folder.rmdir()

@@ -3,6 +3,7 @@ stage uses, each file read at most once."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pandas as pd
@@ -50,3 +51,12 @@ class SplitFiles:
     def by_angle(self, split: str) -> dict[float, pd.DataFrame]:
         """{angle: frame} of one split, over the angle folders that have it, in angle order."""
         return {float(a): self.frame(a, split) for a in self.angles() if self.path(a, split).is_file()}
+
+
+def unit_roles(data_dir: Path) -> dict[str, str]:
+    """{unit_id: "training" | "new"} from the split stage's manifest (its `units`); {} without one."""
+    path = Path(data_dir) / "manifest.json"
+    if not path.is_file():
+        return {}
+    units = json.loads(path.read_text()).get("units") or {}
+    return {str(u): str(entry.get("role", "new")) for u, entry in units.items()}

@@ -13,7 +13,9 @@ import pyarrow.parquet as pq
 
 from pipeline.vocab import AXES, ID_COLUMNS
 
-TEXT_IDS = frozenset({"batch_id", "trial_id", "tissue_point", "phase"})  # the other columns are float64
+TEXT_IDS = frozenset(
+    {"batch_id", "unit_id", "trial_id", "tissue_point", "phase"}
+)  # the other columns are float64
 
 
 def columns_for(channels: Iterable[str]) -> list[str]:

@@ -5,7 +5,8 @@ A checkpoint (`model.pt`) is a plain dict of tensors, strings, numbers, lists an
   format "needlecue-model/1"; kind "ls" | "fnn" | "lstm"; config `ModelConfig.to_dict()`;
   state_dict (ls: "weight" (3, channels) = C of eq. (1) and "bias" (3,), zeros without intercept;
   networks: their module's state_dict); preprocessing {x_mean, x_std, y_mean, y_std} float64
-  (identity for ls); channels; targets ["fx", "fy", "fz"]; rate_hz; angle_deg;
+  (identity for ls); channels; inputs (`features.FeatureSpec.to_dict()`: what the model computes
+  from the volts; absent in older checkpoints = raw volts); targets ["fx", "fy", "fz"]; rate_hz; angle_deg;
   train_data_sha256; params (the params section it was trained with); torch_version.
 """
 
@@ -123,12 +124,13 @@ def data_sha256(*frames: pd.DataFrame) -> str:
 
 
 def checkpoint_sha256(checkpoint: dict[str, Any]) -> str:
-    """Content hash of what the model computes: config, channels, targets and every tensor's name,
-    dtype, shape and bytes. Unlike the bytes of `torch.save` (which embed a record id), it is equal for
-    equal models."""
+    """Content hash of what the model computes: config, channels, inputs, targets and every tensor's
+    name, dtype, shape and bytes. Unlike the bytes of `torch.save` (which embed a record id), it is equal
+    for equal models. A checkpoint without `inputs` (raw volts) hashes as before they were recorded."""
     check_checkpoint(checkpoint, "hash")
     h = hashlib.sha256()
-    head = {k: checkpoint[k] for k in ("kind", "config", "channels", "targets")}
+    keys = ("kind", "config", "channels", "targets") + (("inputs",) if "inputs" in checkpoint else ())
+    head = {k: checkpoint[k] for k in keys}
     h.update(json.dumps(head, sort_keys=True).encode())
     for group in ("state_dict", "preprocessing"):
         tensors = checkpoint[group]

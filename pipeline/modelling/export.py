@@ -1,9 +1,10 @@
 """Deployable force models: a needlecue checkpoint as a self-contained ONNX graph, logged to MLflow.
 
-The graph reads raw volts and returns newtons, with the checkpoint's standardisation inside it, so the
-simulator's client needs onnxruntime and nothing of this project's Python code (and never a pickle):
+The graph reads the model's inputs and returns newtons, with the checkpoint's standardisation inside
+it, so the simulator's client needs onnxruntime, numpy and `pipeline.modelling.features` (which turns
+volts into inputs, and applies a unit's calibration) and never a pickle:
 
-    input  `volts`   float32 (N, C) for ls/fnn, (N, window, C) for lstm, in `channels` order
+    input  `inputs`  float32 (N, C) for ls/fnn, (N, window, C) for lstm, in `channels` order
     output `force_n` float32 (N, 3): fx, fy, fz in N
 
 The same checkpoint gives the same ONNX bytes, in any process (a test checks it), and the MLflow model
@@ -23,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpoint_sha256
+from pipeline.modelling.features import FeatureSpec
 from pipeline.modelling.networks import build_network
 from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAME, OUTPUT_NAME
 
@@ -46,7 +48,7 @@ _EXPORTER_NOISE = (
 
 
 def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
-    """The checkpoint's network as one float32 module, raw volts in, newtons out (eval mode)."""
+    """The checkpoint's network as one float32 module, model inputs in, newtons out (eval mode)."""
     import torch
     from torch import nn
 
@@ -55,7 +57,7 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
     state = checkpoint["state_dict"]
     with torch.random.fork_rng(devices=[]):  # the throwaway initialisation must not use the caller's RNG
         if cfg.kind == "ls":
-            # F = C v (+ b): the paper's calibration matrix on raw volts, no scaling (as Predictor does)
+            # F = C x (+ b): the paper's calibration matrix on the unscaled inputs (as Predictor does)
             net: nn.Module = nn.Linear(cfg.n_in, cfg.n_out)
             net.load_state_dict({k: state[k].float() for k in ("weight", "bias")})
         else:
@@ -148,6 +150,7 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
         "targets": list(checkpoint["targets"]),
         "rate_hz": _json_float(checkpoint["rate_hz"]),
         "window": int(checkpoint["config"].get("window", 1)),
+        "inputs": FeatureSpec.from_dict(checkpoint.get("inputs")).to_dict(),
         "input": INPUT_NAME,
         "output": OUTPUT_NAME,
         "checkpoint_sha256": checkpoint_sha256(checkpoint),
@@ -158,12 +161,13 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
 
 
 def input_example(checkpoint: dict[str, Any]) -> np.ndarray:
-    """Three plausible inputs: the training mean of the volts and one std either side (never below 0 V).
-
-    For ls, whose preprocessing is the identity, that is 0, 0 and 1 V on every channel."""
+    """Three plausible inputs: the training mean of the inputs and one std either side (raw volts
+    never below 0 V). For ls, whose preprocessing is the identity, that is -1, 0 and 1 on every channel."""
     pre = checkpoint["preprocessing"]
     mean, std = pre["x_mean"].double().numpy(), pre["x_std"].double().numpy()
-    rows = np.clip(mean[None, :] + np.array([-1.0, 0.0, 1.0])[:, None] * std[None, :], 0.0, None)
+    rows = mean[None, :] + np.array([-1.0, 0.0, 1.0])[:, None] * std[None, :]
+    if FeatureSpec.from_dict(checkpoint.get("inputs")).kind == "volts":
+        rows = np.clip(rows, 0.0, None)
     window = int(checkpoint["config"].get("window", 1))
     if checkpoint["kind"] == "lstm":
         rows = np.repeat(rows[:, None, :], window, axis=1)  # a steady reading over the whole window
@@ -181,9 +185,9 @@ def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: np.ndarray) -
     got = session.run(None, {INPUT_NAME: example})[0]
     n_in = example.shape[-1]
     # the LSTM's example rows are windows: predict each as a trial of its own, keep its last sample
-    volts = example.reshape(-1, n_in)
-    trials = np.repeat(np.arange(len(example)), volts.shape[0] // len(example))
-    expected = Predictor(checkpoint).predict_arrays(volts, trials)
+    x = example.reshape(-1, n_in).astype(np.float64)
+    trials = np.repeat(np.arange(len(example)), x.shape[0] // len(example))
+    expected = Predictor(checkpoint).predict_inputs(x, trials)
     expected = expected.reshape(len(example), -1, expected.shape[-1])[:, -1]
     tolerance = 1e-5 * max(float(np.abs(expected).max()), 1.0)
     if got.shape != expected.shape or not np.allclose(got, expected, rtol=0, atol=tolerance):

@@ -1,11 +1,15 @@
 """Training the three model kinds, one per insertion angle, on the estimator's voltages only.
 
-- `ls`: the paper's calibration matrix, eq. (1)-(2), F = C v fitted by least squares on raw
-  volts with no intercept (scikit-learn `LinearRegression(fit_intercept=False)`);
+- `ls`: the paper's calibration matrix, eq. (1)-(2), F = C x fitted by least squares with no
+  intercept (scikit-learn `LinearRegression(fit_intercept=False)`);
 - `fnn`: the paper's feed-forward network, channels -> 20 -> 20 -> 3 (Sec. III-B), on the
-  voltages of the current sample;
-- `lstm`: an LSTM on the last `window` voltage samples of the same trial (Sec. VI), the first
+  inputs of the current sample;
+- `lstm`: an LSTM on the last `window` input samples of the same trial (Sec. VI), the first
   samples of a trial padded by repeating its first sample, predicting the force at the last one.
+
+What a model reads (`x`) is its params' `inputs` (`pipeline.modelling.features`): raw volts as in
+the paper, or the FSR conductance relative to the trial's rest reading, which transfers between
+estimator units; the checkpoint records it.
 
 Inputs and targets of the networks are standardised with the training split's statistics only.
 Training is bit-for-bit deterministic: seeded initialisation and shuffling, deterministic
@@ -26,7 +30,8 @@ import pandas as pd
 
 from pipeline.config import PARAMS_MODELS, FNNParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
-from pipeline.modelling.inputs import column_stats, inputs_of, trial_codes
+from pipeline.modelling.features import FeatureSpec
+from pipeline.modelling.inputs import column_stats, features_of, inputs_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch
 from pipeline.modelling.predict import Predictor
 from pipeline.vocab import AXES, KINDS, channels_of, rate_hz
@@ -141,16 +146,17 @@ def fit(
     _import_backends(kind)  # before the clock: train_seconds measures the work, not the imports
     codes = trial_codes(train)
     started = time.perf_counter()
+    spec = FeatureSpec(**params.inputs.model_dump())
     if isinstance(params, LSParams):
         cfg = ModelConfig(kind="ls", n_in=len(channels))
-        state, pre, history, summary = _fit_ls(params, train, val, channels)
+        state, pre, history, summary = _fit_ls(params, spec, train, val, channels)
     else:
         if isinstance(params, FNNParams):
             cfg = ModelConfig("fnn", len(channels), hidden=tuple(params.hidden), activation=params.activation)
         else:
             hidden = (params.hidden,) * params.layers
             cfg = ModelConfig("lstm", len(channels), hidden=hidden, activation="tanh", window=params.window)
-        state, pre, history, summary = _fit_network(cfg, params, train, val, channels, log)
+        state, pre, history, summary = _fit_network(cfg, params, spec, train, val, channels, log)
 
     seconds = time.perf_counter() - started
     sha = train_data_sha256 or data_sha256(train, val)
@@ -161,6 +167,7 @@ def fit(
         "state_dict": state,
         "preprocessing": pre,
         "channels": list(channels),
+        "inputs": spec.to_dict(),
         "targets": list(AXES),
         "rate_hz": rate_hz(train["t_s"], codes) if "t_s" in train.columns else math.nan,
         "angle_deg": _angle_deg(train),
@@ -199,13 +206,13 @@ def _scaled_mse(pred: np.ndarray, y: np.ndarray, y_std: np.ndarray) -> float:
 
 
 def _fit_ls(
-    params: LSParams, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
+    params: LSParams, spec: FeatureSpec, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
 ) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, float]], dict[str, Any]]:
-    """Eq. (2) on raw volts, no scaling: that is the paper's method, and scaling would add an offset."""
+    """Eq. (2) on the unscaled inputs: that is the paper's method, and scaling would add an offset."""
     import torch
     from sklearn.linear_model import LinearRegression
 
-    x = train[channels].to_numpy(np.float64)
+    x = features_of(train, channels, spec)
     y = train[list(AXES)].to_numpy(np.float64)
     _, y_std = column_stats(y)  # only to report a loss on the same scale as the networks'
 
@@ -217,7 +224,7 @@ def _fit_ls(
     if val.empty:
         val_loss = math.nan
     else:
-        xv = val[channels].to_numpy(np.float64)
+        xv = features_of(val, channels, spec)
         val_loss = _scaled_mse(xv @ weight.T + bias, val[list(AXES)].to_numpy(np.float64), y_std)
     state = {"weight": torch.from_numpy(weight), "bias": torch.from_numpy(bias)}
     n = len(channels)
@@ -242,6 +249,7 @@ def _preprocessing(x_mean: np.ndarray, x_std: np.ndarray, y_mean: np.ndarray, y_
 def _fit_network(
     cfg: ModelConfig,
     params: FNNParams | LSTMParams,
+    spec: FeatureSpec,
     train: pd.DataFrame,
     val: pd.DataFrame,
     channels: list[str],
@@ -250,13 +258,13 @@ def _fit_network(
     """Adam on standardised data, seeded shuffling, early stopping on val MSE keeping the best weights."""
     import torch
 
-    x_mean, x_std = column_stats(train[channels].to_numpy(np.float64))
+    x_mean, x_std = column_stats(features_of(train, channels, spec))
     y_mean, y_std = column_stats(train[list(AXES)].to_numpy(np.float64))
-    x_tr = torch.from_numpy(inputs_of(cfg, train, channels, x_mean, x_std))
+    x_tr = torch.from_numpy(inputs_of(cfg, train, channels, x_mean, x_std, spec))
     y_tr = torch.from_numpy(((train[list(AXES)].to_numpy(np.float64) - y_mean) / y_std).astype(np.float32))
     has_val = not val.empty
     if has_val:
-        x_va = torch.from_numpy(inputs_of(cfg, val, channels, x_mean, x_std))
+        x_va = torch.from_numpy(inputs_of(cfg, val, channels, x_mean, x_std, spec))
         y_va = torch.from_numpy(((val[list(AXES)].to_numpy(np.float64) - y_mean) / y_std).astype(np.float32))
     else:
         log(f"no validation rows: no early stopping, training all {params.max_epochs} epochs")

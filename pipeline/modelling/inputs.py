@@ -1,4 +1,4 @@
-"""Model inputs from processed frames: trial codes, time order, the LSTM's windows, scaling.
+"""Model inputs from processed frames: trial codes, time order, features, the LSTM's windows, scaling.
 
 Shared by training and prediction, so that a model sees at run time exactly what it trained on.
 """
@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.modelling.checkpoint import ModelConfig
+from pipeline.modelling.features import FeatureSpec, features
 from pipeline.vocab import TRIAL_KEY
 
 
@@ -50,13 +51,27 @@ def column_stats(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, np.where(std > 0, std, 1.0)
 
 
+def times_of(frame: pd.DataFrame) -> np.ndarray:
+    """A frame's `t_s` (s), or the row number when it has none."""
+    return frame["t_s"].to_numpy(np.float64) if "t_s" in frame.columns else np.arange(len(frame), dtype=float)
+
+
+def features_of(frame: pd.DataFrame, channels: list[str], spec: FeatureSpec) -> np.ndarray:
+    """(n, channels) model inputs of a frame's rows (`features.features` per trial), in its order."""
+    return features(frame[channels].to_numpy(np.float64), trial_codes(frame), times_of(frame), spec)
+
+
 def inputs_of(
-    cfg: ModelConfig, frame: pd.DataFrame, channels: list[str], x_mean: np.ndarray, x_std: np.ndarray
+    cfg: ModelConfig,
+    frame: pd.DataFrame,
+    channels: list[str],
+    x_mean: np.ndarray,
+    x_std: np.ndarray,
+    spec: FeatureSpec,
 ) -> np.ndarray:
     """Standardised float32 network inputs of a frame's rows, in the frame's order."""
-    x = (frame[channels].to_numpy(np.float64) - x_mean) / x_std
-    t = frame["t_s"].to_numpy(np.float64) if "t_s" in frame.columns else np.arange(len(frame), dtype=float)
-    return network_inputs(cfg, x, trial_codes(frame), t)
+    x = (features_of(frame, channels, spec) - x_mean) / x_std
+    return network_inputs(cfg, x, trial_codes(frame), times_of(frame))
 
 
 def network_inputs(cfg: ModelConfig, x_std: np.ndarray, codes: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -13,7 +13,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
-from pipeline.modelling.inputs import network_inputs, trial_codes
+from pipeline.modelling.features import FeatureSpec, InputTransform, features
+from pipeline.modelling.inputs import network_inputs, times_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch
 from pipeline.vocab import KINDS
 
@@ -23,8 +24,10 @@ PREDICT_CHUNK = 65_536  # rows per forward pass at prediction time
 class Predictor:
     """A trained model behind one call: volts in, force in newtons out.
 
-    Attributes: `kind`, `channels` (the order it reads them in), `targets`, `rate_hz`,
-    `angle_deg`, `window` (samples of history it uses, 1 for ls/fnn), `config`, `checkpoint`.
+    Attributes: `kind`, `channels` (the order it reads them in), `inputs` (the `FeatureSpec` it
+    computes from the volts), `targets`, `rate_hz`, `angle_deg`, `window` (samples of history it
+    uses, 1 for ls/fnn), `config`, `checkpoint`. A unit's calibration is an `InputTransform` passed
+    to `predict`: it maps the unit's inputs before the model reads them.
     """
 
     def __init__(self, checkpoint: dict[str, Any]) -> None:
@@ -36,6 +39,7 @@ class Predictor:
             raise ValueError(f"unknown model kind {self.kind!r} in checkpoint")
         self.config = ModelConfig.from_dict(checkpoint["config"])
         self.channels: tuple[str, ...] = tuple(checkpoint["channels"])
+        self.inputs = FeatureSpec.from_dict(checkpoint.get("inputs"))
         self.targets: tuple[str, ...] = tuple(checkpoint["targets"])
         self.rate_hz: float = float(checkpoint["rate_hz"])
         self.angle_deg: float = float(checkpoint["angle_deg"])
@@ -62,7 +66,7 @@ class Predictor:
     def __repr__(self) -> str:
         return f"Predictor(kind={self.kind!r}, angle_deg={self.angle_deg:g}, channels={list(self.channels)})"
 
-    def predict(self, frame: pd.DataFrame) -> np.ndarray:
+    def predict(self, frame: pd.DataFrame, transform: InputTransform | None = None) -> np.ndarray:
         """Forces (n, 3) in N for the frame's rows, in its row order.
 
         Reads the model's channels by name (extra columns are ignored). The LSTM builds its windows
@@ -76,18 +80,18 @@ class Predictor:
                 f"the frame has {list(frame.columns)}"
             )
         volts = frame[list(self.channels)].to_numpy(np.float64)
-        t = (
-            frame["t_s"].to_numpy(np.float64)
-            if "t_s" in frame.columns
-            else np.arange(len(frame), dtype=float)
-        )
-        return self._predict(volts, trial_codes(frame), t)
+        return self._predict(volts, trial_codes(frame), times_of(frame), transform)
 
     def predict_arrays(
-        self, volts: np.ndarray, trial_ids: Sequence[Any] | np.ndarray | None = None
+        self,
+        volts: np.ndarray,
+        trial_ids: Sequence[Any] | np.ndarray | None = None,
+        t_s: np.ndarray | None = None,
+        transform: InputTransform | None = None,
     ) -> np.ndarray:
         """Forces (n, 3) in N for volts (n, channels) in `self.channels` order, rows in time order
-        within each trial; `trial_ids` (n,) labels trials, None = all rows are one trial.
+        within each trial; `trial_ids` (n,) labels trials, None = all rows are one trial; `t_s` the
+        sample times (default: row number / rate_hz; rest-relative inputs need seconds).
 
         A live client can keep the last `window` samples and take the last row of the result.
         """
@@ -104,23 +108,60 @@ class Predictor:
             codes = pd.factorize(
                 pd.Series(list(trial_ids) if not isinstance(trial_ids, np.ndarray) else trial_ids)
             )[0]
-        return self._predict(volts, codes.astype(np.int64), np.arange(len(volts), dtype=float))
+        if t_s is None:
+            step = 1.0 / self.rate_hz if np.isfinite(self.rate_hz) and self.rate_hz > 0 else 1.0
+            t_s = np.arange(len(volts), dtype=float) * step
+        return self._predict(volts, codes.astype(np.int64), np.asarray(t_s, dtype=np.float64), transform)
 
-    def _predict(self, volts: np.ndarray, codes: np.ndarray, t: np.ndarray) -> np.ndarray:
+    def _predict(
+        self, volts: np.ndarray, codes: np.ndarray, t: np.ndarray, transform: InputTransform | None
+    ) -> np.ndarray:
         if not np.isfinite(volts).all():
             bad = [c for c, ok in zip(self.channels, np.isfinite(volts).all(axis=0), strict=True) if not ok]
             raise ValueError(f"non-finite volts in channel(s) {bad}")
         if len(volts) == 0:
             return np.zeros((0, len(self.targets)))
+        x_in = features(volts, codes, t, self.inputs)
+        if transform is not None:
+            x_in = transform.apply(x_in)
+        return self._forward(x_in, codes, t)
+
+    def predict_inputs(self, x: np.ndarray, trial_ids: np.ndarray | None = None) -> np.ndarray:
+        """Forces (n, 3) for model inputs `x` (n, channels) already computed from volts (what the
+        deployable graph reads), rows in time order within each trial."""
+        x = np.asarray(x, dtype=np.float64)
+        codes = np.zeros(len(x), np.int64) if trial_ids is None else pd.factorize(np.asarray(trial_ids))[0]
+        return self._forward(x, codes.astype(np.int64), np.arange(len(x), dtype=float))
+
+    def _forward(self, x_in: np.ndarray, codes: np.ndarray, t: np.ndarray) -> np.ndarray:
+        if len(x_in) == 0:
+            return np.zeros((0, len(self.targets)))
         if self.kind == "ls":
-            return volts @ self._weight.T + self._bias
+            return x_in @ self._weight.T + self._bias
         import torch
 
-        x = torch.from_numpy(network_inputs(self.config, (volts - self._x_mean) / self._x_std, codes, t))
+        x = torch.from_numpy(network_inputs(self.config, (x_in - self._x_mean) / self._x_std, codes, t))
         with deterministic_torch(), torch.no_grad():  # same thread count as training: same float sums
             # fixed-size chunks bound the memory of long recordings (an LSTM keeps every step's state)
             y = torch.cat([self._net(x[i : i + PREDICT_CHUNK]) for i in range(0, len(x), PREDICT_CHUNK)])
         return y.double().numpy() * self._y_std + self._y_mean
+
+    def torch_forward(self) -> Any:
+        """The frozen model as a float64 torch function of its inputs, (n, c) -> (n, 3) N, that
+        gradients flow through (LSTM: (n, window, c) windows); for fitting a unit's calibration."""
+        import copy
+
+        import torch
+
+        y_mean, y_std = torch.from_numpy(self._y_mean), torch.from_numpy(self._y_std)
+        if self.kind == "ls":
+            weight, bias = torch.from_numpy(self._weight), torch.from_numpy(self._bias)
+            return lambda x: x @ weight.T + bias
+        net = copy.deepcopy(self._net).double()
+        for p in net.parameters():
+            p.requires_grad_(False)
+        x_mean, x_std = torch.from_numpy(self._x_mean), torch.from_numpy(self._x_std)
+        return lambda x: net((x - x_mean) / x_std) * y_std + y_mean
 
 
 def load_predictor(model_dir_or_file: Path) -> Predictor:

@@ -6,6 +6,10 @@ file's row order:
 
     data_angle (str), split (str), row (int64: position in the split file), fx, fy, fz (float64, N)
 
+On the external split, rows of an estimator unit that has a calibration are predicted through the
+unit's input transform; those models also get an `external-uncalibrated` block (`UNCALIBRATED`),
+the same rows without it, so the report can show what calibration changed.
+
 Evaluation, the cue packs and their scoring, the report and the registry all read these instead
 of loading the models again. A model is predicted on a split only if the split has rows and holds
 the model's channels; `Predictions.get` returns None otherwise.
@@ -21,6 +25,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.vocab import AXES, angle_name, sorted_angles
+
+UNCALIBRATED = "external-uncalibrated"  # the external rows predicted without any unit's calibration
 
 SCHEMA = pa.schema(
     [

@@ -1,5 +1,5 @@
-"""Where MLflow lives, how the registered force models are named, and how an alias is looked up:
-shared by the `register` stage, the simulator's client and the `needlecue` commands.
+"""Where MLflow lives, how the registered force models and estimator units are named, and how an alias
+is looked up: shared by the `register` stage, the simulator's client and the `needlecue` commands.
 
 The tracking store is `MLFLOW_TRACKING_URI` if set, else `sqlite:///<project>/mlflow.db`, an
 absolute path to the project's root: `dvc exp run --temp` runs stages in a copy under
@@ -14,12 +14,17 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pipeline.vocab import ID_PATTERN
+
 if TYPE_CHECKING:
     from mlflow import MlflowClient
 
 EXPERIMENT = "needle-force"
 CHAMPION = "champion"
 CHALLENGER = "challenger"
+TAG = "needlecue."  # prefix of our own tags on runs and model versions
+UNIT_EXPERIMENT = "needle-units"  # one run per registered unit calibration document
+UNIT_ALIAS = "current"  # needle-unit-<unit_id>@current: the calibration a simulator applies
 ABOUT = """One run per trained model: `<angle>°-<kind>` (ls, fnn, lstm), tagged `angle_deg` and `model_type`.
 
 Metrics are named `<split>_<measure>_<axis>`: split `val`, `test` or `external` (the held-out tissue
@@ -30,6 +35,13 @@ external sets of the angles 15° / 30° away. `train_loss` / `val_loss` are the 
 To compare: group runs by the tag `angle_deg`, or filter `tags.angle_deg = '30'`, and chart
 `external_nrmse_pct_mean`. Registered models: `needle-force-<angle>`, aliases `champion` and
 `challenger`."""
+UNIT_ABOUT = """One run per estimator unit calibration document (needlecue-unit/1), named after its unit.
+
+Params: the `calibrate` settings it was fitted with. Metrics: `<kind>_loss_before` / `<kind>_loss_after`,
+the standardised force error of the frozen shared models on the unit's calibration trials without and
+with its input transform. Tags: `unit_id`, `batches`, `angles_used`, `angles_missing` and
+`needlecue.calibration_sha256` (of the document's bytes). The document is the artifact
+`calibration/calibration.json`, registered as `needle-unit-<unit_id>`, alias `current`."""
 # Fail fast on an unreachable HTTP store instead of MLflow's default minutes of retries.
 _HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
 
@@ -48,6 +60,13 @@ def model_name(angle_deg: float) -> str:
 def model_uri(angle_deg: float, alias: str = CHAMPION) -> str:
     """`models:/needle-force-30@champion`."""
     return f"models:/{model_name(angle_deg)}@{alias}"
+
+
+def unit_model_name(unit_id: str) -> str:
+    """`needle-unit-est-042` for unit `est-042`: the registered calibrations of one estimator unit."""
+    if not isinstance(unit_id, str) or ID_PATTERN.fullmatch(unit_id) is None:
+        raise ValueError(f"not an estimator unit id: {unit_id!r} (ids match {ID_PATTERN.pattern})")
+    return f"needle-unit-{unit_id}"
 
 
 def project_root(start: Path | None = None) -> Path:
@@ -74,10 +93,10 @@ def sqlite_file(uri: str) -> Path | None:
     return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
 
 
-def experiment_id(client: MlflowClient, name: str = EXPERIMENT) -> str:
-    """The experiment's id, creating it if needed. With a sqlite store its artifacts go to
-    `mlartifacts/` beside the database file: MLflow's own default is `./mlruns` under the cwd,
-    which under `dvc exp run --temp` is a throwaway copy. A server decides for itself."""
+def experiment_id(client: MlflowClient, name: str = EXPERIMENT, about: str = ABOUT) -> str:
+    """The experiment's id, creating it (described by `about`) if needed. With a sqlite store its
+    artifacts go to `mlartifacts/` beside the database file: MLflow's own default is `./mlruns` under
+    the cwd, which under `dvc exp run --temp` is a throwaway copy. A server decides for itself."""
     found = client.get_experiment_by_name(name)
     if found is not None:
         return str(found.experiment_id)
@@ -86,7 +105,7 @@ def experiment_id(client: MlflowClient, name: str = EXPERIMENT) -> str:
     if db is not None:
         location = (db.parent / "mlartifacts").as_uri()
     return str(
-        client.create_experiment(name, artifact_location=location, tags={"mlflow.note.content": ABOUT})
+        client.create_experiment(name, artifact_location=location, tags={"mlflow.note.content": about})
     )
 
 

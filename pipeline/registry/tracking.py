@@ -19,6 +19,7 @@ from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
 from pipeline.registry.candidates import Trained
+from pipeline.registry.store import TAG
 from pipeline.reporting.loss import loss_curve_png
 from pipeline.vocab import AXES
 
@@ -26,7 +27,6 @@ if TYPE_CHECKING:
     from mlflow import MlflowClient
 
 Log = Callable[[str], None]
-TAG = "needlecue."  # prefix of our own tags on runs and model versions
 
 
 def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:

@@ -1,5 +1,6 @@
 """Registering: a candidate becomes a version of `needle-force-<angle>` and the aliases move by
-the champion rule; `rollback` moves the champion back. `register_all` is what the stage runs."""
+the champion rule; `rollback` moves the champion back. `register_all` is what the stage runs: it
+also registers the estimator units' calibrations (`pipeline.registry.units`)."""
 
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ from pipeline.registry.store import (
     versions,
 )
 from pipeline.registry.tracking import TAG, Datasets, git_commit, track
+from pipeline.registry.units import load_documents, register_units
 from pipeline.vocab import AXES
 
 if TYPE_CHECKING:
@@ -192,12 +194,15 @@ def register_all(
     out_json: Path,
     params: RegisterParams,
     log: Log,
+    cal_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """Track all models, register the best per angle, write `out_json`; returns its content."""
+    """Track all models, register the best per angle, then every unit calibration in `cal_dir`
+    (`<unit_id>.json`; none if None), write `out_json`; returns its content."""
     try:
         client = connect()  # before anything else: an unreachable store changes nothing
     except RegistryUnreachable as e:
         raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
+    documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change
     metrics_path = reports_dir / "metrics.json"
     metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
     figures = sorted((reports_dir / "figures").glob("*.png"))
@@ -240,6 +245,7 @@ def register_all(
         external = files.frame(angle, split)
         angles[angle] = register_angle(client, t, uri, run_id, external, known, params, log)
     angles = dict(sorted(angles.items(), key=lambda kv: float(kv[0])))
+    units = register_units(client, documents, list(angles), log)
     record = {
         "experiment": EXPERIMENT,
         "rule": {
@@ -254,6 +260,8 @@ def register_all(
             (a for a, e in angles.items() if CHAMPION in e["aliases"] and e["action"] == "registered"),
             key=float,
         ),
+        "units": units["units"],
+        "stale_units": units["stale_units"],
     }
     out_json.parent.mkdir(parents=True, exist_ok=True)
     out_json.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")

@@ -311,8 +311,14 @@ def agreement(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
     return out
 
 
-def render(metrics: Mapping[str, Any], figures: Sequence[str] = (), cue_sections: Sequence[str] = ()) -> str:
-    """report.md: the sections in order; `cue_sections` (the angle cues' Markdown) come last."""
+def render(
+    metrics: Mapping[str, Any],
+    figures: Sequence[str] = (),
+    cue_sections: Sequence[str] = (),
+    unit_section: str = "",
+) -> str:
+    """report.md: the sections in order; `cue_sections` (the angle cues' Markdown), then
+    `unit_section` (the estimator units') come last."""
     models = models_in(metrics)
     angles = sorted_angles(
         list(metrics.get("datasets", {})) + [a for m in metrics.get("within_angle", {}).values() for a in m]
@@ -322,6 +328,7 @@ def render(metrics: Mapping[str, Any], figures: Sequence[str] = (), cue_sections
     out += table2(metrics, models) + table3(metrics, angles) + accuracy(metrics, models)
     out += figures_section(figures) + agreement(metrics, models)
     report = "\n".join(out)
-    for section in cue_sections:
-        report = report.rstrip("\n") + "\n\n" + section.strip("\n") + "\n"
+    for section in [*cue_sections, unit_section]:
+        if section.strip():
+            report = report.rstrip("\n") + "\n\n" + section.strip("\n") + "\n"
     return report

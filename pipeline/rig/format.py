@@ -1,5 +1,6 @@
-"""The rig-log/1 contract (`docs/rig-log-format.md`): file and column names, the id pattern, the
-`batch.yaml` models and `Problem`, the one way any part of the pipeline says what is wrong.
+"""The rig-log/1 contract (`docs/rig-log-format.md`): file and column names, the id pattern (its one
+home is `pipeline.vocab`, shared with params.yaml's unit ids), the `batch.yaml` models and `Problem`,
+the one way any part of the pipeline says what is wrong.
 
 Shared by the simulator (which writes such folders) and ingest (which reads them), so the two
 can never disagree about the format.
@@ -7,7 +8,6 @@ can never disagree about the format.
 
 from __future__ import annotations
 
-import re
 from dataclasses import asdict, dataclass
 from datetime import date
 from pathlib import Path
@@ -15,8 +15,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from pipeline.vocab import ID_PATTERN
+
 FORMAT = "rig-log/1"
-ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 BATCH_FILE = "batch.yaml"
 TRIALS_FILE = "trials.csv"
 TRIAL_COLUMNS = ("trial_id", "angle_deg", "tissue_point")
@@ -90,6 +91,9 @@ class BatchMeta(_Meta):
     sensor: SensorMeta
     reference: ReferenceMeta
     robot: RobotMeta | None = None
+    # what the batch is for: `training` data, or a new unit's short `calibration` session, whose
+    # trials never enter train/val/test/external (pipeline.dataset.split)
+    purpose: Literal["training", "calibration"] = "training"
 
     def to_yaml_dict(self) -> dict[str, Any]:
         return self.model_dump(mode="json", exclude_none=True)

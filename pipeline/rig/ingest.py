@@ -45,7 +45,7 @@ import pyarrow.parquet as pq
 
 from pipeline.config import IngestParams
 from pipeline.rig.expectations import Validator
-from pipeline.rig.format import BATCH_FILE, TRIAL_COLUMNS, TRIALS_FILE, Problem, batch_dirs
+from pipeline.rig.format import BATCH_FILE, ID_PATTERN, TRIAL_COLUMNS, TRIALS_FILE, Problem, batch_dirs
 from pipeline.rig.reader import ParsedBatch, parse_batch
 
 FINGERPRINT = "fingerprint.json"
@@ -54,7 +54,7 @@ GX_RESULTS = "gx_results.json"
 # Batches are written here first and then renamed into place; never a batch folder itself.
 STAGING = ".staging"
 # Bump when the output layout or meaning changes: every stored batch is then parsed again.
-OUTPUT_VERSION = 1
+OUTPUT_VERSION = 2  # 2: batch.json carries `purpose`
 # The modules of pipeline/rig/ that decide a batch's outputs, hashed into its fingerprint so a
 # code change parses every batch again (datadocs.py only renders the reports: not here).
 CODE_FILES = (
@@ -108,6 +108,7 @@ def fingerprint(batch_dir: Path, params: IngestParams, source_dir: str | None = 
         "n_files": len(files),
         "params": params.model_dump(mode="json"),
         "code_sha256": _code_sha256(),
+        "id_pattern": ID_PATTERN.pattern,  # lives in pipeline/vocab.py, outside CODE_FILES
         "versions": {m: metadata.version(m) for m in ("great_expectations", "pandas", "pyarrow")},
     }
     parts["fingerprint"] = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()

@@ -6,8 +6,9 @@ overlap (`pipeline.signals.filters`) and every grid sample given a phase
 
 Input: the ingest stage's accepted batches, `IN_DIR/<batch_id>/{batch.json, trials.parquet,
 fsr.parquet, ref.parquet}` (folders without `trials.parquet` were set aside by ingest and are
-skipped). Output: `OUT_DIR/<batch_id>.parquet` + `.json`, and one offsets.csv row per trial. A
-trial that cannot be aligned is set aside with its reason in that row.
+skipped). Output: `OUT_DIR/<batch_id>.parquet` (every row carries the batch's `unit_id`) + `.json`
+(channels, rate, unit_id and the batch's `purpose`), and one offsets.csv row per trial. A trial
+that cannot be aligned is set aside with its reason in that row.
 """
 
 from __future__ import annotations
@@ -122,6 +123,7 @@ class BatchInfo:
 
     batch_id: str
     unit_id: str
+    purpose: str  # training | calibration (batch.yaml; absent = training)
     channels: tuple[str, ...]
     units: str
     adc_bits: int | None
@@ -134,6 +136,7 @@ class BatchInfo:
         return cls(
             batch_id=str(meta["batch_id"]),
             unit_id=str(s["unit_id"]),
+            purpose=str(meta.get("purpose") or "training"),
             channels=tuple(str(c) for c in s["channels"]),
             units=str(s["units"]),
             adc_bits=None if s.get("adc_bits") is None else int(s["adc_bits"]),
@@ -228,6 +231,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
         row["n_grid"], row["n_dropped_gap"] = res.t_s.size, res.n_dropped_gap
         n = res.t_s.size
         columns["batch_id"].append(np.full(n, info.batch_id, dtype=object))
+        columns["unit_id"].append(np.full(n, info.unit_id, dtype=object))
         columns["trial_id"].append(np.full(n, tid, dtype=object))
         columns["angle_deg"].append(np.full(n, float(trial["angle_deg"])))
         columns["tissue_point"].append(np.full(n, str(trial["tissue_point"]), dtype=object))
@@ -277,6 +281,7 @@ def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = _stderr) -
             "channels": list(info.channels),
             "rate_hz": p.rate_hz,
             "unit_id": info.unit_id,
+            "purpose": info.purpose,
         }
         (out_dir / f"{info.batch_id}.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         written |= {f"{info.batch_id}.parquet", f"{info.batch_id}.json"}

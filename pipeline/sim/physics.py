@@ -219,13 +219,29 @@ class Estimator:
 
 
 def draw_estimator(rng: np.random.Generator, effects: EffectScales) -> Estimator:
-    """A unit with part-to-part variation (FSR +/-6 %, cast preload and FSR placement)."""
+    """One estimator unit: how it differs from the nominal unit (`docs/physics.md`, section 4).
+
+    Per FSR (`part_variation`): placement (azimuth, N(0, 3 deg), assumption), transfer gain (1 +
+    N(0, 6 %), FSR datasheet: +/-6 % part to part) and cast-in preload (0.49 N x (1 + N(0, 10 %)),
+    assumption). Per unit: the connector's alignment rotates the whole tripod (N(0, 5 deg) added to
+    all three azimuths, `alignment`, assumption), and the unit's own drift per decade, U(0.025,
+    0.05) (datasheet: under 5 % per decade; used when `unit_drift` > 0, else the nominal 0.04).
+    The draws come in that order, all of them whatever the switches, so a switch never changes
+    the other draws. With the three switches at 0 every unit is the nominal one.
+    """
     s = effects.part_variation
     base = Estimator()
+    azimuths = np.asarray(base.azimuths_deg) + s * rng.normal(0, 3.0, 3)
+    gains = 1.0 + s * rng.normal(0, 0.06, 3)
+    preloads = 0.49 * (1.0 + s * rng.normal(0, 0.10, 3))
+    # Appended after the three draws above, so that they stay what they were.
+    rotation = effects.alignment * rng.normal(0, 5.0)  # assumption: connector keyed within a few deg
+    drift = float(rng.uniform(0.025, 0.05))
     return Estimator(
-        azimuths_deg=tuple(np.asarray(base.azimuths_deg) + s * rng.normal(0, 3.0, 3)),
-        gains=tuple(1.0 + s * rng.normal(0, 0.06, 3)),
-        preloads_n=tuple(0.49 * (1.0 + s * rng.normal(0, 0.10, 3))),
+        azimuths_deg=tuple(float(a) for a in azimuths + rotation),
+        gains=tuple(float(g) for g in gains),
+        preloads_n=tuple(float(f) for f in preloads),
+        drift_per_decade=drift if effects.unit_drift > 0 else base.drift_per_decade,
     )
 
 

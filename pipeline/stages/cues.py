@@ -1,13 +1,15 @@
 """`cues` stage: the cue pack of every preset angle, and how good the cues are on held-out trials.
 
-Input: `DATA_DIR/<angle>/{train,external}.parquet` and the predict stage's `PRED_DIR` (every
-model's forces on those frames). Output in `OUT_DIR`: `packs/<angle>.json` (shipped with each
-angle's registered model; see `pipeline.cues.fit`) and `evaluation.json` (see
+Input: `DATA_DIR/<angle>/{train,external}.parquet`, the predict stage's `PRED_DIR` (every
+model's forces on those frames) and the units' calibrations in `CAL_DIR` (which new units have one:
+the cues are also scored per unit group, `by_unit_group`). Output in `OUT_DIR`:
+`packs/<angle>.json` (shipped with each angle's registered model; see `pipeline.cues.fit`) and
+`evaluation.json` (see
 `pipeline.cues.score`); the report stage renders them. Small or unusual data never stops the
 stage: what cannot be built or scored is left out and said, with why. It fails only on real
 errors: missing input folders, bad params, inconsistent channels.
 
-Usage: `python -m pipeline.run cues DATA_DIR PRED_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run cues DATA_DIR PRED_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -18,19 +20,24 @@ from pathlib import Path
 
 import typer
 
+from pipeline.calibration.document import read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import Predicted, build_packs, pack_json
-from pipeline.cues.score import evaluate_cues, evaluation_json, skipped_evaluation
-from pipeline.dataset.splits import SplitFiles
-from pipeline.modelling.predictions import Predictions
-from pipeline.vocab import angle_name
+from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
+from pipeline.cues.tracker import unit_offset
+from pipeline.cues.units import fit_unit_offsets, normalise, pack_units, rest_log_means
+from pipeline.dataset.splits import SplitFiles, unit_roles
+from pipeline.modelling.predictions import UNCALIBRATED, Predictions
+from pipeline.vocab import angle_name, channels_of
 
 
 def _log(msg: str) -> None:
     print(f"cues: {msg}", file=sys.stderr, flush=True)
 
 
-def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+def main(
+    data_dir: Path, pred_dir: Path, cal_dir: Path, out_dir: Path, params: Path = Path("params.yaml")
+) -> None:
     """Build the cue packs (one per preset angle) and score the cues on the external trials."""
     started = time.perf_counter()
     try:
@@ -42,6 +49,13 @@ def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("par
         train = {a: f for a, f in files.by_angle("train").items() if len(f)}
         if not train:
             raise FileNotFoundError(f"{data_dir}: no <angle>/train.parquet with rows (run the split stage)")
+        # each training unit's rest offset, taken out before the angle estimator sees the volts
+        channels = channels_of(next(iter(train.values())))
+        offsets, reference = fit_unit_offsets(rest_log_means(train, channels, p))
+        if offsets:
+            shown = ", ".join(f"{u} [{', '.join(f'{d:+.3f}' for d in v)}]" for u, v in offsets.items())
+            _log(f"unit rest offsets (log volts per channel): {shown}")
+        train = {a: normalise(f, channels, offsets) for a, f in train.items()}
 
         def predicted_for(preset: float) -> Predicted:
             """The preset's models of each kind on every angle's training frame."""
@@ -51,6 +65,8 @@ def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("par
             return {k: predictions.on_split(k, angle_name(preset), "train", train) for k in kinds}
 
         packs = build_packs(train, predicted_for, p, _log)
+        for pack in packs.values():
+            pack["units"] = pack_units(offsets, reference)
         available = tuple(k for k in p.kinds if all(predictions.has(k, angle_name(a)) for a in packs))
         for k in p.kinds:
             if k not in available:
@@ -63,12 +79,34 @@ def main(data_dir: Path, pred_dir: Path, out_dir: Path, params: Path = Path("par
                 p,
             )
         else:
+            scored = p.model_copy(update={"kinds": available})
+            docs = read_units(cal_dir)
+            pack = next(iter(packs.values()))
+            new = {
+                u: unit_offset(pack, u, (d.get("cues") or {}).get("rest_log_means")) for u, d in docs.items()
+            }
+            mapped = {**offsets, **{u: v for u, v in new.items() if v is not None and u not in offsets}}
+            external = {a: normalise(f, channels, mapped) for a, f in files.by_angle("external").items()}
+            external_raw = {a: normalise(f, channels, offsets) for a, f in files.by_angle("external").items()}
             evaluation = evaluate_cues(
-                files.by_angle("external"),
-                p.model_copy(update={"kinds": available}),
+                external,
+                scored,
                 packs,
                 lambda kind, preset, a: predictions.get(kind, angle_name(preset), angle_name(a), "external"),
                 log=_log,
+            )
+            calibrated = {u: bool(d.get("transforms")) for u, d in docs.items()}
+            evaluation["by_unit_group"] = evaluate_unit_groups(
+                external,
+                external_raw,
+                scored,
+                packs,
+                lambda kind, preset, a, split: predictions.get(
+                    kind, angle_name(preset), angle_name(a), split
+                ),
+                UNCALIBRATED,
+                unit_roles(data_dir),
+                calibrated,
             )
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")

@@ -1,10 +1,11 @@
 """`evaluate` stage: every model scored within its angle and across angle gaps -> metrics.json.
 
-Input: `DATA_DIR/<angle>/{external,test}.parquet` (the truth) and the predict stage's `PRED_DIR`
-(the predictions); nothing is predicted here. Output: `METRICS_JSON` (see
-`pipeline.metrics.evaluation`); the report stage renders it.
+Input: `DATA_DIR/<angle>/{external,test}.parquet` (the truth; `DATA_DIR/manifest.json` says which
+units trained), the predict stage's `PRED_DIR` (the predictions) and the units' calibrations in
+`CAL_DIR`; nothing is predicted here. Output: `METRICS_JSON` (see `pipeline.metrics.evaluation` and,
+per estimator unit, `pipeline.metrics.units`); the report stage renders it.
 
-Usage: `python -m pipeline.run evaluate DATA_DIR PRED_DIR METRICS_JSON [--params params.yaml]`.
+Usage: `python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR METRICS_JSON [--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -15,8 +16,11 @@ from pathlib import Path
 
 import typer
 
+from pipeline.calibration.document import read_units
 from pipeline.config import EvaluateParams, TrainParams, load_section
+from pipeline.dataset.splits import unit_roles
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
+from pipeline.metrics.units import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import angle_name
 
@@ -25,21 +29,35 @@ def _log(msg: str) -> None:
     print(f"evaluate: {msg}", file=sys.stderr, flush=True)
 
 
-def main(data_dir: Path, pred_dir: Path, metrics_json_path: Path, params: Path = Path("params.yaml")) -> None:
-    """Score the stored predictions as in the paper's sections V-VI and write metrics.json."""
+def main(
+    data_dir: Path, pred_dir: Path, cal_dir: Path, metrics_json_path: Path, params: Path = Path("params.yaml")
+) -> None:
+    """Score the stored predictions as in the paper's sections V-VI, and per unit, into metrics.json."""
     start = time.perf_counter()
     train = load_section(TrainParams, "train", params)
     p = load_section(EvaluateParams, "evaluate", params)
     angles = [angle_name(a) for a in train.angles]
     try:
         eval_sets = load_eval_sets(data_dir, angles, _log)
-        scored = gather(eval_sets, Predictions(pred_dir), list(train.models), angles, _log)
-    except FileNotFoundError as e:
+        predictions = Predictions(pred_dir)
+        scored = gather(eval_sets, predictions, list(train.models), angles, _log)
+        roles = unit_roles(data_dir)
+        units = read_units(cal_dir)
+    except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e
     if not scored.loaded:
         _log(f"warning: no trained model found (no predictions under {pred_dir})")
     metrics = compute_metrics(eval_sets, scored, p.gaps_deg)
+    calibrated = {u: bool(d.get("transforms")) for u, d in units.items()}
+    models = list(train.models)
+    metrics["by_unit"] = by_unit(eval_sets, predictions, models, roles, calibrated)
+    metrics["by_unit_uncalibrated"] = by_unit(
+        eval_sets, predictions, models, roles, calibrated, uncalibrated=True
+    )
+    champions = champions_by_angle(metrics["within_angle"], models)
+    metrics["unit_transfer"] = unit_transfer(eval_sets, predictions, models, roles, calibrated, champions)
+    metrics["calibration"] = calibration_summary(units)
     metrics_json_path.parent.mkdir(parents=True, exist_ok=True)
     metrics_json_path.write_text(metrics_json(metrics))
     elapsed = time.perf_counter() - start

@@ -1,10 +1,12 @@
 """`predict` stage: every trained model on every processed split of every angle, computed once.
 
-Input: `DATA_DIR/<angle>/{train,val,test,external}.parquet` and `MODELS_DIR/<kind>/<angle>/model.pt`
-for the `train` section's angles and kinds. Output: `OUT_DIR/<kind>/<angle>.parquet`
-(see `pipeline.modelling.predictions`), which evaluate, cues, report and register read.
+Input: `DATA_DIR/<angle>/{train,val,test,external}.parquet`, `MODELS_DIR/<kind>/<angle>/model.pt`
+for the `train` section's angles and kinds, and the units' calibrations `CAL_DIR/<unit>.json` (the
+calibrate stage's): a calibrated unit's external rows are predicted through its transform. Output:
+`OUT_DIR/<kind>/<angle>.parquet` (see `pipeline.modelling.predictions`), which evaluate, cues,
+report and register read.
 
-Usage: `python -m pipeline.run predict DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run predict DATA_DIR MODELS_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 
 import typer
 
+from pipeline.calibration.apply import unit_transforms
 from pipeline.config import TrainParams, load_section
 from pipeline.modelling.batch import predict_all
 
@@ -23,12 +26,18 @@ def _log(msg: str) -> None:
     print(f"predict: {msg}", file=sys.stderr, flush=True)
 
 
-def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+def main(
+    data_dir: Path, models_dir: Path, cal_dir: Path, out_dir: Path, params: Path = Path("params.yaml")
+) -> None:
     """Predict every model on every split and write the predictions as Parquet."""
     train = load_section(TrainParams, "train", params)
     started = time.perf_counter()
     try:
-        done = predict_all(data_dir, models_dir, out_dir, train.models, train.angles, _log)
+        units = unit_transforms(cal_dir, models_dir, train.models, train.angles)
+        for unit in sorted({u for found in units.values() for u in found}):
+            models = sorted(f"{k}/{a}" for (k, a), found in units.items() if unit in found)
+            _log(f"unit {unit}: external rows through its calibration for {len(models)} model(s)")
+        done = predict_all(data_dir, models_dir, out_dir, train.models, train.angles, _log, units=units)
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e

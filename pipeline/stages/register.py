@@ -4,13 +4,17 @@
 2. Registering (`pipeline.registry.versions`, rule in `pipeline.registry.champion`): per angle, the
    best deployable candidate becomes a version of `needle-force-<angle>`, `@champion` only if it
    beats the current champion on today's external set, else `@challenger`.
-3. `OUT_JSON` records per angle what was registered and promoted (no run ids or paths, so a fresh
-   store gives the same file).
+3. Units (`pipeline.registry.units`): each `CAL_DIR/<unit_id>.json` (the calibrate stage's) becomes a
+   version of `needle-unit-<unit_id>` with the alias `@current`, unless those exact bytes already are
+   one; a unit whose calibration was made with other models than today's champions is reported as
+   stale ("run needlecue calibrate"), never an error.
+4. `OUT_JSON` records per angle what was registered and promoted, and per unit its version (no run ids
+   or paths, so a fresh store gives the same file).
 
 Scores come from the predict stage's `PRED_DIR`; the store is `$MLFLOW_TRACKING_URI` or the
 project's `mlflow.db` (`pipeline.registry.store`).
 
-Usage: `python -m pipeline.run register MODELS_DIR DATA_DIR PRED_DIR REPORTS_DIR OUT_JSON
+Usage: `python -m pipeline.run register MODELS_DIR DATA_DIR PRED_DIR CAL_DIR REPORTS_DIR OUT_JSON
 [--params params.yaml]`.
 """
 
@@ -34,23 +38,30 @@ def main(
     models_dir: Path,
     data_dir: Path,
     pred_dir: Path,
+    cal_dir: Path,
     reports_dir: Path,
     out_json: Path,
     params: Path = Path("params.yaml"),
 ) -> None:
-    """Track every trained model in MLflow and register the best per angle (champion / challenger)."""
+    """Track every trained model in MLflow, register the best per angle (champion / challenger) and
+    every unit calibration in CAL_DIR (@current)."""
     from mlflow.exceptions import MlflowException
 
     p = load_section(RegisterParams, "register", params)
     try:
-        record = register_all(models_dir, data_dir, pred_dir, reports_dir, out_json, p, _log)
+        record = register_all(models_dir, data_dir, pred_dir, reports_dir, out_json, p, _log, cal_dir)
     except (RegistryUnreachable, FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e
     except MlflowException as e:  # the store answered, then failed: no alias moved after the failure
         _log(f"error: MLflow registry ({e.error_code}): {e.message}")
         raise typer.Exit(1) from e
-    _log(f"registered {len(record['registered'])} angle(s), promoted {len(record['promoted'])} -> {out_json}")
+    new_units = sorted(u for u, e in record["units"].items() if e["action"] == "registered")
+    _log(
+        f"registered {len(record['registered'])} angle(s), promoted {len(record['promoted'])}, "
+        f"{len(new_units)} new unit calibration(s) of {len(record['units'])}, "
+        f"{len(record['stale_units'])} stale -> {out_json}"
+    )
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ import typer
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.metrics.evaluation import gather, load_eval_sets
 from pipeline.modelling.predictions import Predictions
-from pipeline.reporting import cues, figures, report
+from pipeline.reporting import cues, figures, report, units
 from pipeline.vocab import angle_name
 
 
@@ -44,6 +44,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
         raise typer.Exit(1) from e
     cue_sections: list[str] = []
     cues_dir = reports_dir / "cues"
+    evaluation = None
     if (cues_dir / "evaluation.json").is_file():
         evaluation = json.loads((cues_dir / "evaluation.json").read_text())
         packs = {float(p.stem): json.loads(p.read_text()) for p in (cues_dir / "packs").glob("*.json")}
@@ -62,7 +63,8 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     figures.plot_profiles(eval_sets, scored, models, fig_dir / figures.FIGURES[0])
     figures.plot_gaps(eval_sets, scored, models, gaps, fig_dir / figures.FIGURES[1])
     figures.plot_gap_matrix(metrics, models, fig_dir / figures.FIGURES[2])
-    text = report.render(metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections)
+    unit_section = units.estimator_units(metrics, evaluation)
+    text = report.render(metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section)
     (reports_dir / "report.md").write_text(text)
     _log(f"report.md, {len(figures.FIGURES)} figures and the cue summary -> {reports_dir}")
 

@@ -1,4 +1,5 @@
-"""What the client's tests build: synthetic processed trials, tiny models, and registered versions."""
+"""What the client's tests build: synthetic processed trials, tiny models, registered versions, and
+estimator units' calibration documents."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.calibration.document import FORMAT as UNIT_FORMAT
 from pipeline.config import FNNParams, LSParams, LSTMParams
 from pipeline.modelling import export
+from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, save_checkpoint
 from pipeline.modelling.predict import Predictor
-from pipeline.registry import store
-from pipeline.vocab import AXES
+from pipeline.registry import store, units
+from pipeline.vocab import AXES, angle_name
 
 UNREACHABLE = "http://127.0.0.1:9"  # the discard port: connection refused at once
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -88,8 +91,16 @@ def cue_predictions(checkpoint: dict, train_by_angle: Mapping[float, pd.DataFram
     }
 
 
-def register(uri: str, root: Path, checkpoint: dict, pack: dict | None = None, angle: float = 30.0) -> str:
-    """Log `checkpoint` as ONNX in store `uri` (artifacts under `root`), register it, make it champion."""
+def register(
+    uri: str,
+    root: Path,
+    checkpoint: dict,
+    pack: dict | None = None,
+    angle: float = 30.0,
+    with_checkpoint: bool = False,
+) -> str:
+    """Log `checkpoint` as ONNX in store `uri` (artifacts under `root`), register it, make it champion.
+    `with_checkpoint`: the run also logs `checkpoint/model.pt`, as the register stage's runs do."""
     import mlflow
 
     client = store.connect(uri)
@@ -102,6 +113,55 @@ def register(uri: str, root: Path, checkpoint: dict, pack: dict | None = None, a
     )
     with mlflow.start_run(experiment_id=exp_id):
         info = export.log_onnx_model(checkpoint, pack)
+        if with_checkpoint:
+            path = root / "checkpoints" / checkpoint_sha256(checkpoint) / CHECKPOINT_FILE
+            save_checkpoint(checkpoint, path)
+            mlflow.log_artifact(str(path), artifact_path="checkpoint")
     version = mlflow.register_model(info.model_uri, name).version
     client.set_registered_model_alias(name, store.CHAMPION, version)
     return str(version)
+
+
+def unit_document(
+    unit_id: str,
+    models: Mapping[float, dict],
+    matrix: list[list[float]] | None = None,
+    offset: list[float] | None = None,
+) -> dict:
+    """A needlecue-unit/1 document of `unit_id` whose transform (one per kind of `models`, {angle:
+    checkpoint}) was "made with" those checkpoints; the identity unless `matrix` / `offset` are given."""
+    transforms: dict[str, dict] = {}
+    for angle, checkpoint in models.items():
+        n = len(checkpoint["channels"])
+        t = transforms.setdefault(
+            checkpoint["kind"],
+            {
+                "matrix": matrix or np.eye(n).tolist(),
+                "offset": offset or [0.0] * n,
+                "fitted_through": [],
+                "models": {},
+                "loss_before": 1.0,
+                "loss_after": 0.25,
+            },
+        )
+        t["fitted_through"].append(angle_name(angle))
+        t["models"][angle_name(angle)] = checkpoint_sha256(checkpoint)
+    angles = sorted({angle_name(a) for a in models}, key=float)
+    return {
+        "format": UNIT_FORMAT,
+        "unit_id": unit_id,
+        "batches": [f"cal-{unit_id}"],
+        "trials": [{"batch_id": f"cal-{unit_id}", "trial_id": f"a{a}-t01", "angle": a} for a in angles],
+        "angles_used": angles,
+        "angles_missing": [],
+        "set_aside": [],
+        "transforms": transforms,
+        "params": {"transform": "full", "ridge": 0.01},
+    }
+
+
+def register_unit(uri: str, doc: dict) -> int:
+    """Register `doc` in store `uri` as the register stage does: its version number (`@current`)."""
+    return int(
+        units.register_unit(store.connect(uri), doc, units.document_bytes(doc), lambda _m: None)["version"]
+    )

@@ -15,6 +15,8 @@ from pipeline.modelling.fit import fit
 from pipeline.registry import store
 from tests.client.builders import TINY, UNREACHABLE, Registered, cue_trials, register
 
+pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+
 
 def test_fetch_downloads_once_and_falls_back_to_the_copy_when_offline(
     registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture

@@ -1,5 +1,6 @@
 """The live client: streaming equals the batch predictor, the stream is checked, and a client made from
-the registry follows its alias between insertions."""
+the registry follows its alias between insertions. (These clients name no estimator unit: they warn
+UncalibratedUnit, which tests/client/test_units.py tests.)"""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 from pipeline import client as fc
 from pipeline.modelling.predict import Predictor
 from tests.client.builders import CHANNELS, UNREACHABLE, Clock, Registered, cue_trials, register
+
+pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
 
 
 def test_streaming_equals_batch_predictions_of_the_trial(registered: Registered, fetched: Path) -> None:
@@ -37,8 +40,9 @@ def test_streaming_equals_batch_predictions_of_the_trial(registered: Registered,
 
 
 def test_step_output_and_bad_samples(fetched: Path) -> None:
-    # given: a client with a cue pack
-    client = fc.ForceClient.from_dir(fetched)
+    # given: a client with a cue pack, its cues asked for without a unit calibration
+    with pytest.warns(fc.UncalibratedUnit):
+        client = fc.ForceClient.from_dir(fetched, cues_uncalibrated=True)
     # when: stepping without times, then with a wrong-length or non-finite sample
     a, b = client.step([0.6, 0.6, 0.6]), client.step(np.array([0.6, 0.7, 0.6]))
     # then: a force (3,) per frame, times on the model's grid, a cue (waiting for a rest reading at
@@ -72,7 +76,7 @@ def test_a_folder_that_is_not_a_model_is_a_clear_error(tmp_path: Path) -> None:
     # when / then: each names the folder and what is missing
     with pytest.raises(FileNotFoundError, match="no MLmodel file"):
         fc.ForceClient.from_dir(tmp_path)
-    with pytest.raises(ValueError, match="no needlecue-deploy/1 block"):
+    with pytest.raises(ValueError, match="no needlecue-deploy/2 block"):
         fc.ForceClient.from_dir(tmp_path / "other")
 
 
@@ -173,6 +177,7 @@ def test_an_unreachable_registry_keeps_the_model_warns_once_and_retries_after_th
     # then: v1 kept, nothing raised, one warning saying so, and a poll only at each interval
     assert client.version["version"] == "1" and registry_calls == [uri, uri]
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    warnings = [w for w in warnings if "is not calibrated" not in w]  # no unit named: said at creation
     assert len(warnings) == 1, warnings
     assert "needle-force-30@champion: cannot poll the registry" in warnings[0]
     assert "keeping needle-force-30 v1 (ls), next try in 60 s" in warnings[0]

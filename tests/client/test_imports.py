@@ -1,5 +1,6 @@
-"""The client stays light: importing it and running a model loads none of the training pipeline's
-heavy dependencies, so a simulator can install numpy, onnxruntime, pyyaml and mlflow-skinny alone."""
+"""The client stays light: importing it and running a model with a unit's calibration loads none of
+the training pipeline's heavy dependencies, so a simulator can install numpy, onnxruntime, pyyaml and
+mlflow-skinny alone."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+from tests.client.builders import Registered, unit_document
 
 HEAVY = ("torch", "sklearn", "typer", "matplotlib", "great_expectations", "pandas")
 ROOT = Path(__file__).resolve().parents[2]
@@ -23,10 +26,11 @@ import pipeline.client
 after_import = loaded()
 from pipeline.client import ForceClient
 
-client = ForceClient.from_dir(sys.argv[1])
+client = ForceClient.from_dir(sys.argv[1], calibration=sys.argv[2])
 client.reset()
 frame = client.step([0.6, 0.6, 0.6])
 print(json.dumps({{
+    "calibrated": client.calibrated,
     "after_import": after_import,
     "after_step": loaded(),
     "force_n": frame.force_n.tolist(),
@@ -36,11 +40,16 @@ print(json.dumps({{
 """
 
 
-def test_importing_and_running_the_client_loads_no_heavy_dependency(fetched: Path) -> None:
-    # given: a fetched model folder (an LSTM with a cue pack) and a fresh interpreter
-    # when: it imports pipeline.client, loads the folder and steps one sample
+def test_importing_and_running_the_client_loads_no_heavy_dependency(
+    registered: Registered, fetched: Path, tmp_path: Path
+) -> None:
+    # given: a fetched model folder (an LSTM with a cue pack), a unit's calibration made with it, and a
+    # fresh interpreter
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps(unit_document("est-i1", {30: registered.checkpoint})))
+    # when: it imports pipeline.client, loads the folder with the calibration and steps one sample
     run = subprocess.run(
-        [sys.executable, "-c", SCRIPT.format(heavy=HEAVY), str(fetched)],
+        [sys.executable, "-c", SCRIPT.format(heavy=HEAVY), str(fetched), str(calibration)],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -51,5 +60,5 @@ def test_importing_and_running_the_client_loads_no_heavy_dependency(fetched: Pat
     out = json.loads(run.stdout.splitlines()[-1])
     # then: a force and a cue came out of onnxruntime and the cue tracker, and none of the heavy
     # modules was imported, neither by the import nor by running the model
-    assert len(out["force_n"]) == 3 and out["cue"] == "wait" and out["onnxruntime"]
+    assert len(out["force_n"]) == 3 and out["cue"] == "wait" and out["onnxruntime"] and out["calibrated"]
     assert out["after_import"] == [] and out["after_step"] == [], out

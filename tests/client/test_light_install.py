@@ -1,5 +1,6 @@
 """The client on a simulator's install, for real: a fresh venv holding client-requirements.txt alone,
-the project on PYTHONPATH, fetching a model through a real MLflow server over HTTP and stepping it.
+the project on PYTHONPATH, fetching a model and an estimator unit's calibration through a real MLflow
+server over HTTP and stepping them.
 
 What this test does is what README's "Installing just the client on a simulator" tells a simulator
 maker to do; change one with the other. Slow (it builds a venv: about a minute).
@@ -25,15 +26,18 @@ import pytest
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
 from pipeline.modelling import export
+from pipeline.modelling.features import InputTransform
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predict import Predictor
-from pipeline.registry import store
-from tests.client.builders import TINY, cue_predictions, cue_trials
+from pipeline.registry import store, units
+from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
 
 ROOT = Path(__file__).resolve().parents[2]
 REQUIREMENTS = ROOT / "client-requirements.txt"
 HEAVY = ("torch", "sklearn", "typer", "matplotlib", "great_expectations", "pandas")
 VOLTS = [0.4, 0.5, 0.6]
+UNIT = "est-light-1"
+MIX = [[1.08, 0.05, 0.0], [0.0, 0.93, 0.04], [-0.03, 0.0, 1.1]]
 SERVER_START_S = 90.0  # a fresh sqlite store is migrated at start-up: seconds, not minutes
 INSTALL_S = 300.0  # venv and pip from the index, once per run of this test
 
@@ -43,7 +47,8 @@ import importlib.util, json, sys
 from pipeline.client import ForceClient
 
 uri, cache, heavy, volts = sys.argv[1], sys.argv[2], sys.argv[3].split(","), json.loads(sys.argv[4])
-client = ForceClient.from_registry(30, tracking_uri=uri, cache_dir=cache)
+UNIT = sys.argv[5]
+client = ForceClient.from_registry(30, tracking_uri=uri, cache_dir=cache, unit_id=UNIT)
 client.check_stream(list(client.channels), client.rate_hz)
 client.reset()
 frame = client.step(volts)
@@ -51,6 +56,7 @@ print(json.dumps({
     "force_n": frame.force_n.tolist(),
     "cue": None if frame.cue is None else frame.cue.cue,
     "version": client.version,
+    "calibration": client.calibration,
     "loaded": sorted(m for m in heavy if m in sys.modules),
     "installed": sorted(m for m in heavy if importlib.util.find_spec(m) is not None),
 }))
@@ -119,10 +125,10 @@ def _wait_until_up(uri: str, proc: subprocess.Popen[bytes], log: Path) -> None:
     pytest.fail(f"mlflow server not up after {SERVER_START_S:g} s:\n{log.read_text()[-3000:]}")
 
 
-def _register_through(uri: str) -> tuple[dict, str]:
+def _register_through(uri: str) -> tuple[dict, dict, str]:
     """A tiny 30° LS model with a cue pack, logged and registered as needle-force-30@champion through
-    the server (its artifacts uploaded to it); returns the checkpoint and the experiment's artifact
-    location."""
+    the server (its artifacts uploaded to it), and a unit calibrated with it as needle-unit-<UNIT>@current;
+    returns the checkpoint, the unit's document and the experiment's artifact location."""
     import mlflow
 
     train = cue_trials(30, 3)
@@ -135,7 +141,9 @@ def _register_through(uri: str) -> tuple[dict, str]:
     name = store.model_name(30)
     version = mlflow.register_model(info.model_uri, name).version
     client.set_registered_model_alias(name, store.CHAMPION, version)
-    return checkpoint, client.get_experiment(exp_id).artifact_location
+    doc = unit_document(UNIT, {30: checkpoint}, MIX)
+    units.register_unit(client, doc, units.document_bytes(doc), lambda _m: None)
+    return checkpoint, doc, client.get_experiment(exp_id).artifact_location
 
 
 @pytest.mark.slow
@@ -158,7 +166,7 @@ def test_a_venv_of_client_requirements_alone_fetches_through_a_server_and_steps(
         try:
             # and, meanwhile: a model registered through the server, its artifacts served by it
             _wait_until_up(uri, server, server_root / "server.log")
-            checkpoint, artifacts = _register_through(uri)
+            checkpoint, doc, artifacts = _register_through(uri)
             assert artifacts.startswith("mlflow-artifacts:"), artifacts
             code = pip.wait(timeout=max(INSTALL_S - (time.monotonic() - started), 1.0))
         finally:
@@ -172,17 +180,22 @@ def test_a_venv_of_client_requirements_alone_fetches_through_a_server_and_steps(
         env["PYTHONPATH"] = str(ROOT)
         cache = tmp_path / "cache"
         run = _run(
-            [python, "-c", SIMULATOR, uri, str(cache), ",".join(HEAVY), json.dumps(VOLTS)],
+            [python, "-c", SIMULATOR, uri, str(cache), ",".join(HEAVY), json.dumps(VOLTS), UNIT],
             timeout=120,
             env=env,
             cwd=tmp_path,  # importable through PYTHONPATH only, not the working directory
         )
     out = json.loads(run.stdout.splitlines()[-1])
-    # then: the venv really is light, the model came through the server, and the force is the model's
+    # then: the venv really is light, the model and the unit's calibration came through the server (a
+    # version made from a plain artifact folder), and the force is the model's through the calibration
     assert out["installed"] == [] and out["loaded"] == [], out
     assert (out["version"]["version"], out["version"]["tracking_uri"]) == ("1", uri)
+    assert (out["calibration"]["name"], out["calibration"]["version"]) == (f"needle-unit-{UNIT}", "1")
+    assert out["calibration"]["source"].startswith("mlflow-artifacts:"), out["calibration"]
     assert (cache / "needle-force-30" / "champion" / "model.onnx").is_file()
-    expected = Predictor(checkpoint).predict_arrays(np.array([VOLTS]))[0]
+    assert (cache / f"needle-unit-{UNIT}" / "current" / "calibration.json").is_file()
+    transform = InputTransform.from_dict(doc["transforms"]["ls"])
+    expected = Predictor(checkpoint).predict_arrays(np.array([VOLTS]), transform=transform)[0]
     np.testing.assert_allclose(out["force_n"], expected, rtol=1e-4, atol=1e-6)
     assert out["cue"] == "wait"
     print(f"light install, server and fetch: {time.monotonic() - started:.0f} s")

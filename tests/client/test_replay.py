@@ -15,10 +15,12 @@ from pipeline.cues.fit import build_cue_pack
 from pipeline.modelling.fit import fit
 from tests.client.builders import TINY, cue_predictions, cue_trials, register
 
+pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+
 
 def test_replay_returns_one_row_per_sample_in_time_order(fetched: Path) -> None:
     # given: one trial at the preset angle, its rows shuffled
-    client = fc.ForceClient.from_dir(fetched)
+    client = fc.ForceClient.from_dir(fetched, cues_uncalibrated=True)  # the pack's units: cues anyway
     trial = cue_trials(30, 1, seed=4, n=60)
     shuffled = trial.sample(frac=1.0, random_state=0)
     # when: replaying it
@@ -60,7 +62,9 @@ def test_a_cue_pack_without_an_angle_estimator_cues_by_the_profile(tmp_path: Pat
     assert pack["angle_estimator"] is None and "angle_estimator" in pack["unavailable"]
     register(mlflow_store, tmp_path, checkpoint, pack)
     # when: the client fetches it and replays a trial
-    client = fc.ForceClient.from_registry(30, cache_dir=tmp_path / "cache", tracking_uri=mlflow_store)
+    client = fc.ForceClient.from_registry(
+        30, cache_dir=tmp_path / "cache", tracking_uri=mlflow_store, cues_uncalibrated=True
+    )
     out = replay(cue_trials(30, 1, "held", seed=7), client)
     # then: it has cues, from the paper's profile method, each saying that the angle estimate is unavailable
     assert client.has_cues

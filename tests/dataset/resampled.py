@@ -17,7 +17,13 @@ CHANNELS = ["fsr1", "fsr2", "fsr3"]
 
 
 def write_resampled(
-    root: Path, batch_id: str, trials: dict[str, float], channels: list[str] = CHANNELS, rate_hz: float = 30.0
+    root: Path,
+    batch_id: str,
+    trials: dict[str, float],
+    channels: list[str] = CHANNELS,
+    rate_hz: float = 30.0,
+    unit_id: str = "u1",
+    purpose: str = "training",
 ) -> None:
     """A resampled batch (parquet + json) as the resample stage writes it; trial_id -> angle."""
     cols: dict[str, list] = {name: [] for name in table_schema(channels).names}
@@ -25,6 +31,7 @@ def write_resampled(
         rng = np.random.default_rng(zlib.crc32(f"{batch_id}/{tid}".encode()))
         n = int(rng.integers(20, 40))
         cols["batch_id"] += [batch_id] * n
+        cols["unit_id"] += [unit_id] * n
         cols["trial_id"] += [tid] * n
         cols["angle_deg"] += [angle] * n
         cols["tissue_point"] += ["p1"] * n
@@ -37,7 +44,13 @@ def write_resampled(
         pa.table({f.name: pa.array(cols[f.name], f.type) for f in schema}, schema=schema),
         root / f"{batch_id}.parquet",
     )
-    meta = {"batch_id": batch_id, "channels": channels, "rate_hz": rate_hz, "unit_id": "u1"}
+    meta = {
+        "batch_id": batch_id,
+        "channels": channels,
+        "rate_hz": rate_hz,
+        "unit_id": unit_id,
+        "purpose": purpose,
+    }
     (root / f"{batch_id}.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
 
 

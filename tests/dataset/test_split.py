@@ -9,6 +9,7 @@ import pytest
 
 from pipeline.config import SplitParams
 from pipeline.dataset import split as sp
+from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.vocab import AXES, ID_COLUMNS, SPLITS
 from tests.dataset.resampled import CHANNELS, files_of, make_input, trials_in, write_resampled
 
@@ -38,6 +39,9 @@ def test_every_trial_lands_in_exactly_one_split_and_held_out_batches_only_in_ext
     assert list(train.columns) == [*ID_COLUMNS, *CHANNELS, *AXES]
     assert manifest["angles"]["30"]["n_samples"]["train"] == len(train)
     assert manifest["rate_hz"] == 30.0 and manifest["set_aside"] == []
+    # And every row carries its unit; with no calibration batch there is no calibration folder
+    assert set(train.unit_id) == {"u1"}
+    assert manifest["calibration"] == {} and not (tmp_path / "out" / "calibration").exists()
 
 
 def test_two_runs_give_byte_identical_files(tmp_path):
@@ -125,3 +129,94 @@ def test_the_split_of_an_angle_depends_on_seed_and_angle_only():
     # Then the assignment is the same; another angle name shuffles differently
     assert sp.assign(keys, "30", p) == sp.assign(list(reversed(keys)), "30", p)
     assert any(sp.assign(keys, "30", p)[s] != sp.assign(keys, "45", p)[s] for s in ("train", "test"))
+
+
+def _calibration(src, batch_id: str = "sim-calib-u-new", angles: tuple[float, ...] = (30.0, 45.0)) -> None:
+    """A new unit's calibration batch: two trials at each angle."""
+    trials = {f"a{a:g}-t{k:02d}": a for a in angles for k in (1, 2)}
+    write_resampled(src, batch_id, trials, unit_id="u-new", purpose="calibration")
+
+
+def test_calibration_trials_go_to_their_own_folder_only_even_when_named_held_out(tmp_path):
+    # Given the usual input, a new unit's held-out batch at 30 deg, and its calibration batch
+    # named like a held-out batch (it matches the external glob *heldout*)
+    src = make_input(tmp_path / "in")
+    write_resampled(src, "sim-heldout-30deg-u-new", {"a30-t01": 30.0, "a30-t02": 30.0}, unit_id="u-new")
+    _calibration(src, "sim-heldout-calib-u-new")
+    # When split
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    out = tmp_path / "out"
+    # Then the calibration trials are in calibration/<angle>.parquet and in no split of any angle
+    calib = {("sim-heldout-calib-u-new", f"a{a}-t{k:02d}") for a in (30, 45) for k in (1, 2)}
+    for angle in ("30", "45"):
+        for name in SPLITS:
+            assert not trials_in(out / angle / f"{name}.parquet") & calib
+        assert trials_in(out / "calibration" / f"{angle}.parquet") == {
+            t for t in calib if f"a{angle}-" in t[1]
+        }
+        # ... with the schema of the angle's split files, unit included
+        table = pq.read_table(out / "calibration" / f"{angle}.parquet")
+        assert table.schema.equals(pq.read_schema(out / angle / "train.parquet"))
+        assert set(table.column("unit_id").to_pylist()) == {"u-new"}
+    # And the manifest lists them with their unit, and says which units trained and which are new
+    assert manifest["calibration"]["30"] == [
+        {"batch_id": "sim-heldout-calib-u-new", "trial_id": f"a30-t0{k}", "unit_id": "u-new"} for k in (1, 2)
+    ]
+    assert manifest["units"] == {
+        "u1": {
+            "role": "training",
+            "batches": ["sim-heldout-30deg", "sim-heldout-45deg", "sim-tissue-1", "sim-tissue-2"],
+        },
+        "u-new": {"role": "new", "batches": ["sim-heldout-30deg-u-new", "sim-heldout-calib-u-new"]},
+    }
+    assert unit_roles(out) == {"u1": "training", "u-new": "new"}  # what later stages read
+    # And the new unit's held-out trials are external as usual
+    assert ("sim-heldout-30deg-u-new", "a30-t01") in trials_in(out / "30" / "external.parquet")
+    # And the later stages see only angle folders
+    assert SplitFiles(out).angles() == ["30", "45"]
+
+
+def test_adding_a_calibration_batch_leaves_the_angle_files_byte_identical(tmp_path):
+    # Given a split, and the same input plus a new unit's calibration batch
+    sp.run(make_input(tmp_path / "in1"), tmp_path / "a", SplitParams())
+    src = make_input(tmp_path / "in2")
+    _calibration(src)
+    sp.run(src, tmp_path / "b", SplitParams())
+    a, b = files_of(tmp_path / "a"), files_of(tmp_path / "b")
+    # Then every angle file is byte-identical; only calibration files and the manifest are new
+    angle_files = [k for k in a if k != "manifest.json"]
+    assert len(angle_files) == 8 and all(a[k] == b[k] for k in angle_files)
+    assert sorted(set(b) - set(a)) == ["calibration/30.parquet", "calibration/45.parquet"]
+    ma, mb = json.loads(a["manifest.json"]), json.loads(b["manifest.json"])
+    assert ma["angles"] == mb["angles"]
+
+
+def test_calibration_files_of_a_batch_that_is_gone_are_removed(tmp_path):
+    # Given a split with a calibration batch at 30 and 45 deg
+    src = make_input(tmp_path / "in")
+    _calibration(src)
+    out = tmp_path / "out"
+    sp.run(src, out, SplitParams())
+    # When it is replaced by one at 30 deg only, then removed
+    (src / "sim-calib-u-new.parquet").unlink()
+    _calibration(src, "sim-calib-u-new", angles=(30.0,))
+    sp.run(src, out, SplitParams())
+    # Then only 30 deg's calibration file is left, then none; the angle folders stay
+    assert sorted(p.name for p in (out / "calibration").iterdir()) == ["30.parquet"]
+    for f in ("sim-calib-u-new.parquet", "sim-calib-u-new.json"):
+        (src / f).unlink()
+    sp.run(src, out, SplitParams())
+    assert not (out / "calibration").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["30", "45", "manifest.json"]
+
+
+def test_a_calibration_trial_with_other_channels_is_set_aside(tmp_path):
+    # Given a calibration batch whose channels differ from angle 30's
+    src = make_input(tmp_path / "in")
+    write_resampled(src, "calib-b", {"t1": 30.0}, channels=["v"], unit_id="u-b", purpose="calibration")
+    # When split
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    # Then it is set aside with the reason, and no calibration file is written
+    assert [(s["batch_id"], s["trial_id"]) for s in manifest["set_aside"]] == [("calib-b", "t1")]
+    assert "differ from the channels" in manifest["set_aside"][0]["reason"]
+    assert manifest["calibration"] == {} and not (tmp_path / "out" / "calibration").exists()

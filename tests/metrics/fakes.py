@@ -59,7 +59,8 @@ class FakePredictor:
         self.kind, self.angle_deg, self.channels = model, float(angle), tuple(channels)
         self.error = error
 
-    def predict(self, frame: pd.DataFrame) -> np.ndarray:
+    def predict(self, frame: pd.DataFrame, transform: object = None) -> np.ndarray:
+        assert transform is None, "no unit calibration in these tests"
         assert not set(AXES) & set(frame.columns), "forces must not reach the model"
         truth = frame[CHANNELS].to_numpy(dtype=float)
         data = frame["angle_deg"].to_numpy(dtype=float)

@@ -84,7 +84,7 @@ def test_onnx_graph_is_self_describing_with_a_dynamic_batch(checkpoints) -> None
     dims = [d.dim_param or d.dim_value for d in inp.type.tensor_type.shape.dim]
     info = json.loads({p.key: p.value for p in proto.metadata_props}["needlecue"])
     # then: volts (batch, window, channels) in, force_n (batch, 3) out, and the graph says what it reads
-    assert (inp.name, out.name) == ("volts", "force_n")
+    assert (inp.name, out.name) == ("inputs", "force_n")
     assert dims == [export.BATCH_DIM, 6, 3]
     assert [d.dim_param or d.dim_value for d in out.type.tensor_type.shape.dim] == [export.BATCH_DIM, 3]
     assert info["channels"] == CHANNELS and info["window"] == 6 and info["kind"] == "lstm"
@@ -126,10 +126,11 @@ def test_deploy_metadata_identifies_the_model_and_carries_the_cue_pack(checkpoin
     meta = export.deploy_metadata(ck, pack)
     # then: plain JSON with everything a client needs, and a hash that follows the weights only
     assert json.loads(json.dumps(meta, allow_nan=False)) == meta
-    assert meta["format"] == "needlecue-deploy/1" and meta["kind"] == "fnn"
+    assert meta["format"] == "needlecue-deploy/2" and meta["kind"] == "fnn"
+    assert meta["inputs"] == ck["inputs"]  # how the client computes what the graph reads
     assert (meta["channels"], meta["targets"], meta["window"]) == (CHANNELS, ["fx", "fy", "fz"], 1)
     assert meta["angle_deg"] == 30.0 and meta["rate_hz"] == pytest.approx(30.0)
-    assert (meta["input"], meta["output"], meta["cues"]) == ("volts", "force_n", pack)
+    assert (meta["input"], meta["output"], meta["cues"]) == ("inputs", "force_n", pack)
     assert meta["train_data_sha256"] == ck["train_data_sha256"] and meta["params"]["hidden"] == [8, 8]
     assert meta["checkpoint_sha256"] == export.deploy_metadata(same, None)["checkpoint_sha256"]
     assert meta["checkpoint_sha256"] != export.deploy_metadata(other, None)["checkpoint_sha256"]
@@ -165,9 +166,9 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     # then: a float32 tensor signature with a free batch, a real-looking example, our metadata, the
     # exported graph byte for byte, and nothing that would be unpickled on load
     (inp,), (out,) = model.signature.inputs.inputs, model.signature.outputs.inputs
-    assert (inp.name, inp.type, tuple(inp.shape)) == ("volts", np.dtype(np.float32), (-1, 6, 3))
+    assert (inp.name, inp.type, tuple(inp.shape)) == ("inputs", np.dtype(np.float32), (-1, 6, 3))
     assert (out.name, out.type, tuple(out.shape)) == ("force_n", np.dtype(np.float32), (-1, 3))
-    x = np.asarray(example["volts"] if isinstance(example, dict) else example, dtype=np.float32)
+    x = np.asarray(example["inputs"] if isinstance(example, dict) else example, dtype=np.float32)
     assert x.shape == (3, 6, 3) and np.allclose(x[1, 0], checkpoint["preprocessing"]["x_mean"].numpy())
     assert model.metadata["needlecue"] == export.deploy_metadata(checkpoint, {"format": "test-pack"})
     assert (folder / "model.onnx").read_bytes() == export.to_onnx(checkpoint)

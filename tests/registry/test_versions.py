@@ -60,13 +60,23 @@ def project(tmp_path: Path) -> Path:
     return tmp_path
 
 
-def run_stage(project: Path, models: Path, params: RegisterParams = ONLY_FNN) -> dict:
-    """The predict stage on `models`, then the register stage, as dvc.yaml runs them."""
+def run_stage(
+    project: Path, models: Path, params: RegisterParams = ONLY_FNN, cal_dir: Path | None = None
+) -> dict:
+    """The predict stage on `models`, then the register stage, as dvc.yaml runs them (with the unit
+    calibrations of `cal_dir`, if given)."""
     pred = project / f"predictions-{models.name}"
     kinds = sorted(p.name for p in models.iterdir())
     predict_all(project / "processed", models, pred, kinds, ["30"], quiet)
     return versions.register_all(
-        models, project / "processed", pred, project / "reports", project / "registry.json", params, quiet
+        models,
+        project / "processed",
+        pred,
+        project / "reports",
+        project / "registry.json",
+        params,
+        quiet,
+        cal_dir,
     )
 
 
@@ -181,6 +191,7 @@ def test_stage_command_exits_1_with_the_reason(project: Path, monkeypatch: pytes
             str(project / "models"),
             str(project / "processed"),
             str(project / "predictions"),
+            str(project / "calibration"),
             str(project / "reports"),
             str(project / "registry.json"),
             "--params",

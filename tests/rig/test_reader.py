@@ -68,6 +68,21 @@ def test_good_fixture_is_ingested_in_raw_units_with_metadata_kept(raw_dir, tmp_p
     assert tree_hash(raw_dir) == before
 
 
+@pytest.mark.parametrize(
+    ("line", "purpose"),
+    [(None, "training"), ("purpose: training", "training"), ("purpose: calibration", "calibration")],
+)
+def test_purpose_is_training_unless_the_batch_says_calibration(raw_dir, tmp_path, line, purpose):
+    # Given lab-bench-a without a purpose, or with one of the two allowed
+    if line:
+        replace_in(raw_dir / A / "batch.yaml", "operator:", f"{line}\noperator:")
+    # When it is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then it is accepted, and batch.json says what it is for
+    assert result.accepted == [A] and result.problems == []
+    assert json.loads((tmp_path / "out" / A / "batch.json").read_text())["purpose"] == purpose
+
+
 def test_same_input_gives_the_same_output_bytes(raw_dir, tmp_path):
     # Given one raw folder
     # When it is ingested twice into two fresh output folders
@@ -273,6 +288,14 @@ BAD = [
         "batch.yaml",
         "reserved",
         line=7,
+        batch=True,
+    ),
+    Bad(
+        "purpose typo in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "operator:", "purpose: calib\noperator:"),
+        "batch.yaml",
+        "key purpose: Input should be 'training' or 'calibration' (got 'calib')",
+        line=15,
         batch=True,
     ),
     Bad(

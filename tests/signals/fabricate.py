@@ -149,8 +149,9 @@ def write_ingested(
     ref_units: str = "N",
     angle: float = 30.0,
     with_truth: bool = True,
+    purpose: str | None = None,
 ) -> Path:
-    """An ingested batch folder as the ingest stage writes it."""
+    """An ingested batch folder as the ingest stage writes it (`purpose` None: no such key)."""
     folder = root / batch_id
     folder.mkdir(parents=True)
     meta = {
@@ -166,6 +167,8 @@ def write_ingested(
         "reference": {"units": ref_units, "model": "fabricated"},
         "robot": None,
     }
+    if purpose is not None:
+        meta["purpose"] = purpose
     (folder / "batch.json").write_text(json.dumps(meta))
     rows = {
         "trial_id": list(trials),

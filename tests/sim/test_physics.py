@@ -24,6 +24,8 @@ OFF = EffectScales(
     dropped_samples=0,
     clock_offset=0,
     reference_noise=0,
+    alignment=0,
+    unit_drift=0,
 )
 EST = physics.Estimator()
 ONE = np.ones(3)
@@ -231,10 +233,65 @@ def test_reference_has_the_nano17_resolution():
     assert np.allclose(steps, np.round(steps), atol=1e-6)
 
 
-def test_part_to_part_variation_differs_between_units_only():
-    def unit(seed: int, scale: float) -> physics.Estimator:
-        return physics.draw_estimator(np.random.default_rng(seed), EffectScales(part_variation=scale))
+AS_PUBLISHED = EffectScales()
+UNITS_ALIKE = EffectScales(part_variation=0, alignment=0, unit_drift=0)  # every per-unit switch off
 
-    assert unit(1, 1.0) == unit(1, 1.0)
-    assert unit(1, 1.0).gains != unit(2, 1.0).gains
-    assert unit(1, 0.0) == unit(2, 0.0) == physics.Estimator()
+
+def unit(seed: int, effects: EffectScales = AS_PUBLISHED) -> physics.Estimator:
+    return physics.draw_estimator(np.random.default_rng(seed), effects)
+
+
+def test_units_differ_and_each_is_drawn_the_same_every_time():
+    # Given two unit seeds, each drawn twice with every effect as published
+    a, b = unit(1), unit(2)
+    # Then a unit is the same every time it is drawn
+    assert unit(1) == a
+    # And two units differ in gains, preloads, FSR placement and drift
+    assert a.gains != b.gains and a.preloads_n != b.preloads_n
+    assert a.azimuths_deg != b.azimuths_deg and a.drift_per_decade != b.drift_per_decade
+    # And each unit's drift stays under the datasheet's 5 % per decade
+    assert all(0.025 <= unit(seed).drift_per_decade < 0.05 for seed in range(20))
+
+
+def test_with_every_unit_switch_off_all_units_are_the_nominal_one():
+    # Given part variation, alignment and unit drift all off, then any two units are the nominal unit
+    assert unit(1, UNITS_ALIKE) == unit(2, UNITS_ALIKE) == physics.Estimator()
+
+
+def test_the_per_fsr_draws_come_first_and_the_per_unit_ones_are_appended():
+    # Given the three per-FSR draws done by hand, in their order (placement, gain, preload)
+    rng = np.random.default_rng(7)
+    azimuths = np.array([90.0, 210.0, 330.0]) + rng.normal(0, 3.0, 3)
+    gains = 1.0 + rng.normal(0, 0.06, 3)
+    preloads = 0.49 * (1.0 + rng.normal(0, 0.10, 3))
+    # When the unit is drawn from the same seed with the alignment and unit drift switched off
+    est = unit(7, EffectScales(alignment=0, unit_drift=0))
+    # Then those draws are the unit's, and the drift is the nominal one
+    assert np.allclose(est.azimuths_deg, azimuths) and np.allclose(est.gains, gains)
+    assert (
+        np.allclose(est.preloads_n, preloads) and est.drift_per_decade == physics.Estimator().drift_per_decade
+    )
+
+
+def test_alignment_rotates_the_whole_tripod_and_changes_nothing_else():
+    # Given one unit drawn with and without the connector alignment
+    turned, straight = unit(3), unit(3, EffectScales(alignment=0))
+    # Then all three FSRs turn by the same angle, and the other draws are untouched
+    turn = np.subtract(turned.azimuths_deg, straight.azimuths_deg)
+    assert np.allclose(turn, turn[0]) and abs(turn[0]) > 0.01
+    assert (turned.gains, turned.preloads_n) == (straight.gains, straight.preloads_n)
+    assert turned.drift_per_decade == straight.drift_per_decade
+    # And a larger scale turns it further, by the same draw
+    assert np.allclose(
+        np.subtract(unit(3, EffectScales(alignment=2)).azimuths_deg, straight.azimuths_deg), 2 * turn
+    )
+
+
+def test_unit_drift_off_gives_the_nominal_drift_and_keeps_the_other_draws():
+    own, nominal = unit(4), unit(4, EffectScales(unit_drift=0))
+    assert nominal.drift_per_decade == physics.Estimator().drift_per_decade != own.drift_per_decade
+    assert (own.azimuths_deg, own.gains, own.preloads_n) == (
+        nominal.azimuths_deg,
+        nominal.gains,
+        nominal.preloads_n,
+    )

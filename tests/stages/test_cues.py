@@ -61,7 +61,9 @@ def test_stage_writes_deterministic_outputs(tmp_path: Path, train_by_angle: dict
     # when: running the stage twice
     outs = [tmp_path / "out1", tmp_path / "out2"]
     for out in outs:
-        result = invoke(str(processed), str(pred), str(out), "--params", str(params))
+        result = invoke(
+            str(processed), str(pred), str(tmp_path / "no-calibration"), str(out), "--params", str(params)
+        )
         assert result.exit_code == 0, result.output
     # then: every output, byte-identical both times
     h1, h2 = tree_hash(outs[0]), tree_hash(outs[1])
@@ -83,6 +85,7 @@ def test_stage_names_missing_inputs(tmp_path: Path) -> None:
     result = invoke(
         str(tmp_path / "nowhere"),
         str(tmp_path / "predictions"),
+        str(tmp_path / "no-calibration"),
         str(tmp_path / "out"),
         "--params",
         str(params),
@@ -106,7 +109,10 @@ def test_stage_without_external_trials_writes_every_output(tmp_path: Path) -> No
     yaml.write_text("cues:\n  kinds: [ls]\n  evidence_levels: [0.05, 0.1, 0.2]\n")
     # when: running the stage twice
     outs = [tmp_path / "out1", tmp_path / "out2"]
-    results = [invoke(str(processed), str(pred), str(o), "--params", str(yaml)) for o in outs]
+    results = [
+        invoke(str(processed), str(pred), str(tmp_path / "no-calibration"), str(o), "--params", str(yaml))
+        for o in outs
+    ]
     # then: exit 0, every output written (byte-identical both times), and what was skipped said, and why
     for result in results:
         assert result.exit_code == 0, result.output

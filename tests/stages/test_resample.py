@@ -15,7 +15,8 @@ from tests.signals.fabricate import fabricate, write_ingested
 
 
 def test_stage_writes_deterministic_outputs_and_reports(tmp_path):
-    # Given two ingested batches (counts + N with a known truth; volts + mN, one channel, no truth),
+    # Given two ingested batches (counts + N with a known truth, no purpose; volts + mN, one channel,
+    # no truth, a calibration batch),
     # a set-aside batch folder without trials.parquet, and a trial whose reference is too short
     ingested = tmp_path / "ingested"
     short = fabricate(seed=21, offset_s=0.1)
@@ -35,6 +36,7 @@ def test_stage_writes_deterministic_outputs_and_reports(tmp_path):
         ref_units="mN",
         angle=45.0,
         with_truth=False,
+        purpose="calibration",
     )
     (ingested / "rejected").mkdir()
     (ingested / "rejected" / "problems.json").write_text("[]")
@@ -57,13 +59,23 @@ def test_stage_writes_deterministic_outputs_and_reports(tmp_path):
     a = pq.read_table(out1 / "bench-a.parquet").to_pandas()
     assert list(a.columns) == [*ID_COLUMNS, "fsr1", "fsr2", "fsr3", "fx", "fy", "fz"]
     assert sorted(a.trial_id.unique()) == ["t1", "t2"]
+    assert (a.unit_id == "unit-bench-a").all()  # every row says which unit recorded it
     assert a[["fsr1", "fsr2", "fsr3"]].max().max() < 5.0
     b = pq.read_table(out1 / "bench-b.parquet").to_pandas()
     assert list(b.columns) == [*ID_COLUMNS, "v0", "fx", "fy", "fz"]
     assert b[["fx", "fy", "fz"]].abs().max().max() < 2.0  # N, not mN
     assert (b.angle_deg == 45.0).all() and set(b.phase) <= set(PHASES)
+    assert (b.unit_id == "unit-bench-b").all()
+    # And the batch's unit and purpose are kept next to its channels (no purpose: training)
     meta = json.loads((out1 / "bench-b.json").read_text())
-    assert meta == {"batch_id": "bench-b", "channels": ["v0"], "rate_hz": 30.0, "unit_id": "unit-bench-b"}
+    assert meta == {
+        "batch_id": "bench-b",
+        "channels": ["v0"],
+        "rate_hz": 30.0,
+        "unit_id": "unit-bench-b",
+        "purpose": "calibration",
+    }
+    assert json.loads((out1 / "bench-a.json").read_text())["purpose"] == "training"
 
     # And the offsets report has one row per trial, the truth where known, the reason where set aside
     rep = pd.read_csv(tmp_path / "rep1/offsets.csv", dtype=str, keep_default_na=False).set_index("trial_id")

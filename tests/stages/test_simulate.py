@@ -10,7 +10,15 @@ import yaml
 
 from pipeline.stages import simulate
 
-SMALL = {"angles_deg": [15], "train_batches": 1, "trials_per_angle": 1, "heldout_trials_per_angle": 1}
+SMALL = {
+    "angles_deg": [15],
+    "train_batches": 1,
+    "trials_per_angle": 1,
+    "heldout_trials_per_angle": 1,
+    "calibration_trials_per_angle": 1,
+    "units": ["est-sim-001"],
+    "new_units": ["est-sim-101"],
+}
 
 
 def _params(tmp_path: Path, section: dict) -> Path:
@@ -24,11 +32,13 @@ def test_writes_the_batches_of_its_params_section(tmp_path, capsys):
     simulate.main(tmp_path / "sim", _params(tmp_path, SMALL))
     # Then it writes that plan's batches and says so batch by batch
     assert sorted(p.name for p in (tmp_path / "sim").iterdir()) == [
+        "sim-calib-est-sim-101",
         "sim-heldout-15deg",
-        "sim-tissue-1",
+        "sim-heldout-15deg-est-sim-101",
+        "sim-tissue-1-est-sim-001",
         "simulate.json",
     ]
-    assert "simulate: sim-tissue-1: 1 trials" in capsys.readouterr().err
+    assert "simulate: sim-tissue-1-est-sim-001: 1 trials" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -36,8 +46,10 @@ def test_writes_the_batches_of_its_params_section(tmp_path, capsys):
     [
         (SMALL, "precious.csv", "not written by the simulator"),
         ({**SMALL, "trails_per_angle": 3}, None, "trails_per_angle"),
+        ({**SMALL, "unit_id": "est-sim-001"}, None, "unit_id"),
+        ({**SMALL, "new_units": ["est-sim-001"]}, None, "disjoint"),
     ],
-    ids=["foreign folder", "params typo"],
+    ids=["foreign folder", "params typo", "the old unit_id", "a unit both training and new"],
 )
 def test_bad_input_exits_1_with_the_reason(tmp_path, capsys, section, folder_file, reason):
     # Given a folder holding someone's data, or a typo in the params section

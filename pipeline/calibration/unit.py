@@ -1,0 +1,127 @@
+"""One unit's calibration document (format "needlecue-unit/1"), from its calibration rows and the
+frozen shared models: which trials and angles it used, what was set aside and why, and per model kind
+the input transform with the models it was fitted through (their checkpoint hashes: a transform
+applies to those models only).
+
+    {"format", "unit_id", "batches", "trials": [{batch_id, trial_id, angle}], "angles_used",
+     "angles_missing", "set_aside": [{batch_id, trial_id, file, angle, reason}],
+     "transforms": {kind: {"matrix", "offset", "fitted_through": [angle], "models": {angle: sha},
+                           "loss_before", "loss_after", "loss_after_by_angle", "identity_kept"?}},
+     "params": {...}, "cues": {"rest_log_means": {angle: [per channel]}}}
+
+The stage and `needlecue calibrate` both build it here; `pipeline.calibration.document` reads it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import pandas as pd
+
+from pipeline.calibration.document import DIGITS, FORMAT
+from pipeline.calibration.fit import AngleData, fit_transform
+from pipeline.config import CalibrateParams, CuesParams
+from pipeline.cues.units import rest_log_means
+from pipeline.modelling.checkpoint import checkpoint_sha256
+from pipeline.modelling.predict import Predictor
+from pipeline.vocab import angle_name, jsonable, sorted_angles
+
+Log = Callable[[str], None]
+
+
+def _trial_problems(frame: pd.DataFrame, p: CalibrateParams) -> list[dict[str, str]]:
+    """Calibration trials that cannot calibrate anything, with the reason."""
+    out = []
+    for (batch, trial), rows in frame.groupby(["batch_id", "trial_id"], sort=True):
+        angle = angle_name(rows["angle_deg"].iloc[0])
+        span = float(rows["t_s"].max() - rows["t_s"].min()) if len(rows) > 1 else 0.0
+        if span < p.min_trial_s:
+            out.append(
+                {
+                    "batch_id": str(batch),
+                    "trial_id": str(trial),
+                    "file": f"{batch}/{trial}.fsr.csv",
+                    "angle": angle,
+                    "reason": f"{span:.1f} s of aligned samples, a calibration insertion needs "
+                    f"calibrate.min_trial_s = {p.min_trial_s:g} s",
+                }
+            )
+    return out
+
+
+def calibrate_unit(
+    unit_id: str,
+    rows: pd.DataFrame,
+    models: Mapping[str, Mapping[str, Predictor]],
+    trained_angles: list[str],
+    p: CalibrateParams,
+    log: Log | None = None,
+    cues: CuesParams | None = None,
+) -> dict[str, Any]:
+    """The calibration document of `unit_id` from its calibration `rows` (processed frame, any angles)
+    through `models` ({kind: {angle: Predictor}}), for a pipeline trained at `trained_angles`; with
+    `cues`, also the unit's mean log rest reading per angle (the cue packs' unit map)."""
+    log = log or (lambda _m: None)
+    set_aside = _trial_problems(rows, p)
+    bad = {(s["batch_id"], s["trial_id"]) for s in set_aside}
+    keys = list(zip(rows["batch_id"], rows["trial_id"], strict=True))
+    used = rows[[k not in bad for k in keys]]
+    by_angle = {angle_name(a): f for a, f in used.groupby("angle_deg", sort=True)}
+    for angle in sorted_angles(by_angle):
+        if angle not in trained_angles:
+            for (batch, trial), _ in by_angle[angle].groupby(["batch_id", "trial_id"], sort=True):
+                set_aside.append(
+                    {
+                        "batch_id": str(batch),
+                        "trial_id": str(trial),
+                        "file": f"{batch}/{trial}.fsr.csv",
+                        "angle": angle,
+                        "reason": f"no shared model is trained at {angle}° (train.angles)",
+                    }
+                )
+            del by_angle[angle]
+    angles = sorted_angles(by_angle)
+    trials = sorted(
+        {
+            (str(b), str(t), a)
+            for a, f in by_angle.items()
+            for b, t in zip(f["batch_id"], f["trial_id"], strict=True)
+        }
+    )
+    doc: dict[str, Any] = {
+        "format": FORMAT,
+        "unit_id": unit_id,
+        "batches": sorted({b for b, _, _ in trials}),
+        "trials": [{"batch_id": b, "trial_id": t, "angle": a} for b, t, a in trials],
+        "angles_used": angles,
+        "angles_missing": [a for a in trained_angles if a not in by_angle],
+        "set_aside": sorted(set_aside, key=lambda s: (s["batch_id"], s["trial_id"])),
+        "transforms": {},
+        "params": p.model_dump(mode="json"),
+    }
+    if cues is not None:
+        channels = next((list(m.channels) for ms in models.values() for m in ms.values()), None)
+        frames = {float(a): f for a, f in by_angle.items()}
+        means = rest_log_means(frames, channels, cues).get(unit_id, {}) if channels else {}
+        doc["cues"] = {"rest_log_means": means}
+    for kind, predictors in models.items():
+        fit_angles = [a for a in angles if a in predictors]
+        if not fit_angles:
+            continue
+        data = [AngleData.of(predictors[a], by_angle[a]) for a in fit_angles]
+        transform, report = fit_transform(data, p)
+        doc["transforms"][kind] = {
+            **transform.to_dict(),
+            "fitted_through": fit_angles,
+            # the models it applies to: those of this kind at every angle, calibrated or not (one
+            # transform serves the unit), each named by its checkpoint hash
+            "models": {a: checkpoint_sha256(m.checkpoint) for a, m in sorted(predictors.items())},
+            **report,
+        }
+        kept = f", identity kept: {report['identity_kept']}" if "identity_kept" in report else ""
+        log(
+            f"{unit_id}: {kind} through {len(fit_angles)} angle(s): loss "
+            f"{report['loss_before']:.4f} -> {report['loss_after']:.4f}{kept}"
+        )
+    return jsonable(doc, DIGITS)

@@ -1,0 +1,92 @@
+"""The model's inputs from volts: the divider inverted, the rest reading, batch and stream alike."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.config import EffectScales
+from pipeline.modelling.features import (
+    FeatureSpec,
+    InputTransform,
+    StreamFeatures,
+    conductance_us,
+    features,
+)
+from pipeline.sim import physics
+
+QUIET = EffectScales(
+    fsr_threshold=False,
+    hysteresis=0,
+    drift=0,
+    repeatability=0,
+    electrical_noise=0,
+    adc=False,
+    viscoelasticity=0,
+)
+
+
+def _volts(load: np.ndarray, est: physics.Estimator) -> np.ndarray:
+    gain = np.ones(est.n_fsr)
+    return physics.fsr_volts(load, np.zeros(len(load)), est, QUIET, gain, np.random.default_rng(0))
+
+
+def test_conductance_inverts_the_simulated_divider() -> None:
+    # given: loads on an ideal unit (no threshold, noise or hysteresis), read through the divider
+    est = physics.Estimator()
+    load = np.linspace(0.2, 3.0, 30)[:, None].repeat(3, axis=1)
+    # when: inverting the divider
+    g = conductance_us(_volts(load, est), FeatureSpec(kind="conductance"))
+    # then: conductance is load / (2 R_S), as the FSR law says, in µS
+    np.testing.assert_allclose(g, load / (2 * est.rs_kohm_n) * 1e3, rtol=1e-6)
+
+
+def test_rest_conductance_removes_the_preload() -> None:
+    # given: two units that differ only in their cast-in preloads, under the same added load
+    a = physics.Estimator(preloads_n=(0.45, 0.49, 0.55))
+    b = physics.Estimator(preloads_n=(0.52, 0.40, 0.50))
+    extra = np.concatenate([np.zeros(20), np.linspace(0, 0.5, 40)])[:, None].repeat(3, axis=1)
+    t = np.arange(len(extra)) / 30.0
+    codes = np.zeros(len(extra), np.int64)
+    spec = FeatureSpec(kind="rest_conductance")
+    # when: computing their inputs
+    fa = features(_volts(np.asarray(a.preloads_n) + extra, a), codes, t, spec)
+    fb = features(_volts(np.asarray(b.preloads_n) + extra, b), codes, t, spec)
+    # then: the same inputs, while the raw volts differ
+    np.testing.assert_allclose(fa, fb, atol=1e-9)
+    va, vb = _volts(np.asarray(a.preloads_n) + extra, a), _volts(np.asarray(b.preloads_n) + extra, b)
+    assert not np.allclose(va, vb)
+
+
+@pytest.mark.parametrize("kind", ["volts", "rest_volts", "conductance", "rest_conductance"])
+def test_streaming_gives_the_batch_numbers_and_is_causal(kind: str) -> None:
+    # given: two interleaved trials of noisy volts
+    rng = np.random.default_rng(1)
+    volts = 0.6 + 0.3 * rng.random((80, 3))
+    codes = np.repeat([0, 1], 40)
+    t = np.tile(np.arange(40) / 30.0, 2)
+    spec = FeatureSpec(kind=kind)
+    order = rng.permutation(80)
+    # when: computing them in a shuffled batch and one sample at a time
+    batch = np.empty((80, 3))
+    batch[order] = features(volts[order], codes[order], t[order], spec)
+    stream = StreamFeatures(spec, 3)
+    streamed = []
+    for i in range(80):
+        if i in (0, 40):
+            stream.reset()
+        streamed.append(stream.push(float(t[i]), volts[i]))
+    changed = volts.copy()
+    changed[30:40] += 0.5
+    later = features(changed, codes, t, spec)
+    # then: equal, and changing later samples leaves earlier inputs alone
+    np.testing.assert_allclose(np.asarray(streamed), batch, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(later[:30], batch[:30])
+
+
+def test_a_transform_round_trips_and_rejects_a_bad_matrix() -> None:
+    t = InputTransform.from_dict({"matrix": [[1.1, 0.0], [0.2, 0.9]], "offset": [0.0, 0.1]})
+    assert InputTransform.from_dict(t.to_dict()) == t
+    np.testing.assert_allclose(t.apply(np.array([[1.0, 2.0]])), [[1.1, 0.2 + 1.8 + 0.1]])
+    with pytest.raises(ValueError, match="finite square matrix"):
+        InputTransform.from_dict({"matrix": [[1.0, 0.0]], "offset": [0.0]})

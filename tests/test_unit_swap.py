@@ -1,0 +1,91 @@
+"""End to end, a unit swap: train on units A, B, C; calibrate D from one insertion per angle; score
+D's held-out batch through its calibration; a client for D applies it; a client for a unit without
+one gives force but no cues."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from pipeline.client import ForceClient, UncalibratedUnit
+from pipeline.modelling.predictions import Predictions
+from tests.projects import TINY_MODELS, make_project, run
+
+pytestmark = pytest.mark.slow
+
+A, B, C, D = "unit-a", "unit-b", "unit-c", "unit-d"
+SWAP_SIM = {
+    "angles_deg": [15, 45],
+    "train_batches": 1,
+    "trials_per_angle": 2,  # x 3 units: 6 training trials per angle
+    "heldout_trials_per_angle": 2,
+    "calibration_trials_per_angle": 1,
+    "units": [A, B, C],
+    "new_units": [D],
+}
+
+
+def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
+    # Given a project whose simulator records with units A, B, C, and D (new) with a calibration batch
+    root = make_project(tmp_path / "proj", SWAP_SIM)
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["train"]["models"] = ["ls", "fnn"]
+    params["cues"]["kinds"] = params["register"]["candidates"] = ["ls", "fnn"]
+    for model, update in TINY_MODELS.items():
+        params[model].update(update)
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    # When the whole pipeline runs
+    run(root, "dvc", "repro")
+    # Then D's calibration trials are in no split, only in processed/calibration
+    manifest = json.loads((root / "data" / "processed" / "manifest.json").read_text())
+    assert manifest["units"][D]["role"] == "new" and manifest["units"][A]["role"] == "training"
+    for angle in ("15", "45"):
+        cal = pd.read_parquet(root / "data" / "processed" / "calibration" / f"{angle}.parquet")
+        assert set(cal.unit_id) == {D} and len(cal)
+        for split in ("train", "val", "test", "external"):
+            frame = pd.read_parquet(root / "data" / "processed" / angle / f"{split}.parquet")
+            assert not set(frame.batch_id) & set(cal.batch_id)
+    # And D's held-out batch is scored as a calibrated unit, next to the training units
+    metrics = json.loads((root / "reports" / "metrics.json").read_text())
+    assert metrics["by_unit"][D]["calibrated"] is True
+    assert {metrics["by_unit"][u]["role"] for u in (A, B, C) if u in metrics["by_unit"]} == {"training"}
+    assert set(metrics["calibration"][D]["angles_used"]) == {"15", "45"}
+    assert "new_calibrated" in metrics["unit_transfer"]["champion"]
+    # And the report has the section
+    assert "## Estimator units" in (root / "reports" / "report.md").read_text()
+
+    # When a simulator asks for the 15° champion for unit D
+    monkeypatch.chdir(root)  # the store is the project's (MLFLOW_TRACKING_URI from the test fixture)
+    cache = tmp_path / "cache"
+    client = ForceClient.from_registry(15, unit_id=D, cache_dir=cache, poll_s=None)
+    # Then it is calibrated and gives the force the pipeline scored for D's held-out trial
+    assert client.calibrated and client.has_cues
+    external = pd.read_parquet(root / "data" / "processed" / "15" / "external.parquet")
+    trial = external[external.unit_id == D]
+    first = trial[["batch_id", "trial_id"]].drop_duplicates().iloc[0]
+    rows = trial[(trial.batch_id == first.batch_id) & (trial.trial_id == first.trial_id)].sort_values("t_s")
+    expected = Predictions(root / "data" / "predictions").get(client.kind, "15", "15", "external")
+    client.reset()
+    got = np.array(
+        [
+            client.step(v, t).force_n
+            for v, t in zip(rows[list(client.channels)].to_numpy(), rows.t_s, strict=True)
+        ]
+    )
+    np.testing.assert_allclose(got, expected[rows.index.to_numpy()], atol=1e-4)
+
+    # When a simulator asks for the champion for a unit that has no calibration
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stranger = ForceClient.from_registry(15, unit_id="unit-x", cache_dir=cache, poll_s=None)
+    # Then it warns, gives force, and never a cue
+    assert any(issubclass(w.category, UncalibratedUnit) for w in caught)
+    assert not stranger.calibrated and not stranger.has_cues
+    volts = rows[list(stranger.channels)].to_numpy()
+    frames = [stranger.step(v, t) for v, t in zip(volts, rows.t_s, strict=True)]
+    assert all(f.cue is None for f in frames) and all(np.isfinite(f.force_n).all() for f in frames)
