@@ -118,30 +118,9 @@ def fetch(
     alias. `cache_dir` defaults to `default_cache_dir()`.
     """
     name = store.model_name(angle_deg)
-    uri = store.model_uri(angle_deg, alias)
-    target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
-    registry_uri = tracking_uri or store.tracking_uri()
-    cached = read_version(target)
-    try:
-        client = store.connect(registry_uri, must_exist=True)
-        mv = _resolve(client, name, alias, registry_uri)
-    except store.RegistryUnreachable as e:
-        return _offline_copy(target, cached, uri, e)
-
-    if (
-        cached is not None
-        and cached.get("name") == name
-        and str(cached.get("version")) == str(mv.version)
-        # version numbers restart in every store: the source (models:/m-<id>) tells two stores' "v1" apart
-        and cached.get("source") == mv.source
-        and (target / "model.onnx").is_file()
-        and file_sha256([target / "model.onnx"]) == cached.get("onnx_sha256")
-    ):
-        return target  # already that version, intact: no download
-    try:
-        return _download(mv, alias, target, registry_uri)
-    except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
-        return _offline_copy(target, cached, uri, e)
+    return _fetch_version(
+        name, alias, cache_dir, tracking_uri, "model.onnx", "onnx_sha256", MODEL_HINT, _model_info
+    )
 
 
 def poll_alias(name: str, alias: str, tracking_uri: str) -> Any:
@@ -167,25 +146,55 @@ def fetch_unit(
     `RegistryUnreachable`); `ModelNotFound` if the unit has no calibration registered under `alias`.
     """
     name = store.unit_model_name(unit_id)
+    return _fetch_version(
+        name,
+        alias,
+        cache_dir,
+        tracking_uri,
+        UNIT_FILE,
+        "calibration_sha256",
+        UNIT_HINT,
+        _unit_info(unit_id),
+        offline_needs_file=True,
+    )
+
+
+def _fetch_version(
+    name: str,
+    alias: str,
+    cache_dir: Path | None,
+    tracking_uri: str | None,
+    file: str,
+    sha_key: str,
+    hint: str,
+    describe: Describe,
+    *,
+    offline_needs_file: bool = False,
+) -> Path:
+    """`fetch` and `fetch_unit`: `<cache_dir>/<name>/<alias>/`, downloaded (and described) unless the
+    cached copy is that very version with `file` intact (its sha256 under `sha_key` in version.json);
+    the cached copy when the registry cannot be used (a unit's only if its `file` is there)."""
     uri = f"models:/{name}@{alias}"
     target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
     registry_uri = tracking_uri or store.tracking_uri()
-    cached = read_version(target) if (target / UNIT_FILE).is_file() else None
+    cached = read_version(target) if not offline_needs_file or (target / file).is_file() else None
     try:
         client = store.connect(registry_uri, must_exist=True)
-        mv = _resolve(client, name, alias, registry_uri, UNIT_HINT)
+        mv = _resolve(client, name, alias, registry_uri, hint)
     except store.RegistryUnreachable as e:
         return _offline_copy(target, cached, uri, e)
     if (
         cached is not None
         and cached.get("name") == name
         and str(cached.get("version")) == str(mv.version)
+        # version numbers restart in every store: the source (models:/m-<id>) tells two stores' "v1" apart
         and cached.get("source") == mv.source
-        and file_sha256([target / UNIT_FILE]) == cached.get("calibration_sha256")
+        and (target / file).is_file()
+        and file_sha256([target / file]) == cached.get(sha_key)
     ):
         return target  # already that version, intact: no download
     try:
-        return _download(mv, alias, target, registry_uri, _unit_info(unit_id))
+        return _download(mv, alias, target, registry_uri, describe)
     except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
         return _offline_copy(target, cached, uri, e)
 
