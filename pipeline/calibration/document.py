@@ -56,3 +56,9 @@ def read_units(cal_dir: Path) -> dict[str, dict[str, Any]]:
     if not cal_dir.is_dir():
         return {}
     return {d["unit_id"]: d for d in (read_unit(f) for f in sorted(cal_dir.glob("*.json")))}
+
+
+def calibrated_units(units: Mapping[str, Mapping[str, Any]]) -> dict[str, bool]:
+    """{unit_id: whether its document calibrates any model kind} (the identity kept counts: the
+    calibration was made and applied)."""
+    return {u: bool(d.get("transforms")) for u, d in units.items()}

@@ -30,23 +30,28 @@ from pipeline.vocab import angle_name, jsonable, sorted_angles
 Log = Callable[[str], None]
 
 
+def _set_aside(batch: Any, trial: Any, angle: str, reason: str) -> dict[str, str]:
+    """One calibration trial set aside, located by its batch, trial and estimator file."""
+    return {
+        "batch_id": str(batch),
+        "trial_id": str(trial),
+        "file": f"{batch}/{trial}.fsr.csv",
+        "angle": angle,
+        "reason": reason,
+    }
+
+
 def _trial_problems(frame: pd.DataFrame, p: CalibrateParams) -> list[dict[str, str]]:
     """Calibration trials that cannot calibrate anything, with the reason."""
     out = []
     for (batch, trial), rows in frame.groupby(["batch_id", "trial_id"], sort=True):
-        angle = angle_name(rows["angle_deg"].iloc[0])
         span = float(rows["t_s"].max() - rows["t_s"].min()) if len(rows) > 1 else 0.0
         if span < p.min_trial_s:
-            out.append(
-                {
-                    "batch_id": str(batch),
-                    "trial_id": str(trial),
-                    "file": f"{batch}/{trial}.fsr.csv",
-                    "angle": angle,
-                    "reason": f"{span:.1f} s of aligned samples, a calibration insertion needs "
-                    f"calibrate.min_trial_s = {p.min_trial_s:g} s",
-                }
+            reason = (
+                f"{span:.1f} s of aligned samples, a calibration insertion needs "
+                f"calibrate.min_trial_s = {p.min_trial_s:g} s"
             )
+            out.append(_set_aside(batch, trial, angle_name(rows["angle_deg"].iloc[0]), reason))
     return out
 
 
@@ -70,16 +75,9 @@ def calibrate_unit(
     by_angle = {angle_name(a): f for a, f in used.groupby("angle_deg", sort=True)}
     for angle in sorted_angles(by_angle):
         if angle not in trained_angles:
+            reason = f"no shared model is trained at {angle}° (train.angles)"
             for (batch, trial), _ in by_angle[angle].groupby(["batch_id", "trial_id"], sort=True):
-                set_aside.append(
-                    {
-                        "batch_id": str(batch),
-                        "trial_id": str(trial),
-                        "file": f"{batch}/{trial}.fsr.csv",
-                        "angle": angle,
-                        "reason": f"no shared model is trained at {angle}° (train.angles)",
-                    }
-                )
+                set_aside.append(_set_aside(batch, trial, angle, reason))
             del by_angle[angle]
     angles = sorted_angles(by_angle)
     trials = sorted(

@@ -43,7 +43,7 @@ from pipeline.client.cache import (
     read_metadata,
     read_version,
 )
-from pipeline.modelling.features import FeatureSpec, InputTransform, StreamFeatures
+from pipeline.modelling.features import InputTransform, StreamFeatures, spec_of
 from pipeline.registry import store
 from pipeline.vocab import DEPLOY_FORMAT, angle_name, file_sha256
 
@@ -163,7 +163,7 @@ class ForceClient:
         self.targets: tuple[str, ...] = tuple(meta["targets"])
         self.rate_hz: float | None = None if meta.get("rate_hz") is None else float(meta["rate_hz"])
         self.window: int = int(meta["window"])
-        self.inputs = FeatureSpec.from_dict(meta.get("inputs"))  # deploy/1 models read raw volts
+        self.inputs = spec_of(meta.get("inputs"))  # deploy/1 models read raw volts
         self.version: dict[str, Any] | None = read_version(self.model_dir)
         onnx_file = self.model_dir / "model.onnx"
         if not onnx_file.is_file():

@@ -5,9 +5,9 @@ A checkpoint (`model.pt`) is a plain dict of tensors, strings, numbers, lists an
   format "needlecue-model/1"; kind "ls" | "fnn" | "lstm"; config `ModelConfig.to_dict()`;
   state_dict (ls: "weight" (3, channels) = C of eq. (1) and "bias" (3,), zeros without intercept;
   networks: their module's state_dict); preprocessing {x_mean, x_std, y_mean, y_std} float64
-  (identity for ls); channels; inputs (`features.FeatureSpec.to_dict()`: what the model computes
-  from the volts; absent in older checkpoints = raw volts); targets ["fx", "fy", "fz"]; rate_hz; angle_deg;
-  train_data_sha256; params (the params section it was trained with); torch_version.
+  (identity for ls); channels; inputs (the `<model>.inputs` params, `config.InputParams`: what the
+  model computes from the volts; absent in older checkpoints = raw volts); targets ["fx", "fy", "fz"];
+  rate_hz; angle_deg; train_data_sha256; params (the params section it was trained with); torch_version.
 """
 
 from __future__ import annotations

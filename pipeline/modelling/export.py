@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpoint_sha256
-from pipeline.modelling.features import FeatureSpec
+from pipeline.modelling.features import spec_of
 from pipeline.modelling.networks import build_network
 from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAME, OUTPUT_NAME
 
@@ -150,7 +150,7 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
         "targets": list(checkpoint["targets"]),
         "rate_hz": _json_float(checkpoint["rate_hz"]),
         "window": int(checkpoint["config"].get("window", 1)),
-        "inputs": FeatureSpec.from_dict(checkpoint.get("inputs")).to_dict(),
+        "inputs": spec_of(checkpoint.get("inputs")).model_dump(),
         "input": INPUT_NAME,
         "output": OUTPUT_NAME,
         "checkpoint_sha256": checkpoint_sha256(checkpoint),
@@ -166,7 +166,7 @@ def input_example(checkpoint: dict[str, Any]) -> np.ndarray:
     pre = checkpoint["preprocessing"]
     mean, std = pre["x_mean"].double().numpy(), pre["x_std"].double().numpy()
     rows = mean[None, :] + np.array([-1.0, 0.0, 1.0])[:, None] * std[None, :]
-    if FeatureSpec.from_dict(checkpoint.get("inputs")).kind == "volts":
+    if spec_of(checkpoint.get("inputs")).kind == "volts":
         rows = np.clip(rows, 0.0, None)
     window = int(checkpoint["config"].get("window", 1))
     if checkpoint["kind"] == "lstm":

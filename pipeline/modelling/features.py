@@ -21,55 +21,31 @@ client (`StreamFeatures`). Numpy only: the simulator's client imports this modul
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, get_args
 
 import numpy as np
 
-KINDS = ("volts", "rest_volts", "conductance", "rest_conductance")
+from pipeline.config import InputParams
+
+KINDS: tuple[str, ...] = get_args(InputParams.model_fields["kind"].annotation)
 MIN_VOLTS = 1e-3  # an unloaded FSR reads a few mV; below this the divider cannot be inverted
 MIN_R_KOHM = 0.1  # floor of R - R_i: near V+ the series term would make it negative
 
 
-@dataclass(frozen=True)
-class FeatureSpec:
-    """How a model turns volts into inputs; stored in its checkpoint and its deployable model."""
-
-    kind: str = "volts"
-    v_plus: float = 5.0  # divider supply, V
-    r_m_kohm: float = 10.0  # divider resistor
-    r_series_kohm: float = 1.62  # R_i of R = 2 R_S / F + R_i (thin silicone layer)
-    r_open_kohm: float = 10_000.0  # an unloaded FSR
-    rest_s: float = 0.5  # seconds at the start of a trial that define its rest reading
-
-    def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown input kind {self.kind!r}; expected one of {', '.join(KINDS)}")
-        if not (self.v_plus > 0 and self.r_m_kohm > 0 and self.r_open_kohm > 0 and self.rest_s > 0):
-            raise ValueError(f"input settings must be positive: {self}")
-
-    @property
-    def relative(self) -> bool:
-        """Whether the inputs are relative to the trial's rest reading."""
-        return self.kind.startswith("rest_")
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any] | None) -> FeatureSpec:
-        """A stored spec; None (a model from before inputs were recorded) reads raw volts."""
-        if d is None:
-            return cls()
-        if not isinstance(d, Mapping):
-            raise ValueError(f"model inputs must be a mapping, got {type(d).__name__}")
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown model input setting(s) {sorted(unknown)}")
-        return cls(**d)
+def spec_of(stored: Mapping[str, Any] | None) -> InputParams:
+    """The inputs a checkpoint or deployable model records (`<model>.inputs` of params.yaml, checked
+    the same way: an unknown setting or kind is a ValueError); None, a model from before inputs were
+    recorded, reads raw volts."""
+    return InputParams() if stored is None else InputParams.model_validate(stored)
 
 
-def conductance_us(volts: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+def _relative(spec: InputParams) -> bool:
+    """Whether the inputs are relative to the trial's rest reading."""
+    return spec.kind.startswith("rest_")
+
+
+def conductance_us(volts: np.ndarray, spec: InputParams) -> np.ndarray:
     """FSR conductance in µS from divider volts (elementwise)."""
     v = np.clip(np.asarray(volts, dtype=np.float64), MIN_VOLTS, spec.v_plus - MIN_VOLTS)
     r = spec.r_m_kohm * (spec.v_plus / v - 1.0)
@@ -77,7 +53,7 @@ def conductance_us(volts: np.ndarray, spec: FeatureSpec) -> np.ndarray:
     return g * 1e3  # 1/kOhm -> µS
 
 
-def _absolute(volts: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+def _absolute(volts: np.ndarray, spec: InputParams) -> np.ndarray:
     volts = np.asarray(volts, dtype=np.float64)
     return conductance_us(volts, spec) if spec.kind.endswith("conductance") else volts
 
@@ -103,11 +79,11 @@ def rest_reading(values: np.ndarray, codes: np.ndarray, t: np.ndarray, rest_s: f
     return out
 
 
-def features(volts: np.ndarray, codes: np.ndarray, t: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+def features(volts: np.ndarray, codes: np.ndarray, t: np.ndarray, spec: InputParams) -> np.ndarray:
     """(n, channels) model inputs of volts (n, channels) whose rows belong to trials `codes` at
     times `t` (s); any row order."""
     x = _absolute(volts, spec)
-    if not spec.relative:
+    if not _relative(spec):
         return x
     return x - rest_reading(x, np.asarray(codes), np.asarray(t, dtype=np.float64), spec.rest_s)
 
@@ -118,7 +94,7 @@ class StreamFeatures:
 
     __slots__ = ("_frozen", "_n", "_spec", "_sum", "_t0")
 
-    def __init__(self, spec: FeatureSpec, n_channels: int) -> None:
+    def __init__(self, spec: InputParams, n_channels: int) -> None:
         self._spec = spec
         self._sum = np.zeros(n_channels)
         self.reset()
@@ -136,7 +112,7 @@ class StreamFeatures:
 
     def push(self, t: float, volts: np.ndarray) -> np.ndarray:
         x = _absolute(volts, self._spec)
-        if not self._spec.relative:
+        if not _relative(self._spec):
             return x
         if self._t0 is None:
             self._t0 = t

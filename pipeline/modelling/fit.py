@@ -28,9 +28,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from pipeline.config import PARAMS_MODELS, FNNParams, LSParams, LSTMParams
+from pipeline.config import PARAMS_MODELS, FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
-from pipeline.modelling.features import FeatureSpec
 from pipeline.modelling.inputs import column_stats, features_of, inputs_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch
 from pipeline.modelling.predict import Predictor
@@ -146,7 +145,7 @@ def fit(
     _import_backends(kind)  # before the clock: train_seconds measures the work, not the imports
     codes = trial_codes(train)
     started = time.perf_counter()
-    spec = FeatureSpec(**params.inputs.model_dump())
+    spec = params.inputs
     if isinstance(params, LSParams):
         cfg = ModelConfig(kind="ls", n_in=len(channels))
         state, pre, history, summary = _fit_ls(params, spec, train, val, channels)
@@ -167,7 +166,7 @@ def fit(
         "state_dict": state,
         "preprocessing": pre,
         "channels": list(channels),
-        "inputs": spec.to_dict(),
+        "inputs": spec.model_dump(),
         "targets": list(AXES),
         "rate_hz": rate_hz(train["t_s"], codes) if "t_s" in train.columns else math.nan,
         "angle_deg": _angle_deg(train),
@@ -206,7 +205,7 @@ def _scaled_mse(pred: np.ndarray, y: np.ndarray, y_std: np.ndarray) -> float:
 
 
 def _fit_ls(
-    params: LSParams, spec: FeatureSpec, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
+    params: LSParams, spec: InputParams, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
 ) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, float]], dict[str, Any]]:
     """Eq. (2) on the unscaled inputs: that is the paper's method, and scaling would add an offset."""
     import torch
@@ -249,7 +248,7 @@ def _preprocessing(x_mean: np.ndarray, x_std: np.ndarray, y_mean: np.ndarray, y_
 def _fit_network(
     cfg: ModelConfig,
     params: FNNParams | LSTMParams,
-    spec: FeatureSpec,
+    spec: InputParams,
     train: pd.DataFrame,
     val: pd.DataFrame,
     channels: list[str],

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
-from pipeline.modelling.features import FeatureSpec, InputTransform, features
+from pipeline.modelling.features import InputTransform, features, spec_of
 from pipeline.modelling.inputs import network_inputs, times_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch
 from pipeline.vocab import KINDS
@@ -24,7 +24,7 @@ PREDICT_CHUNK = 65_536  # rows per forward pass at prediction time
 class Predictor:
     """A trained model behind one call: volts in, force in newtons out.
 
-    Attributes: `kind`, `channels` (the order it reads them in), `inputs` (the `FeatureSpec` it
+    Attributes: `kind`, `channels` (the order it reads them in), `inputs` (the `InputParams` it
     computes from the volts), `targets`, `rate_hz`, `angle_deg`, `window` (samples of history it
     uses, 1 for ls/fnn), `config`, `checkpoint`. A unit's calibration is an `InputTransform` passed
     to `predict`: it maps the unit's inputs before the model reads them.
@@ -39,7 +39,7 @@ class Predictor:
             raise ValueError(f"unknown model kind {self.kind!r} in checkpoint")
         self.config = ModelConfig.from_dict(checkpoint["config"])
         self.channels: tuple[str, ...] = tuple(checkpoint["channels"])
-        self.inputs = FeatureSpec.from_dict(checkpoint.get("inputs"))
+        self.inputs = spec_of(checkpoint.get("inputs"))
         self.targets: tuple[str, ...] = tuple(checkpoint["targets"])
         self.rate_hz: float = float(checkpoint["rate_hz"])
         self.angle_deg: float = float(checkpoint["angle_deg"])
@@ -119,8 +119,6 @@ class Predictor:
         if not np.isfinite(volts).all():
             bad = [c for c, ok in zip(self.channels, np.isfinite(volts).all(axis=0), strict=True) if not ok]
             raise ValueError(f"non-finite volts in channel(s) {bad}")
-        if len(volts) == 0:
-            return np.zeros((0, len(self.targets)))
         x_in = features(volts, codes, t, self.inputs)
         if transform is not None:
             x_in = transform.apply(x_in)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import typer
 
-from pipeline.calibration.document import read_units
+from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
@@ -95,7 +95,7 @@ def main(
                 lambda kind, preset, a: predictions.get(kind, angle_name(preset), angle_name(a), "external"),
                 log=_log,
             )
-            calibrated = {u: bool(d.get("transforms")) for u, d in docs.items()}
+            calibrated = calibrated_units(docs)
             evaluation["by_unit_group"] = evaluate_unit_groups(
                 external,
                 external_raw,

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import typer
 
-from pipeline.calibration.document import read_units
+from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.dataset.splits import unit_roles
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
@@ -49,7 +49,7 @@ def main(
     if not scored.loaded:
         _log(f"warning: no trained model found (no predictions under {pred_dir})")
     metrics = compute_metrics(eval_sets, scored, p.gaps_deg)
-    calibrated = {u: bool(d.get("transforms")) for u, d in units.items()}
+    calibrated = calibrated_units(units)
     models = list(train.models)
     metrics["by_unit"] = by_unit(eval_sets, predictions, models, roles, calibrated)
     metrics["by_unit_uncalibrated"] = by_unit(

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.config import EffectScales
+from pipeline.config import EffectScales, InputParams
 from pipeline.modelling.features import (
-    FeatureSpec,
     InputTransform,
     StreamFeatures,
     conductance_us,
@@ -36,7 +35,7 @@ def test_conductance_inverts_the_simulated_divider() -> None:
     est = physics.Estimator()
     load = np.linspace(0.2, 3.0, 30)[:, None].repeat(3, axis=1)
     # when: inverting the divider
-    g = conductance_us(_volts(load, est), FeatureSpec(kind="conductance"))
+    g = conductance_us(_volts(load, est), InputParams(kind="conductance"))
     # then: conductance is load / (2 R_S), as the FSR law says, in µS
     np.testing.assert_allclose(g, load / (2 * est.rs_kohm_n) * 1e3, rtol=1e-6)
 
@@ -48,7 +47,7 @@ def test_rest_conductance_removes_the_preload() -> None:
     extra = np.concatenate([np.zeros(20), np.linspace(0, 0.5, 40)])[:, None].repeat(3, axis=1)
     t = np.arange(len(extra)) / 30.0
     codes = np.zeros(len(extra), np.int64)
-    spec = FeatureSpec(kind="rest_conductance")
+    spec = InputParams(kind="rest_conductance")
     # when: computing their inputs
     fa = features(_volts(np.asarray(a.preloads_n) + extra, a), codes, t, spec)
     fb = features(_volts(np.asarray(b.preloads_n) + extra, b), codes, t, spec)
@@ -65,7 +64,7 @@ def test_streaming_gives_the_batch_numbers_and_is_causal(kind: str) -> None:
     volts = 0.6 + 0.3 * rng.random((80, 3))
     codes = np.repeat([0, 1], 40)
     t = np.tile(np.arange(40) / 30.0, 2)
-    spec = FeatureSpec(kind=kind)
+    spec = InputParams(kind=kind)
     order = rng.permutation(80)
     # when: computing them in a shuffled batch and one sample at a time
     batch = np.empty((80, 3))
