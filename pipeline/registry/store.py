@@ -109,6 +109,17 @@ def experiment_id(client: MlflowClient, name: str = EXPERIMENT, about: str = ABO
     )
 
 
+def create_registered_model(client: MlflowClient, name: str, description: str) -> None:
+    """Create `name`; one that exists (another run's, or left empty by an interrupted one) is fine."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        client.create_registered_model(name, description=description)
+    except MlflowException as e:
+        if e.error_code != "RESOURCE_ALREADY_EXISTS":
+            raise
+
+
 def connect(uri: str | None = None, *, must_exist: bool = False) -> MlflowClient:
     """A client on `uri` (default `tracking_uri()`), checked to answer; `RegistryUnreachable` if not.
 

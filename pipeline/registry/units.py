@@ -27,6 +27,7 @@ from pipeline.registry.store import (
     UNIT_ALIAS,
     UNIT_EXPERIMENT,
     alias_version,
+    create_registered_model,
     experiment_id,
     unit_model_name,
     versions,
@@ -149,22 +150,13 @@ def champion_predictors(
 # --------------------------------------------------------------------------- registering
 
 
-def _create_registered_model(client: MlflowClient, name: str, unit_id: str) -> None:
-    from mlflow.exceptions import MlflowException
-
-    try:
-        client.create_registered_model(
-            name,
-            description=(
-                f"Calibration of estimator unit {unit_id}: per model kind, the input transform that lets "
-                f"the shared needle-force models read this unit (needlecue-unit/1, `{FILE}`). "
-                f"`@{UNIT_ALIAS}` is what the simulator applies (models:/{name}@{UNIT_ALIAS}); a "
-                "transform applies only to the models it was fitted through (their checkpoint sha256)."
-            ),
-        )
-    except MlflowException as e:
-        if e.error_code != "RESOURCE_ALREADY_EXISTS":
-            raise
+def _describe(name: str, unit_id: str) -> str:
+    return (
+        f"Calibration of estimator unit {unit_id}: per model kind, the input transform that lets "
+        f"the shared needle-force models read this unit (needlecue-unit/1, `{FILE}`). "
+        f"`@{UNIT_ALIAS}` is what the simulator applies (models:/{name}@{UNIT_ALIAS}); a "
+        "transform applies only to the models it was fitted through (their checkpoint sha256)."
+    )
 
 
 def _run_with(client: MlflowClient, exp_id: str, sha: str) -> Any | None:
@@ -244,7 +236,7 @@ def register_unit(client: MlflowClient, doc: Mapping[str, Any], data: bytes, log
         log(f"{name}: this calibration is already version {mv.version}{where}")
         return {"version": int(mv.version), "action": "unchanged", "aliases": aliases}
     if not known:
-        _create_registered_model(client, name, unit_id)
+        create_registered_model(client, name, _describe(name, unit_id))
     exp_id = experiment_id(client, UNIT_EXPERIMENT, UNIT_ABOUT)
     run = _run_with(client, exp_id, sha) or _log_run(client, exp_id, doc, data, sha)
     losses = ", ".join(

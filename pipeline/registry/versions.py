@@ -29,6 +29,7 @@ from pipeline.registry.store import (
     RegistryUnreachable,
     alias_version,
     connect,
+    create_registered_model,
     experiment_id,
     model_name,
     versions,
@@ -41,17 +42,6 @@ if TYPE_CHECKING:
     from mlflow import MlflowClient
 
 Log = Callable[[str], None]
-
-
-def _create_registered_model(client: MlflowClient, name: str, description: str) -> None:
-    """Create `name`; one left empty by an interrupted run is fine as it is."""
-    from mlflow.exceptions import MlflowException
-
-    try:
-        client.create_registered_model(name, description=description)
-    except MlflowException as e:
-        if e.error_code != "RESOURCE_ALREADY_EXISTS":
-            raise
 
 
 def rescore_version(
@@ -113,7 +103,7 @@ def register_angle(
         # registered by a run that was stopped before it set an alias: finish that decision now
         log(f"{name}: version {mv.version} was never decided (an interrupted run?): deciding it now")
     elif not versions(client, name):  # the first version creates the registered model: describe it
-        _create_registered_model(
+        create_registered_model(
             client,
             name,
             description=(
