@@ -199,6 +199,8 @@ class CuesParams(Section):
     # angle estimator: one LDA per evidence stage (rest, then each loading level reached)
     evidence_levels: tuple[float, ...] = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
     lda_shrinkage: Literal["auto"] | float = "auto"
+    # a unit's trials at an angle count n against this weight of the average unit's shifted mean
+    unit_template_weight: Literal["auto"] | float = "auto"
     calibrate_temperature: bool = True
     min_stage: int = Field(0, ge=0, description="evidence stage needed to leave wait (0: rest reading)")
     min_confidence: float = Field(0.7, ge=0, le=1)
@@ -224,6 +226,8 @@ class CuesParams(Section):
             raise ValueError(f"evidence_levels must be positive and increasing, got {list(lv)}")
         if isinstance(self.lda_shrinkage, float) and not 0 <= self.lda_shrinkage <= 1:
             raise ValueError("lda_shrinkage is 'auto' or a float in [0, 1]")
+        if isinstance(self.unit_template_weight, float) and self.unit_template_weight < 0:
+            raise ValueError("unit_template_weight is 'auto' or a float >= 0")
         if self.min_stage > len(lv):
             raise ValueError(f"min_stage {self.min_stage} exceeds the {len(lv)} evidence levels")
         return self

@@ -1,4 +1,4 @@
-"""Reading and writing a unit's calibration document (format "needlecue-unit/1", built by
+"""Reading and writing a unit's calibration document (format "needlecue-unit/2", built by
 `pipeline.calibration.unit`), and picking the transform that applies to one model. Numpy and json
 only: the simulator's client imports this module."""
 
@@ -12,7 +12,7 @@ from typing import Any
 from pipeline.modelling.features import InputTransform
 from pipeline.vocab import angle_name
 
-FORMAT = "needlecue-unit/1"
+FORMAT = "needlecue-unit/2"
 DIGITS = 6  # decimals in the JSON: small, stable files
 FILE = "calibration.json"  # its name in MLflow and in the client's cache
 

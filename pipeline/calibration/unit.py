@@ -1,4 +1,4 @@
-"""One unit's calibration document (format "needlecue-unit/1"), from its calibration rows and the
+"""One unit's calibration document (format "needlecue-unit/2"), from its calibration rows and the
 frozen shared models: which trials and angles it used, what was set aside and why, and per model kind
 the input transform with the models it was fitted through (their checkpoint hashes: a transform
 applies to those models only).
@@ -7,7 +7,7 @@ applies to those models only).
      "angles_missing", "set_aside": [{batch_id, trial_id, file, angle, reason}],
      "transforms": {kind: {"matrix", "offset", "fitted_through": [angle], "models": {angle: sha},
                            "loss_before", "loss_after", "loss_after_by_angle", "identity_kept"?}},
-     "params": {...}, "cues": {"rest_log_means": {angle: [per channel]}}}
+     "params": {...}, "cues": {"evidence": {angle: {"n": [per stage], "means": [per stage]}}}}
 
 The stage and `needlecue calibrate` both build it here; `pipeline.calibration.document` reads it.
 """
@@ -22,7 +22,7 @@ import pandas as pd
 from pipeline.calibration.document import DIGITS, FORMAT
 from pipeline.calibration.fit import AngleData, fit_transform
 from pipeline.config import CalibrateParams, CuesParams
-from pipeline.cues.units import rest_log_means
+from pipeline.cues.units import evidence_of, trial_features
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.predict import Predictor
 from pipeline.vocab import angle_name, jsonable, sorted_angles
@@ -66,7 +66,8 @@ def calibrate_unit(
 ) -> dict[str, Any]:
     """The calibration document of `unit_id` from its calibration `rows` (processed frame, any angles)
     through `models` ({kind: {angle: Predictor}}), for a pipeline trained at `trained_angles`; with
-    `cues`, also the unit's mean log rest reading per angle (the cue packs' unit map)."""
+    `cues`, also what its calibration insertions tell the cue packs' angle estimator (its evidence,
+    `pipeline.cues.units`)."""
     log = log or (lambda _m: None)
     set_aside = _trial_problems(rows, p)
     bad = {(s["batch_id"], s["trial_id"]) for s in set_aside}
@@ -101,8 +102,8 @@ def calibrate_unit(
     if cues is not None:
         channels = next((list(m.channels) for ms in models.values() for m in ms.values()), None)
         frames = {float(a): f for a, f in by_angle.items()}
-        means = rest_log_means(frames, channels, cues).get(unit_id, {}) if channels else {}
-        doc["cues"] = {"rest_log_means": means}
+        trials = trial_features(frames, channels, cues) if channels else []
+        doc["cues"] = {"evidence": evidence_of(trials, len(channels or ())).get(unit_id, {})}
     for kind, predictors in models.items():
         fit_angles = [a for a in angles if a in predictors]
         if not fit_angles:

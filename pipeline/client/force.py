@@ -342,11 +342,11 @@ class ForceClient:
         self.calibration = dict(info or {}) if self.calibrated else None
         self.uncalibrated_reason = None if self.calibrated else (reason or "unknown")
         self._cues_on = self._tracker is not None and (self.calibrated or self._cues_uncalibrated)
-        if self._tracker is not None:  # the unit's rest map for the angle estimator, when it has one
-            from pipeline.cues.tracker import unit_offset
+        if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
+            from pipeline.cues.tracker import unit_evidence
 
-            means = ((doc or {}).get("cues") or {}).get("rest_log_means") if self.calibrated else None
-            self._tracker.set_unit_offset(unit_offset(self.metadata["cues"], self.unit_id, means))
+            evidence = ((doc or {}).get("cues") or {}).get("evidence") if self.calibrated else None
+            self._tracker.set_unit(unit_evidence(self.metadata["cues"], self.unit_id, evidence))
         after = (self.calibrated, self.uncalibrated_reason, self.calibration)
         if not self.calibrated and (first or before[:2] != after[:2]):
             self._warn_uncalibrated()

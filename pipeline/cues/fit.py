@@ -1,7 +1,8 @@
-"""Fitting a cue pack from training splits only: the angle estimator (one LDA per evidence stage),
-the preset angle's standard force profile, the paper-method thresholds per model kind.
+"""Fitting a cue pack from training splits only: the angle estimator (a linear discriminant per
+evidence stage, read through each estimator unit's class means), the preset angle's standard force
+profile, the paper-method thresholds per model kind.
 
-A *cue pack* (format "needlecue-cues/1") is a small JSON-able dict shipped with the preset angle's
+A *cue pack* (format "needlecue-cues/2") is a small JSON-able dict shipped with the preset angle's
 model; `pipeline.cues.tracker.CueTracker` runs it. What cannot be built from the data (the angle
 estimator: one angle only, too few trials, no rest reading; the standard profile: no trial with a
 contact) is left null and `unavailable` says why; the tracker falls back to what the pack has.
@@ -20,8 +21,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, Evidence, cue_for_deviation
-from pipeline.cues.trials import Trial, trials_of, trials_rate_hz
+from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, class_means, cue_for_deviation, discriminant
+from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
+from pipeline.cues.units import average_unit, evidence_of, trial_features
 from pipeline.vocab import AXES, angle_name, channels_of
 
 Log = Callable[[str], None]
@@ -40,61 +42,95 @@ def _siglist(a: Any, digits: int = 6) -> Any:
     return [_siglist(x, digits) for x in arr]
 
 
-def _run_evidence(t: np.ndarray, volts: np.ndarray, params: CuesParams) -> Evidence:
-    """The evidence of a whole trial (causal code, fed frame by frame until every level is reached)."""
-    ev = Evidence(
-        volts.shape[1],
-        params.evidence_levels,
-        params.contact_threshold,
-        params.contact_samples,
-        params.min_rest_s,
-    )
-    rows = volts.tolist()
-    for i, (ti, vi) in enumerate(zip(t.tolist(), rows, strict=True)):
-        ev.push(ti, vi, None, i)
-        if ev.stage >= len(params.evidence_levels):
-            break
-    return ev
-
-
 def _softmax(z: np.ndarray) -> np.ndarray:
     z = z - z.max(axis=-1, keepdims=True)
     e = np.exp(z)
     return e / e.sum(axis=-1, keepdims=True)
 
 
-def _lda(shrinkage: str | float, n_classes: int) -> Any:
-    from sklearn.discriminant_analysis import LinearDiscriminantAnalysis
+def _covariance(resid: np.ndarray, shrinkage: str | float) -> np.ndarray:
+    """The scatter's covariance, shrunk as scikit-learn's LDA does (on standardised features;
+    "auto": Ledoit-Wolf)."""
+    from sklearn.covariance import empirical_covariance, ledoit_wolf, shrunk_covariance
 
-    return LinearDiscriminantAnalysis(
-        solver="lsqr", shrinkage=shrinkage, priors=np.full(n_classes, 1.0 / n_classes)
-    )
-
-
-def _fit_lda(shrinkage: str | float, n_classes: int, x: np.ndarray, y: np.ndarray) -> Any:
-    with warnings.catch_warnings():
-        # a class of one trial has no spread of its own: sklearn warns, the pooled covariance copes
-        warnings.simplefilter("ignore", RuntimeWarning)
-        warnings.simplefilter("ignore", UserWarning)
-        return _lda(shrinkage, n_classes).fit(x, y)
-
-
-def _multiclass_form(model: Any) -> tuple[np.ndarray, np.ndarray]:
-    """(coef (classes, features), intercept (classes,)) of a fitted LDA. With two classes scikit-learn
-    keeps one row (the log-odds of the second class); rows [0, w] and intercepts [0, b] give the same
-    posterior under a softmax (softmax([0, s]) = [1 - sigmoid(s), sigmoid(s)])."""
-    coef = np.atleast_2d(np.asarray(model.coef_, dtype=np.float64))
-    intercept = np.atleast_1d(np.asarray(model.intercept_, dtype=np.float64))
-    if len(model.classes_) == 2 and coef.shape[0] == 1:
-        coef = np.vstack([np.zeros_like(coef), coef])
-        intercept = np.concatenate([[0.0], intercept])
-    return coef, intercept
+    sd = resid.std(axis=0)
+    sd[sd == 0] = 1.0
+    z = resid / sd
+    if shrinkage == "auto":
+        cov = ledoit_wolf(z, assume_centered=True)[0]
+    else:
+        cov = shrunk_covariance(empirical_covariance(z, assume_centered=True), float(shrinkage))
+    return cov * sd[:, None] * sd[None, :]
 
 
-def _scores(model: Any, x: np.ndarray) -> np.ndarray:
-    """Decision scores (samples, classes), in the multiclass form also for two classes."""
-    z = np.asarray(model.decision_function(x), dtype=np.float64)
-    return np.column_stack([np.zeros(len(z)), z]) if z.ndim == 1 else z
+def _template_weight(
+    cells: Mapping[tuple[str, int], np.ndarray],
+    counts: Mapping[tuple[str, int], int],
+    mu: np.ndarray,
+    offset: Mapping[str, np.ndarray],
+    precision: np.ndarray,
+) -> float | None:
+    """k = scatter variance / the variance of the units' own departures at an angle (empirical Bayes,
+    in the scatter's whitened units): how many trials a unit needs at an angle before they count as
+    much as the average unit's shifted mean. None when the departures cannot be told from scatter
+    (one unit, or too few cells): then no unit's trials pull its means."""
+    free = len(cells) - len(mu) - len({u for u, _ in cells}) + 1  # cells less the means and offsets fitted
+    if free <= 0:
+        return None
+    width = mu.shape[1]
+    excess = 0.0
+    for (u, c), m in cells.items():
+        r = m - mu[c] - offset[u]
+        excess += float(r @ precision @ r) / width - 1.0 / counts[(u, c)]
+    tau2 = excess / free
+    return None if tau2 <= 0 else 1.0 / tau2
+
+
+def _offset_spread(offset: Mapping[str, np.ndarray], precision: np.ndarray) -> float | None:
+    """The variance of the units' offsets per feature, in the scatter's whitened units (None with
+    fewer than two units: nothing says how far a unit may sit from the average)."""
+    if len(offset) < 2:
+        return None
+    width = precision.shape[0]
+    total = sum(float(d @ precision @ d) for d in offset.values())
+    return total / (width * (len(offset) - 1))
+
+
+def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams) -> dict:
+    """One evidence stage: the average unit's class means, the shared precision, the template weight,
+    and the cells {(unit, class): (n, mean)} of the trials given."""
+    keys = sorted(set(zip(units.tolist(), y.tolist(), strict=True)))
+    member = {key: (units == key[0]) & (y == key[1]) for key in keys}
+    cells = {key: x[m].mean(axis=0) for key, m in member.items()}
+    counts = {key: int(m.sum()) for key, m in member.items()}
+    mu, offset = average_unit(cells, n_classes)
+    resid = x.copy()
+    for key, m in member.items():
+        resid[m] -= cells[key]
+    precision = np.linalg.inv(_covariance(resid, params.lda_shrinkage))
+    k = params.unit_template_weight
+    if k == "auto":
+        k = _template_weight(cells, counts, mu, offset, precision)
+    stage = {
+        "means": mu,
+        "precision": precision,
+        "template_weight": k,
+        "offset_spread": _offset_spread(offset, precision),
+    }
+    return {"stage": stage, "cells": {key: (counts[key], cells[key]) for key in keys}}
+
+
+def _logits(fitted: dict, x: np.ndarray, units: np.ndarray, classes: int) -> np.ndarray:
+    """Scores (trials, classes) of trials, each read through its own unit's class means."""
+    stage = fitted["stage"]
+    out = np.empty((len(x), classes))
+    for u in sorted(set(units.tolist())):
+        cells = [(c, float(n), m) for (u2, c), (n, m) in fitted["cells"].items() if u2 == u]
+        means = class_means(stage["means"], cells, stage["template_weight"], stage["offset_spread"])
+        w, b = discriminant(stage, means)
+        sel = units == u
+        out[sel] = x[sel] @ w.T + b
+    return out
 
 
 def _fit_temperature(logits: np.ndarray, y: np.ndarray) -> float:
@@ -111,7 +147,9 @@ def _fit_temperature(logits: np.ndarray, y: np.ndarray) -> float:
 def fit_angle_estimator(
     train_by_angle: Mapping[float, pd.DataFrame], params: CuesParams, log: Log | None = None
 ) -> dict[str, Any]:
-    """One LDA per evidence stage on every angle's training trials; temperature by group CV."""
+    """The angle estimator on every angle's training trials: per evidence stage, a linear discriminant
+    read through each unit's class means (`pipeline.cues.units`); its temperature by leave-one-batch-out
+    cross-validation, where a held-out batch's unit keeps only its other batches' trials."""
     log = log or (lambda _m: None)
     train_by_angle = {float(a): f for a, f in train_by_angle.items()}
     angles = sorted(train_by_angle)
@@ -127,36 +165,25 @@ def fit_angle_estimator(
                 f"cannot fit the angle estimator: {angle_name(a)}° has channels "
                 f"{channels_of(train_by_angle[a])}, {angle_name(angles[0])}° has {channels}"
             )
-    feats: list[list[float]] = []
-    labels: list[int] = []
-    groups: list[str] = []
-    stages: list[int] = []
-    for k, a in enumerate(angles):
-        for tr in trials_of(train_by_angle[a], channels, a):
-            ev = _run_evidence(tr.t, tr.volts, params)
-            f = ev.features()
-            if f is None:
-                continue
-            feats.append(f)
-            labels.append(k)
-            groups.append(tr.batch)
-            stages.append(ev.stage)
     n_ch = len(channels)
-    y_all, g_all, st_all = np.array(labels), np.array(groups), np.array(stages)
+    trials = trial_features(train_by_angle, channels, params)
+    label = {a: k for k, a in enumerate(angles)}
+    y_all = np.array([label[t.angle] for t in trials], dtype=np.int64)
+    g_all = np.array([t.batch for t in trials])
+    u_all = np.array([t.unit for t in trials])
+    st_all = np.array([t.stage for t in trials], dtype=np.int64)
     out_stages = []
     for j in range(len(params.evidence_levels) + 1):
         sel = np.flatnonzero(st_all >= j)
-        y = y_all[sel]
-        present = np.unique(y)
-        if len(present) < len(angles) or len(sel) <= len(angles) + 1:
+        y, g, u = y_all[sel], g_all[sel], u_all[sel]
+        if len(np.unique(y)) < len(angles) or len(sel) <= len(angles) + 1:
             log(
                 f"angle estimator: stage {j} has too few trials of every angle ({len(sel)}), stages stop here"
             )
             break
-        x = np.array([feats[i][: n_ch * (j + 1)] for i in sel])
-        model = _fit_lda(params.lda_shrinkage, len(angles), x, y)
+        x = np.array([trials[i].at(j, n_ch) for i in sel])
+        fitted = _fit_stage(x, y, u, len(angles), params)
         temp, cv_acc = 1.0, None
-        g = g_all[sel]
         folds = np.unique(g) if len(np.unique(g)) >= 2 else None
         fold_of = g if folds is not None else (np.arange(len(sel)) % 5).astype(str)
         logits = np.full((len(sel), len(angles)), np.nan)
@@ -164,18 +191,21 @@ def fit_angle_estimator(
             tr_m, te_m = fold_of != f, fold_of == f
             if len(np.unique(y[tr_m])) < len(angles):
                 continue
-            m = _fit_lda(params.lda_shrinkage, len(angles), x[tr_m], y[tr_m])
-            logits[te_m] = _scores(m, x[te_m])
+            fold = _fit_stage(x[tr_m], y[tr_m], u[tr_m], len(angles), params)
+            logits[te_m] = _logits(fold, x[te_m], u[te_m], len(angles))
         ok = np.isfinite(logits).all(axis=1)
         if ok.any():
             cv_acc = float(np.mean(np.argmax(logits[ok], axis=1) == y[ok]))
             if params.calibrate_temperature:
                 temp = _fit_temperature(logits[ok], y[ok])
-        coef, intercept = _multiclass_form(model)
+        stage = fitted["stage"]
+        k, spread = stage["template_weight"], stage["offset_spread"]
         out_stages.append(
             {
-                "coef": _siglist(coef),
-                "intercept": _siglist(intercept),
+                "means": _siglist(stage["means"]),
+                "precision": _siglist(stage["precision"]),
+                "template_weight": None if k is None else _sig(k),
+                "offset_spread": None if spread is None else _sig(spread),
                 "temperature": _sig(temp),
                 "n_train": len(sel),
                 "cv_accuracy": None if cv_acc is None else _sig(cv_acc, 4),
@@ -183,7 +213,9 @@ def fit_angle_estimator(
         )
         log(
             f"angle estimator: stage {j} ({len(sel)} trials) cross-validated accuracy "
-            f"{'n/a' if cv_acc is None else f'{cv_acc:.2f}'}, temperature {temp:.3g}"
+            f"{'n/a' if cv_acc is None else f'{cv_acc:.2f}'}, temperature {temp:.3g}, template weight "
+            f"{'none' if k is None else f'{k:.3g}'}, offset spread "
+            f"{'none' if spread is None else f'{spread:.3g}'}"
         )
     if not out_stages:
         rested = ", ".join(f"{angle_name(a)}° {int(np.sum(y_all == k))}" for k, a in enumerate(angles))
@@ -192,12 +224,17 @@ def fit_angle_estimator(
             f"angle, more than {len(angles) + 1} in all (has {rested})"
         )
     return {
-        "method": "LDA (lsqr, shrinkage) per evidence stage, uniform priors, softmax(scores / temperature)",
-        "features": "rest mean volts per channel, then log(v / rest) per channel when its norm first "
-        "reaches each evidence level",
+        "method": "linear discriminant per evidence stage (shared shrunk covariance, uniform priors), "
+        "class means per estimator unit (pipeline.cues.units), softmax(scores / temperature)",
+        "features": "log rest volts per channel, then the unit direction of log(v / rest) when its norm "
+        "first reaches each evidence level",
         "classes_deg": angles,
         "levels": [float(x) for x in params.evidence_levels[: len(out_stages) - 1]],
         "stages": out_stages,
+        "units": {
+            unit: {a: {"n": e["n"], "means": [_siglist(m) for m in e["means"]]} for a, e in per.items()}
+            for unit, per in evidence_of(trials, n_ch).items()
+        },
         "cv": "leave-one-batch-out" if len(np.unique(g_all)) >= 2 else "5-fold by trial",
     }
 
@@ -221,7 +258,7 @@ def _standard_profile(trials: Sequence[Trial], params: CuesParams) -> tuple[dict
     grid = np.arange(0.0, params.profile_horizon_s + 1e-9, params.profile_dt_s)
     rows, contacts = [], []
     for tr in trials:
-        ev = _run_evidence(tr.t, tr.volts, params)
+        ev = run_evidence(tr, params)
         contacts.append(ev.contact_i)
         if ev.contact_t is None:
             continue
@@ -365,7 +402,7 @@ def build_cue_pack(
     if profile is not None:
         mean = np.asarray(profile["mean_n"])
         sde = np.sqrt(np.asarray(profile["sd_n"]) ** 2 + params.profile_floor_n**2)
-        contacts = {a: [_run_evidence(tr.t, tr.volts, params).contact_i for tr in trials[a]] for a in angles}
+        contacts = {a: [run_evidence(tr, params).contact_i for tr in trials[a]] for a in angles}
         for kind in [REFERENCE, *predicted]:
             by_cue: dict[str, list[np.ndarray]] = {c: [] for c in VERDICTS}
             for a in angles:

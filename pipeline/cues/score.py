@@ -18,7 +18,16 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.tracker import CUES, METHODS, REFERENCE, VERDICTS, CueTracker, cue_for_deviation
+from pipeline.cues.tracker import (
+    CUES,
+    METHODS,
+    REFERENCE,
+    VERDICTS,
+    CueTracker,
+    UnitEvidence,
+    cue_for_deviation,
+    unit_evidence,
+)
 from pipeline.cues.trials import Trial, trials_of
 from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
 from pipeline.workers import WORKERS, ordered_map
@@ -155,6 +164,7 @@ class _Job:
     on: list[tuple[float, list[Trial], list[np.ndarray]]]  # (true angle, its trials, forces per trial)
     with_estimator: bool
     count_estimates: bool  # the angle-estimate matrix is counted once: reference force, first preset
+    units: Mapping[str, UnitEvidence]  # calibrated units' evidence (training units': in the pack)
 
 
 def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]:
@@ -166,7 +176,12 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
     kinds = job.pack["thresholds"]["profile"]
     for a, trials, forces in job.on:
         for tr, f in zip(trials, forces, strict=True):
-            tracker = CueTracker(job.pack, job.preset, model_kind=job.kind if job.kind in kinds else None)
+            tracker = CueTracker(
+                job.pack,
+                job.preset,
+                model_kind=job.kind if job.kind in kinds else None,
+                unit_evidence=unit_evidence(job.pack, tr.unit, job.units.get(tr.unit or "")),
+            )
             n = tr.ins_end + 1
             codes = {m: np.zeros(n, dtype=np.int64) for m in METHODS}
             alarm = False
@@ -210,14 +225,18 @@ def evaluate_cues(
     forces_of: ForcesOf,
     *,
     log: Log,
+    units: Mapping[str, UnitEvidence] | None = None,
 ) -> dict[str, Any]:
     """Cue quality on the external trials of every angle, for every preset angle with a pack.
 
     `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
-    angle's `kind` model's forces on that frame, rows in frame order (None: no such model).
+    angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
+    the calibrated units' evidence (`pipeline.cues.units`); a trial of a unit neither there nor
+    among the pack's training units is read as the average unit's.
     Without external trials with an insertion phase there is nothing to score: the result is
     `skipped_evaluation(reason)`. The combined method is scored only with an angle estimator."""
     external = {float(a): f for a, f in external.items() if len(f)}
+    units = dict(units or {})
     if not external:
         return skipped_evaluation("no external trials (no <angle>/external.parquet with rows)", packs, params)
     if not packs:
@@ -244,7 +263,9 @@ def evaluate_cues(
     for preset, pack in sorted(packs.items()):
         # the paper's comparison on the measured force: not deployable, its upper bound
         on = [(a, trials[a], [tr.force for tr in trials[a]]) for a in external]
-        jobs.append(_Job(REFERENCE, preset, pack, ("paper",), on, with_estimator, preset == min(packs)))
+        jobs.append(
+            _Job(REFERENCE, preset, pack, ("paper",), on, with_estimator, preset == min(packs), units)
+        )
     for kind in params.kinds:
         for preset, pack in sorted(packs.items()):
             on = []
@@ -255,7 +276,7 @@ def evaluate_cues(
                     log(f"warning: no {kind} predictions of {where}")
                     continue
                 on.append((a, trials[a], [forces[tr.rows] for tr in trials[a]]))
-            jobs.append(_Job(kind, preset, pack, METHODS, on, with_estimator, False))
+            jobs.append(_Job(kind, preset, pack, METHODS, on, with_estimator, False, units))
     runs: list[Run] = []
     angle_conf: dict[tuple[float, float], int] = {}
     n_updates, seconds = 0, 0.0
@@ -379,7 +400,7 @@ def _group_mask(
 
 def evaluate_unit_groups(
     external: Mapping[float, pd.DataFrame],
-    external_uncalibrated: Mapping[float, pd.DataFrame],
+    units: Mapping[str, UnitEvidence],
     params: CuesParams,
     packs: Mapping[float, Mapping[str, Any]],
     forces_of: ForcesOfSplit,
@@ -388,16 +409,13 @@ def evaluate_unit_groups(
     calibrated: Mapping[str, bool],
 ) -> dict[str, Any]:
     """The cues scored per unit group: the training units' external trials (`same_unit`), and the
-    external trials of new units that have a calibration, without it (`new_uncalibrated`: the frames of
-    `external_uncalibrated`, forces from `uncalibrated_split`) and with it (`new_calibrated`). Per
-    group, kind and method: balanced accuracy within `cue_within_s`, per-cue recall, final confusion
-    matrix."""
+    external trials of new units that have a calibration, without it (`new_uncalibrated`: the angle
+    estimator reads them as the average unit's, forces from `uncalibrated_split`) and with it
+    (`new_calibrated`: `units` holds their calibrations' evidence). Per group, kind and method:
+    balanced accuracy within `cue_within_s`, per-cue recall, final confusion matrix."""
     out: dict[str, Any] = {}
+    source = {float(a): f for a, f in external.items()}
     for group in UNIT_GROUPS:
-        source = {
-            float(a): f
-            for a, f in (external_uncalibrated if group == "new_uncalibrated" else external).items()
-        }
         masks = {a: _group_mask(f, group, roles, calibrated) for a, f in source.items()}
         frames = {a: source[a][m].reset_index(drop=True) for a, m in masks.items() if m.any()}
         if not frames:
@@ -412,11 +430,12 @@ def evaluate_unit_groups(
                 full = forces_of(kind, preset, a, "external")
             return None if full is None else full[masks[a]]
 
-        ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None)
-        units = sorted({str(u) for f in frames.values() for u in f["unit_id"].unique()})
+        known = {} if group == "new_uncalibrated" else units
+        ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None, units=known)
+        members = sorted({str(u) for f in frames.values() for u in f["unit_id"].unique()})
         results = {
             kind: {m: {k: r.get(k) for k in GROUP_KEYS} for m, r in methods.items()}
             for kind, methods in (ev.get("results") or {}).items()
         }
-        out[group] = {"units": units, "external_trials": ev.get("external_trials"), "results": results}
+        out[group] = {"units": members, "external_trials": ev.get("external_trials"), "results": results}
     return out

@@ -9,7 +9,8 @@ methods every frame from a *cue pack* (`pipeline.cues.fit.build_cue_pack`):
   predicted force and the preset angle's *standard profile*, cut by two calibrated thresholds;
 - **combined** (ours): the estimator's own volts say at which angle it is held (the needle's weight
   at rest, then the direction the voltages move as the load builds), through one linear
-  discriminant per evidence stage, plus the profile's "force in range" check.
+  discriminant per evidence stage read with the estimator unit's own class means (`unit_means`:
+  every unit differs), plus the profile's "force in range" check.
 
 Both are debounced (a new cue must hold `debounce_s` before it is shown) with hysteresis. Numpy and
 the params model only: the simulator's client imports this module and nothing of the training code.
@@ -26,7 +27,7 @@ import numpy as np
 
 from pipeline.config import CuesParams
 
-FORMAT = "needlecue-cues/1"
+FORMAT = "needlecue-cues/2"
 CUES = ("wait", "continue", "correct", "stop")
 VERDICTS = CUES[1:]  # the cues a deviation maps to
 METHODS = ("combined", "paper")
@@ -35,24 +36,72 @@ REFERENCE = "reference"  # profile thresholds calibrated on the reference force 
 MIN_VOLTS = 1e-3  # floor before taking logs (an unloaded FSR reads a few mV)
 
 
-def unit_offset(
-    pack: Mapping[str, Any], unit_id: str | None, rest_log_means: Mapping[str, Any] | None = None
-) -> list[float] | None:
-    """A unit's rest offset per channel for this pack (`pipeline.cues.units`): a training unit's from
-    the pack, a new unit's from its calibration's mean log rest readings at the angles it has; None
-    when neither is known (an uncalibrated unit)."""
-    units = pack.get("units") or {}
-    if unit_id is not None and unit_id in (units.get("offsets") or {}):
-        return [float(x) for x in units["offsets"][unit_id]]
-    reference = units.get("reference") or {}
-    pairs = [
-        (np.asarray(v, dtype=np.float64), np.asarray(reference[a]))
-        for a, v in (rest_log_means or {}).items()
-        if a in reference
-    ]
-    if not pairs:
-        return None
-    return np.mean([v - mu for v, mu in pairs], axis=0).tolist()
+UnitEvidence = Mapping[str, Mapping[str, Any]]  # {angle: {"n": [per stage], "means": [per stage]}}
+
+
+def unit_evidence(
+    pack: Mapping[str, Any], unit_id: str | None, calibration: UnitEvidence | None = None
+) -> UnitEvidence | None:
+    """What the angle estimator knows of an estimator unit (`pipeline.cues.units`): its calibration's
+    evidence when given, else a training unit's from the pack, else None (an uncalibrated unit: the
+    estimator's average unit)."""
+    if calibration:
+        return calibration
+    units = (pack.get("angle_estimator") or {}).get("units") or {}
+    return units.get(unit_id) if unit_id is not None else None
+
+
+def class_means(
+    mu: np.ndarray,
+    cells: Sequence[tuple[int, float, np.ndarray]],
+    k: float | None,
+    spread: float | None,
+) -> np.ndarray:
+    """A unit's class means from the average unit's `mu` (classes, features) and the unit's `cells`
+    [(class, trials n, their mean features)].
+
+    1. Shift: mu moves by the unit's offset, the cells' mean difference from mu, shrunk by how well
+       the cells pin it down: spread / (spread + its variance), where `spread` is the training units'
+       offset variance and the estimate's variance is (1/n + 1/k) / cells^2 summed over the cells, all
+       per feature in the scatter's whitened units (spread None: no shift).
+    2. Pull: each cell's class moves towards its trials, (n * trials + k * shifted) / (n + k)
+       (k None: no pull; the units' departures at an angle are not told from scatter).
+    No cells: mu."""
+    if not cells:
+        return mu
+    out = mu.copy()
+    if spread is not None:
+        noise = sum(1.0 / n + (0.0 if k is None else 1.0 / k) for _, n, _ in cells) / len(cells) ** 2
+        out = out + spread / (spread + noise) * np.mean([m - mu[c] for c, _, m in cells], axis=0)
+    if k is not None:
+        for c, n, m in cells:
+            out[c] = (n * m + k * out[c]) / (n + k)
+    return out
+
+
+def unit_means(
+    stage: Mapping[str, Any], j: int, classes: Sequence[float], evidence: UnitEvidence | None
+) -> np.ndarray:
+    """The class means (classes, features) of evidence stage `j` for the unit of `evidence` (None: the
+    average unit), with the stage's `template_weight` and `offset_spread` (`class_means`)."""
+    cells = []
+    for c, a in enumerate(classes):
+        e = (evidence or {}).get(f"{float(a):g}")
+        if e and len(e["n"]) > j and e["n"][j] > 0:
+            cells.append((c, float(e["n"][j]), np.asarray(e["means"][j], dtype=np.float64)))
+    return class_means(
+        np.asarray(stage["means"], dtype=np.float64),
+        cells,
+        stage.get("template_weight"),
+        stage.get("offset_spread"),
+    )
+
+
+def discriminant(stage: Mapping[str, Any], means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(coef (classes, features), intercept (classes,)) of the linear discriminant with these class
+    means and the stage's shared precision: score = coef @ x + intercept, equal priors."""
+    w = means @ np.asarray(stage["precision"], dtype=np.float64)
+    return w, -0.5 * np.sum(w * means, axis=1)
 
 
 def cue_for_deviation(dev_deg: float, continue_below: float = 7.5, stop_from: float = 22.5) -> str:
@@ -75,6 +124,7 @@ class Evidence:
     changed (the rest mean moved, or a new loading level was reached)."""
 
     __slots__ = (
+        "_norms",
         "contact_i",
         "contact_t",
         "levels",
@@ -104,6 +154,7 @@ class Evidence:
         self.contact_i = -1  # frame index of contact (counted from reset)
         self.rest: list[float] | None = None  # rest mean, frozen at contact
         self.snaps: list[list[float]] = []
+        self._norms: list[float] = []
 
     @property
     def stage(self) -> int:
@@ -123,12 +174,14 @@ class Evidence:
         )
 
     def features(self) -> list[float] | None:
+        """log rest volts per channel, then the unit direction of log(v / rest) at each level reached
+        (the direction, not the size: how hard the tissue pushes back is not the angle's business)."""
         rest = self.rest_mean()
         if rest is None:
             return None
-        out = list(rest)
-        for s in self.snaps:
-            out.extend(s)
+        out = [math.log(x) for x in rest]
+        for s, norm in zip(self.snaps, self._norms, strict=True):
+            out.extend(x / norm for x in s)
         return out
 
     def push(self, t: float, v: list[float], extra: Any = None, i: int = -1) -> tuple[bool, list]:
@@ -177,6 +230,7 @@ class Evidence:
         changed = False
         while len(self.snaps) < len(self.levels) and norm >= self.levels[len(self.snaps)]:
             self.snaps.append(s)
+            self._norms.append(norm)
             changed = True
         return changed
 
@@ -249,10 +303,9 @@ class CueTracker:
         *,
         model_kind: str | None = None,
         method: str = "combined",
-        unit_offset: Sequence[float] | None = None,
+        unit_evidence: UnitEvidence | None = None,
     ) -> None:
         check_pack(pack)
-        self.set_unit_offset(unit_offset)
         if abs(float(pack["preset_angle_deg"]) - float(preset_angle_deg)) > 1e-6:
             raise ValueError(
                 f"this cue pack is for the preset angle {pack['preset_angle_deg']:g}°, "
@@ -275,10 +328,9 @@ class CueTracker:
             )
         self.classes = np.asarray(est["classes_deg"] if est else [], dtype=np.float64)
         self._classes = [float(a) for a in self.classes]
-        stages = est["stages"] if est else []
-        self._w = [np.asarray(s["coef"], dtype=np.float64) for s in stages]
-        self._b = [np.asarray(s["intercept"], dtype=np.float64) for s in stages]
-        self._temp = [float(s["temperature"]) for s in stages]
+        self._stages = est["stages"] if est else []
+        self._temp = [float(s["temperature"]) for s in self._stages]
+        self.set_unit(unit_evidence)
         levels = est["levels"] if est else []
         th = pack["thresholds"]
         devcls = [
@@ -380,20 +432,20 @@ class CueTracker:
         self._nz += 1
 
     # -- one frame ---------------------------------------------------------------------------
-    def set_unit_offset(self, unit_offset: Sequence[float] | None) -> None:
-        """The estimator unit's rest offset per channel (`unit_offset`; None: none known): volts are
-        divided by exp(offset) before the angle estimator reads them (see pipeline.cues.units)."""
-        self._scale = None if unit_offset is None else [math.exp(-float(d)) for d in unit_offset]
+    def set_unit(self, evidence: UnitEvidence | None) -> None:
+        """The estimator unit the angle estimator reads (`unit_evidence`; None: the average unit)."""
+        forms = [
+            discriminant(s, unit_means(s, j, self._classes, evidence)) for j, s in enumerate(self._stages)
+        ]
+        self._w = [w for w, _ in forms]
+        self._b = [b for _, b in forms]
 
     def update(self, t_s: float, volts: np.ndarray, force_n: np.ndarray) -> CueState:
         """Feed one frame (volts in the pack's channel order, the model's predicted force in N)."""
         t = float(t_s)
         f = _floats(force_n)
         ev = self._ev
-        v = _floats(volts)
-        if self._scale is not None:
-            v = [x * s for x, s in zip(v, self._scale, strict=True)]
-        changed, post = ev.push(t, v, f)
+        changed, post = ev.push(t, _floats(volts), f)
         if self._n_prof:
             for tp, _, fp in post:
                 self._accumulate(tp, fp)

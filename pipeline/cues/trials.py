@@ -1,4 +1,5 @@
-"""Processed frames as trials for the cue code: time-ordered volts and forces, insertion span."""
+"""Processed frames as trials for the cue code: time-ordered volts and forces, insertion span, and
+the evidence the tracker would gather from a whole trial."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from pipeline.config import CuesParams
+from pipeline.cues.tracker import Evidence
 from pipeline.vocab import AXES, TRIAL_KEY, rate_hz
 
 
@@ -21,6 +24,7 @@ class Trial:
     ins_start: int  # from the phase labels (-1 if none)
     ins_end: int
     rows: np.ndarray  # row positions in the source frame, time order
+    unit: str | None = None  # the estimator unit that recorded it (None: the frame does not say)
 
 
 def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> list[Trial]:
@@ -33,6 +37,7 @@ def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> lis
     v_all = frame[list(channels)].to_numpy(np.float64)
     f_all = frame[list(AXES)].to_numpy(np.float64) if set(AXES) <= set(frame.columns) else None
     ph_all = frame["phase"].to_numpy() if "phase" in frame.columns else None
+    unit_all = frame["unit_id"].astype(str).to_numpy() if "unit_id" in frame.columns else None
     for key, idx in groups.items():
         idx = np.asarray(idx)
         idx = idx[np.argsort(t_all[idx], kind="stable")]
@@ -43,7 +48,8 @@ def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> lis
             s = e = -1
         batch = str(key[0]) if isinstance(key, tuple) else str(key)
         force = f_all[idx] if f_all is not None else np.full((len(idx), 3), np.nan)
-        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx))
+        unit = str(unit_all[idx[0]]) if unit_all is not None and len(idx) else None
+        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit))
     return out
 
 
@@ -54,3 +60,19 @@ def trials_rate_hz(trials: Sequence[Trial]) -> float:
     t = np.concatenate([tr.t for tr in trials])
     groups = np.concatenate([np.full(len(tr.t), k) for k, tr in enumerate(trials)])
     return rate_hz(t, groups)
+
+
+def run_evidence(trial: Trial, params: CuesParams) -> Evidence:
+    """The evidence of a whole trial (causal code, fed frame by frame until every level is reached)."""
+    ev = Evidence(
+        trial.volts.shape[1],
+        params.evidence_levels,
+        params.contact_threshold,
+        params.contact_samples,
+        params.min_rest_s,
+    )
+    for i, (ti, vi) in enumerate(zip(trial.t.tolist(), trial.volts.tolist(), strict=True)):
+        ev.push(ti, vi, None, i)
+        if ev.stage >= len(params.evidence_levels):
+            break
+    return ev

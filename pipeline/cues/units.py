@@ -1,95 +1,103 @@
-"""Estimator units in the angle estimator: each unit's cast-in preloads shift its rest reading by more
-than the needle's weight moves it between angles (docs/physics.md), so the rest reading is compared
-after taking out the unit's own offset.
+"""Estimator units in the angle estimator. Units differ (part-to-part gain, cast-in preload, placement,
+connector alignment: docs/physics.md §4) by more than the needle's weight and the loading direction
+move the volts from one angle to the next, so the estimator reads every unit through its own class
+means (`pipeline.cues.tracker.unit_means`).
 
-Per unit and channel, the log of the rest reading is modelled as an angle's reference plus the unit's
-offset, log rest = mu(angle) + delta(unit); the training units fit both (alternating means, the same
-numbers every run), a new unit's offset comes from its calibration insertions at whatever angles it
-has (`pipeline.cues.tracker.unit_offset`). Volts divided by exp(delta) are what the angle estimator
-is fitted on and fed; the loading snapshots, log(v / rest), do not change.
+Per evidence stage, a trial's features (`Evidence.features`) are modelled as the angle's mean for the
+average unit, plus the unit's offset, plus the unit's own departure at that angle, plus the trial's
+scatter (one covariance shared by every unit and angle). The training units fit the angle means and
+offsets by alternating means (`average_unit`). A unit's *evidence* is what the estimator keeps of it:
+per angle and stage, how many of its trials reached the stage and their mean features. The training
+units' evidence rides in the cue pack; a new unit's comes from its calibration insertions and rides
+in its calibration document (`pipeline.calibration.unit`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import _run_evidence
-from pipeline.cues.trials import trials_of
+from pipeline.cues.trials import run_evidence, trials_of
 from pipeline.vocab import angle_name
 
 ITERATIONS = 50  # alternating means converge in a few for the designs seen here; fixed for determinism
+NO_UNIT = ""  # the unit of trials whose frame has no unit_id column
 
-RestLogMeans = dict[str, dict[str, list[float]]]  # {unit: {angle: mean log rest volts per channel}}
+
+@dataclass(frozen=True)
+class TrialFeatures:
+    """One trial's evidence at the end of loading: every feature of the deepest stage it reached."""
+
+    unit: str
+    angle: float
+    batch: str
+    features: np.ndarray  # (channels * (stage + 1),)
+    stage: int
+
+    def at(self, j: int, n_ch: int) -> np.ndarray:
+        """The features of stage j (the rest reading and the first j loading directions)."""
+        return self.features[: n_ch * (j + 1)]
 
 
-def rest_log_means(
+def trial_features(
     frames_by_angle: Mapping[float, pd.DataFrame], channels: Sequence[str], params: CuesParams
-) -> RestLogMeans:
-    """Each unit's mean log rest reading per angle (the tracker's own rest rule, trial by trial)."""
-    sums: dict[str, dict[str, list[np.ndarray]]] = {}
-    for angle, frame in frames_by_angle.items():
-        if frame.empty or "unit_id" not in frame.columns:
-            continue
-        for unit, rows in frame.groupby("unit_id", sort=True):
-            for tr in trials_of(rows.reset_index(drop=True), channels, angle):
-                rest = _run_evidence(tr.t, tr.volts, params).rest_mean()
-                if rest is not None:
-                    sums.setdefault(str(unit), {}).setdefault(angle_name(angle), []).append(np.log(rest))
-    return {
-        u: {a: np.mean(v, axis=0).tolist() for a, v in sorted(per.items(), key=lambda kv: float(kv[0]))}
-        for u, per in sorted(sums.items())
-    }
-
-
-def fit_unit_offsets(means: RestLogMeans) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
-    """(offsets {unit: delta per channel}, reference {angle: mu per channel}) of the training units,
-    offsets centred on zero (an average unit needs no correction)."""
-    if not means:
-        return {}, {}
-    units = sorted(means)
-    angles = sorted({a for per in means.values() for a in per}, key=float)
-    n_ch = len(next(iter(next(iter(means.values())).values())))
-    delta = {u: np.zeros(n_ch) for u in units}
-    mu: dict[str, np.ndarray] = {}
-    for _ in range(ITERATIONS):
-        mu = {
-            a: np.mean([np.asarray(means[u][a]) - delta[u] for u in units if a in means[u]], axis=0)
-            for a in angles
-        }
-        delta = {u: np.mean([np.asarray(means[u][a]) - mu[a] for a in means[u]], axis=0) for u in units}
-        centre = np.mean([delta[u] for u in units], axis=0)
-        delta = {u: d - centre for u, d in delta.items()}
-    return {u: delta[u].tolist() for u in units}, {a: mu[a].tolist() for a in angles}
-
-
-def normalise(
-    frame: pd.DataFrame, channels: Sequence[str], offsets: Mapping[str, Sequence[float]]
-) -> pd.DataFrame:
-    """The frame with each listed unit's channels divided by exp(its offset) (other units unchanged)."""
-    if frame.empty or "unit_id" not in frame.columns or not offsets:
-        return frame
-    out = frame.copy()
-    units = out["unit_id"].astype(str)
-    for unit, delta in offsets.items():
-        mask = (units == unit).to_numpy()
-        if mask.any():
-            out.loc[mask, list(channels)] = out.loc[mask, list(channels)].to_numpy() / np.exp(
-                np.asarray(delta)
-            )
+) -> list[TrialFeatures]:
+    """The evidence of every trial with a rest reading, in angle then trial order."""
+    out = []
+    for angle in sorted(frames_by_angle, key=float):
+        for tr in trials_of(frames_by_angle[angle], channels, float(angle)):
+            ev = run_evidence(tr, params)
+            f = ev.features()
+            if f is not None:
+                unit = NO_UNIT if tr.unit is None else tr.unit
+                out.append(TrialFeatures(unit, float(angle), tr.batch, np.asarray(f), ev.stage))
     return out
 
 
-def pack_units(
-    offsets: Mapping[str, Sequence[float]], reference: Mapping[str, Sequence[float]]
-) -> dict[str, Any]:
-    """The cue pack's `units` block: what a client needs to map a unit's rest reading."""
-    return {
-        "method": "log rest = reference(angle) + offset(unit) per channel; volts / exp(offset) are fed",
-        "reference": {a: [float(x) for x in v] for a, v in reference.items()},
-        "offsets": {u: [float(x) for x in v] for u, v in offsets.items()},
-    }
+def evidence_of(trials: Sequence[TrialFeatures], n_ch: int) -> dict[str, dict[str, dict[str, Any]]]:
+    """{unit: {angle: {"n": [trials reaching stage j], "means": [their mean stage-j features]}}} of
+    the trials that name their unit."""
+    cells: dict[str, dict[float, list[TrialFeatures]]] = {}
+    for tf in trials:
+        if tf.unit != NO_UNIT:
+            cells.setdefault(tf.unit, {}).setdefault(tf.angle, []).append(tf)
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for unit in sorted(cells):
+        per: dict[str, dict[str, Any]] = {}
+        for angle in sorted(cells[unit]):
+            group = cells[unit][angle]
+            top = max(tf.stage for tf in group)
+            reached = [[tf.at(j, n_ch) for tf in group if tf.stage >= j] for j in range(top + 1)]
+            per[angle_name(angle)] = {
+                "n": [len(r) for r in reached],
+                "means": [np.mean(r, axis=0).tolist() for r in reached],
+            }
+        out[unit] = per
+    return out
+
+
+def average_unit(
+    cells: Mapping[tuple[str, int], np.ndarray], n_classes: int
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(mu (classes, features): the average unit's class means, {unit: its offset}) from the cell
+    means {(unit, class): mean features}, offsets centred on zero. Every class needs a cell."""
+    units = sorted({u for u, _ in cells})
+    width = len(next(iter(cells.values())))
+    offset = {u: np.zeros(width) for u in units}
+    mu = np.zeros((n_classes, width))
+    for _ in range(ITERATIONS):
+        mu = np.stack(
+            [
+                np.mean([m - offset[u] for (u, c2), m in cells.items() if c2 == c], axis=0)
+                for c in range(n_classes)
+            ]
+        )
+        offset = {u: np.mean([m - mu[c] for (u2, c), m in cells.items() if u2 == u], axis=0) for u in units}
+        centre = np.mean(list(offset.values()), axis=0)
+        offset = {u: d - centre for u, d in offset.items()}
+    return mu, offset

@@ -24,11 +24,9 @@ from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
-from pipeline.cues.tracker import unit_offset
-from pipeline.cues.units import fit_unit_offsets, normalise, pack_units, rest_log_means
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.modelling.predictions import UNCALIBRATED, Predictions
-from pipeline.vocab import angle_name, channels_of
+from pipeline.vocab import angle_name
 
 
 def _log(msg: str) -> None:
@@ -49,13 +47,6 @@ def main(
         train = {a: f for a, f in files.by_angle("train").items() if len(f)}
         if not train:
             raise FileNotFoundError(f"{data_dir}: no <angle>/train.parquet with rows (run the split stage)")
-        # each training unit's rest offset, taken out before the angle estimator sees the volts
-        channels = channels_of(next(iter(train.values())))
-        offsets, reference = fit_unit_offsets(rest_log_means(train, channels, p))
-        if offsets:
-            shown = ", ".join(f"{u} [{', '.join(f'{d:+.3f}' for d in v)}]" for u, v in offsets.items())
-            _log(f"unit rest offsets (log volts per channel): {shown}")
-        train = {a: normalise(f, channels, offsets) for a, f in train.items()}
 
         def predicted_for(preset: float) -> Predicted:
             """The preset's models of each kind on every angle's training frame."""
@@ -65,8 +56,6 @@ def main(
             return {k: predictions.on_split(k, angle_name(preset), "train", train) for k in kinds}
 
         packs = build_packs(train, predicted_for, p, _log)
-        for pack in packs.values():
-            pack["units"] = pack_units(offsets, reference)
         available = tuple(k for k in p.kinds if all(predictions.has(k, angle_name(a)) for a in packs))
         for k in p.kinds:
             if k not in available:
@@ -81,24 +70,22 @@ def main(
         else:
             scored = p.model_copy(update={"kinds": available})
             docs = read_units(cal_dir)
-            pack = next(iter(packs.values()))
-            new = {
-                u: unit_offset(pack, u, (d.get("cues") or {}).get("rest_log_means")) for u, d in docs.items()
-            }
-            mapped = {**offsets, **{u: v for u, v in new.items() if v is not None and u not in offsets}}
-            external = {a: normalise(f, channels, mapped) for a, f in files.by_angle("external").items()}
-            external_raw = {a: normalise(f, channels, offsets) for a, f in files.by_angle("external").items()}
+            # what each calibrated unit's calibration insertions tell the angle estimator
+            units = {u: (d.get("cues") or {}).get("evidence") for u, d in docs.items()}
+            units = {u: e for u, e in units.items() if e}
+            external = files.by_angle("external")
             evaluation = evaluate_cues(
                 external,
                 scored,
                 packs,
                 lambda kind, preset, a: predictions.get(kind, angle_name(preset), angle_name(a), "external"),
                 log=_log,
+                units=units,
             )
             calibrated = calibrated_units(docs)
             evaluation["by_unit_group"] = evaluate_unit_groups(
                 external,
-                external_raw,
+                units,
                 scored,
                 packs,
                 lambda kind, preset, a, split: predictions.get(

@@ -25,8 +25,11 @@ def loading_direction(angle: float) -> np.ndarray:
     return u / np.linalg.norm(u)
 
 
-def make_trial(angle: float, seed: int, batch_id: str, trial_id: str) -> pd.DataFrame:
-    """One insertion: rest, 4 s of insertion (loading ramps up), dwell, retraction, rest."""
+def make_trial(
+    angle: float, seed: int, batch_id: str, trial_id: str, unit: tuple[np.ndarray, np.ndarray] | None = None
+) -> pd.DataFrame:
+    """One insertion: rest, 4 s of insertion (loading ramps up), dwell, retraction, rest. `unit`:
+    (rest gain, loading gain) per channel of the estimator unit that records it (None: the nominal)."""
     rng = np.random.default_rng(seed)
     t0 = 2.0 + rng.uniform(0, 0.3)
     t = np.arange(0, t0 + 4.0 + 0.5 + 1.5 + 1.0, 1 / RATE)
@@ -44,9 +47,10 @@ def make_trial(angle: float, seed: int, batch_id: str, trial_id: str) -> pd.Data
     )
     a = math.radians(angle)
     force = 0.6 * ramp[:, None] * np.array([math.sin(a), 0.3, -math.cos(a)])
-    s = 0.8 * 0.6 * ramp[:, None] * loading_direction(angle)
+    rest_gain, load_gain = unit if unit is not None else (np.ones(3), np.ones(3))
+    s = 0.8 * 0.6 * ramp[:, None] * loading_direction(angle) * load_gain
     gain = 1 + rng.normal(0, 0.002, 3)
-    volts = rest_volts(angle) * gain * np.exp(s) + rng.normal(0, 0.0008, (len(t), 3))
+    volts = rest_volts(angle) * rest_gain * gain * np.exp(s) + rng.normal(0, 0.0008, (len(t), 3))
     return pd.DataFrame(
         {
             "batch_id": batch_id,
@@ -72,6 +76,30 @@ def make_split(angle: float, batches: list[str], per_batch: int, seed: int) -> p
         ],
         ignore_index=True,
     )
+
+
+def draw_unit(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """An estimator unit: per channel, a rest gain (10 %: more than the angles move the rest reading)
+    and a loading gain (15 %)."""
+    rng = np.random.default_rng(seed)
+    return 1 + rng.normal(0, 0.10, 3), 1 + rng.normal(0, 0.15, 3)
+
+
+def make_unit_split(
+    angle: float, unit_id: str, batches: list[str], per_batch: int, seed: int
+) -> pd.DataFrame:
+    """`make_split` recorded by the unit `draw_unit` of its id, with its `unit_id` column."""
+    unit = draw_unit(sum(map(ord, unit_id)))
+    frame = pd.concat(
+        [
+            make_trial(angle, seed * 1000 + 100 * b + k + int(angle), name, f"a{angle:g}-{name}-{k}", unit)
+            for b, name in enumerate(batches)
+            for k in range(per_batch)
+        ],
+        ignore_index=True,
+    )
+    frame["unit_id"] = unit_id
+    return frame
 
 
 def run_tracker(tracker: CueTracker, frame: pd.DataFrame, force: np.ndarray | None = None) -> list:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.cues import fit as cue_fit
+from pipeline.cues.tracker import discriminant
 from tests.cues.synthetic import (
     ANGLES,
     CHANNELS,
@@ -23,7 +23,7 @@ def test_pack_is_small_json_and_round_trips(pack30: dict) -> None:
     # then: nothing is lost, it is small, and it says what it is
     assert back == pack30
     assert len(text) < 100_000
-    assert pack30["format"] == "needlecue-cues/1"
+    assert pack30["format"] == "needlecue-cues/2"
     assert pack30["channels"] == list(CHANNELS)
     assert pack30["angles"] == [float(a) for a in ANGLES]
     assert pack30["rate_hz"] == pytest.approx(RATE, rel=1e-3)
@@ -32,19 +32,20 @@ def test_pack_is_small_json_and_round_trips(pack30: dict) -> None:
     assert set(pack30["thresholds"]["profile"]) == {"reference"}  # no predictor given
 
 
-def test_binary_lda_in_the_multiclass_form_gives_sklearns_posterior() -> None:
-    # given: a two-class LDA (scikit-learn keeps one row of coefficients for it)
+def test_discriminant_scores_are_the_gaussian_log_posterior_up_to_a_constant() -> None:
+    # given: class means and a shared precision
     rng = np.random.default_rng(0)
-    x = np.vstack([rng.normal(0, 1, (8, 3)), rng.normal(1, 1, (8, 3))])
-    y = np.repeat([0, 1], 8)
-    model = cue_fit._fit_lda("auto", 2, x, y)
-    # when: put in the two-row form, and scored the same way
-    coef, intercept = cue_fit._multiclass_form(model)
-    scores = cue_fit._scores(model, x)
-    # then: two rows, and the softmax of the scores is scikit-learn's posterior
-    assert coef.shape == (2, 3) and intercept.shape == (2,)
-    np.testing.assert_allclose(x @ coef.T + intercept, scores, atol=1e-9)
-    np.testing.assert_allclose(cue_fit._softmax(scores), model.predict_proba(x), atol=1e-9)
+    means = rng.normal(0, 1, (3, 4))
+    a = rng.normal(0, 1, (4, 4))
+    precision = a @ a.T + 4 * np.eye(4)
+    x = rng.normal(0, 1, (5, 4))
+    # when: scored as the tracker scores them
+    w, b = discriminant({"precision": precision.tolist()}, means)
+    scores = x @ w.T + b
+    # then: they differ from -1/2 Mahalanobis distance by one constant per sample (equal priors)
+    d = x[:, None, :] - means[None, :, :]
+    logp = -0.5 * np.einsum("nci,ij,ncj->nc", d, precision, d)
+    np.testing.assert_allclose(scores - logp, (scores - logp)[:, :1].repeat(3, axis=1), atol=1e-9)
 
 
 def test_two_angles_give_a_two_class_estimator(two_angle_pack: dict) -> None:
@@ -52,8 +53,9 @@ def test_two_angles_give_a_two_class_estimator(two_angle_pack: dict) -> None:
     est = two_angle_pack["angle_estimator"]
     # then: every stage scores both classes, and the pack is strict JSON
     assert est["classes_deg"] == [30.0, 45.0]
-    for stage in est["stages"]:
-        assert np.asarray(stage["coef"]).shape == (2, 3 * (est["stages"].index(stage) + 1))
-        assert len(stage["intercept"]) == 2
+    for j, stage in enumerate(est["stages"]):
+        width = 3 * (j + 1)
+        assert np.asarray(stage["means"]).shape == (2, width)
+        assert np.asarray(stage["precision"]).shape == (width, width)
     assert "unavailable" not in two_angle_pack
     json.dumps(two_angle_pack, allow_nan=False)

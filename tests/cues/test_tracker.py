@@ -35,7 +35,7 @@ def test_pack_is_only_for_its_own_preset_angle(pack30: dict) -> None:
     # given: the 30° pack / when: a tracker is asked for 45° / then: a clear error
     with pytest.raises(ValueError, match="preset angle 30"):
         CueTracker(pack30, 45)
-    with pytest.raises(ValueError, match="needlecue-cues/1"):
+    with pytest.raises(ValueError, match="needlecue-cues/2"):
         CueTracker({"format": "other"}, 30)
 
 
