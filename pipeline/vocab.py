@@ -41,8 +41,8 @@ OUTPUT_NAME = "force_n"
 
 
 def angle_name(angle_deg: float | str) -> str:
-    """Folder and key name of an angle: 30.0 -> "30", 22.5 -> "22.5"."""
-    return f"{float(angle_deg):g}"
+    """Folder and key name of an angle: 30.0 -> "30", 22.5 -> "22.5", -0.0 -> "0"."""
+    return f"{float(angle_deg) + 0.0:g}"
 
 
 def kind_label(kind: str) -> str:

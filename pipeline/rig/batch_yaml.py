@@ -11,12 +11,42 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from pipeline.rig.csvfile import encoding_hint
 from pipeline.rig.format import BATCH_FILE, ID_PATTERN, BatchMeta, is_valid_id
 from pipeline.rig.problems import ProblemLog
+from pipeline.vocab import NON_CHANNELS
 
-# Internal columns of the validated frames (pipeline.rig.reader); a channel of the same name
-# would be ambiguous.
-RESERVED = frozenset({"trial_id", "line", "dt"})
+# Columns the pipeline adds: the validated frames' own (pipeline.rig.reader) and the processed
+# frames' (ids, time, phase, the reference force). A channel of the same name would be ambiguous.
+RESERVED = frozenset({"trial_id", "line", "dt", *NON_CHANNELS})
+MAX_BYTES = 1 << 20  # a batch.yaml is a page of metadata; anything near this is not one
+MAX_NODES = 10_000  # YAML nodes after alias expansion (a real batch.yaml has about a hundred)
+
+
+def _alias_problem(root: yaml.Node | None) -> tuple[str, int] | None:
+    """(what, line) if aliases make the document recursive or expand it beyond MAX_NODES nodes (an
+    alias bomb): safe_load would recurse without end or build it for minutes. Walks the composed tree
+    as its aliases expand, so it stops after MAX_NODES steps whatever the document."""
+    if root is None:
+        return None
+    visited = 0
+    stack: list[tuple[yaml.Node, frozenset[int]]] = [(root, frozenset())]
+    while stack:
+        node, path = stack.pop()
+        visited += 1
+        if visited > MAX_NODES:
+            return (
+                f"aliases expand the document beyond {MAX_NODES} nodes (a YAML alias bomb?)",
+                node.start_mark.line + 1,
+            )
+        if id(node) in path:
+            return "a recursive alias: this node contains itself", node.start_mark.line + 1
+        inner = path | {id(node)}
+        if isinstance(node, yaml.MappingNode):
+            stack.extend((child, inner) for pair in reversed(node.value) for child in reversed(pair))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend((child, inner) for child in reversed(node.value))
+    return None
 
 
 def _yaml_line(node: yaml.Node | None, loc: Sequence[Any]) -> int | None:
@@ -60,18 +90,27 @@ def read_meta(batch_dir: Path, probs: ProblemLog) -> BatchMeta | None:
     path = batch_dir / BATCH_FILE
     file = str(path)
     if not path.is_file():
-        probs.add(file, f"missing {BATCH_FILE}")
+        probs.add(file, f"missing {BATCH_FILE}" if not path.exists() else "not a regular file")
         return None
     try:
+        if path.stat().st_size > MAX_BYTES:
+            probs.add(
+                file, f"{path.stat().st_size} bytes: too large for a {BATCH_FILE} (at most {MAX_BYTES})"
+            )
+            return None
         text = path.read_bytes().decode("utf-8-sig")
     except OSError as e:
         probs.add(file, f"cannot read: {e.strerror}")
         return None
     except UnicodeDecodeError as e:
-        probs.add(file, "not UTF-8 text", line=path.read_bytes()[: e.start].count(b"\n") + 1)
+        data = path.read_bytes()
+        probs.add(file, f"not UTF-8 text{encoding_hint(data)}", line=data[: e.start].count(b"\n") + 1)
         return None
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
+        if alias := _alias_problem(node):
+            probs.add(file, alias[0], line=alias[1])
+            return None
         if dup := _duplicate_key(node):
             probs.add(file, f"key {dup[0]!r} appears twice in one mapping", line=dup[1])
             return None

@@ -21,6 +21,17 @@ from pipeline.rig.problems import ProblemLog
 NAN_LITERALS = frozenset({"", "nan", "+nan", "-nan"})
 
 
+def encoding_hint(data: bytes) -> str:
+    """What a file that is not UTF-8 seems to be, as a hint to re-save it (rig-log/1 is UTF-8)."""
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")) or (len(data) > 1 and b"\x00" in data[:200]):
+        return ": it looks like UTF-16; save it as UTF-8"
+    try:
+        data.decode("cp1252")
+    except UnicodeDecodeError:
+        return ""
+    return ": it looks like Windows-1252 (cp1252); save it as UTF-8"
+
+
 @dataclass(frozen=True)
 class CsvTable:
     """A CSV file's header and non-blank data rows, each with its 1-based line number."""
@@ -29,6 +40,7 @@ class CsvTable:
     header_line: int
     rows: list[list[str]]
     lines: list[int]
+    cut_short: bool = False  # the file does not end with a line break: the last row may be cut off
 
 
 def read_csv(path: Path, probs: ProblemLog, trial_id: str | None) -> CsvTable | None:
@@ -44,7 +56,7 @@ def read_csv(path: Path, probs: ProblemLog, trial_id: str | None) -> CsvTable | 
     except UnicodeDecodeError as e:
         probs.add(
             file,
-            f"not UTF-8 text (byte 0x{data[e.start]:02x})",
+            f"not UTF-8 text (byte 0x{data[e.start]:02x}){encoding_hint(data)}",
             trial_id=trial_id,
             line=data[: e.start].count(b"\n") + 1,
         )
@@ -63,7 +75,8 @@ def read_csv(path: Path, probs: ProblemLog, trial_id: str | None) -> CsvTable | 
     if not rows:
         probs.add(file, "empty file: no header row", trial_id=trial_id)
         return None
-    return CsvTable([h.strip() for h in rows[0]], lines[0], rows[1:], lines[1:])
+    cut = not text.endswith(("\n", "\r"))
+    return CsvTable([h.strip() for h in rows[0]], lines[0], rows[1:], lines[1:], cut)
 
 
 def column_index(
@@ -106,12 +119,19 @@ def well_formed(
     file: str,
     probs: ProblemLog,
     trial_of: Callable[[list[str]], str | None],
+    warn: Callable[[str], None] | None = None,
 ) -> tuple[list[list[str]], np.ndarray]:
-    """Rows with as many fields as the header (others become Problems) and their line numbers."""
+    """Rows with as many fields as the header (others become Problems) and their line numbers.
+    With `warn`, a last row cut short (fewer fields, no line break after it: a recording that lost
+    power) is dropped with a warning instead: the samples before it are whole."""
     n = len(table.header)
     rows: list[list[str]] = []
     lines: list[int] = []
-    for row, line in zip(table.rows, table.lines, strict=True):
+    last = len(table.rows) - 1
+    for k, (row, line) in enumerate(zip(table.rows, table.lines, strict=True)):
+        if warn is not None and k == last and table.cut_short and len(row) < n:
+            warn(f"line {line}: the last row is cut short ({len(row)} of {n} fields, no line break): dropped")
+            continue
         if len(row) == n:
             rows.append(row)
             lines.append(line)

@@ -97,9 +97,12 @@ def fingerprint(batch_dir: Path, params: IngestParams, source_dir: str | None = 
     )
     for p in files:
         h.update(p.relative_to(batch_dir).as_posix().encode() + b"\0")
-        with p.open("rb") as f:  # read-only, like every access to the input folders
-            for chunk in iter(lambda f=f: f.read(1 << 20), b""):
-                h.update(chunk)
+        try:
+            with p.open("rb") as f:  # read-only, like every access to the input folders
+                for chunk in iter(lambda f=f: f.read(1 << 20), b""):
+                    h.update(chunk)
+        except OSError as e:  # the parse says so, with the file; the fingerprint keeps the reason
+            h.update(f"unreadable: {e.strerror}".encode())
         h.update(b"\0")
     parts: dict[str, Any] = {
         "output_version": OUTPUT_VERSION,
@@ -287,6 +290,33 @@ def _find_batches(roots: Sequence[Path]) -> tuple[dict[str, Path], list[BatchOut
     return found, dups
 
 
+def _read_from(folder: Path) -> Path | None:
+    """The input batch folder a stored batch was read from (None if its fingerprint is unreadable)."""
+    try:
+        return Path(json.loads((folder / FINGERPRINT).read_text())["source_dir"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _refuse_vanished_roots(roots: Sequence[Path], out_dir: Path) -> None:
+    """An input folder that is missing or holds no batch while `out_dir` holds batches read from it
+    is a share not mounted or a wrong path far more often than a lab deleting all its data: stop,
+    changing nothing, rather than empty the store."""
+    stored = [e for e in sorted(out_dir.iterdir()) if e.is_dir() and e.name != STAGING]
+    for root in roots:
+        if batch_dirs(root):
+            continue
+        mine = [e.name for e in stored if (src := _read_from(e)) is not None and src.parent == root]
+        if mine:
+            state = "missing" if not root.exists() else "empty"
+            shown = ", ".join(mine[:5]) + (f" and {len(mine) - 5} more" if len(mine) > 5 else "")
+            raise ValueError(
+                f"input folder {root} is {state}, but {out_dir} holds {len(mine)} batch(es) read from it "
+                f"({shown}); is a share not mounted? Nothing was changed. To drop those batches on "
+                f"purpose, delete their folders from {out_dir}"
+            )
+
+
 def _log_outcome(log: Log, i: int, n: int, b: BatchOutcome, seconds: float | None) -> None:
     how = {
         "parsed": f"parsed in {seconds or 0:.1f} s",
@@ -318,6 +348,7 @@ def ingest_batches(
     """
     _check_disjoint(out_dir, roots)
     out_dir.mkdir(parents=True, exist_ok=True)
+    _refuse_vanished_roots(roots, out_dir)
     if (out_dir / STAGING).exists():  # unfinished writes of a crashed run
         shutil.rmtree(out_dir / STAGING)
     found, dups = _find_batches(roots)

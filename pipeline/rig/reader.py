@@ -57,7 +57,7 @@ def _read_trials(
     path = batch_dir / TRIALS_FILE
     file = str(path)
     if not path.is_file():
-        probs.add(file, f"missing {TRIALS_FILE}")
+        probs.add(file, f"missing {TRIALS_FILE}" if not path.exists() else "not a regular file")
         return None
     table = read_csv(path, probs, None)
     if table is None:
@@ -76,7 +76,9 @@ def _read_trials(
         warn(path, "a column without a name is ignored")
         extras = [h for h in extras if h]
     ids = [r[i_id].strip() for r in rows]
-    angle = numbers([r[idx["angle_deg"]] for r in rows], lines, file, "angle_deg", ids, probs)
+    # "15°" and "-0" name the angles 15 and 0 (+ 0.0 turns -0.0 into 0.0)
+    degrees = [r[idx["angle_deg"]].strip().removesuffix("°") for r in rows]
+    angle = numbers(degrees, lines, file, "angle_deg", ids, probs) + 0.0
     frame = pd.DataFrame(
         {
             "trial_id": pd.Series(ids, dtype=object),
@@ -125,10 +127,9 @@ def _read_stream(
     """One stream file as trial_id, line, time, values (+ optional columns if all present), float64."""
     file = str(path)
     if not path.is_file():
+        what = "is missing" if not path.exists() else "is not a regular file"
         probs.add(
-            file,
-            f"trial {trial_id!r} is listed in {TRIALS_FILE} but {path.name} is missing",
-            trial_id=trial_id,
+            file, f"trial {trial_id!r} is listed in {TRIALS_FILE} but {path.name} {what}", trial_id=trial_id
         )
         return None
     table = read_csv(path, probs, trial_id)
@@ -147,7 +148,7 @@ def _read_stream(
     if not table.rows:
         probs.add(file, "empty stream: a header but no samples", trial_id=trial_id)
         return None
-    rows, lines = well_formed(table, file, probs, lambda _: trial_id)
+    rows, lines = well_formed(table, file, probs, lambda _: trial_id, lambda msg: warn(path, msg))
     if not rows:
         return None
     cols = {

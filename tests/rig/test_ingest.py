@@ -137,3 +137,29 @@ def test_check_folders_reports_problems_and_writes_nothing(raw_dir, lab_bench_a,
     ]
     assert single == []
     assert tree_hash(tmp_path) == before
+
+
+@pytest.mark.parametrize("how", ["emptied", "missing"])
+def test_a_vanished_input_folder_stops_ingest_instead_of_emptying_the_store(raw_dir, tmp_path, how):
+    # Given a store ingested from the raw folder, then the folder empty or gone (a share not mounted)
+    out = tmp_path / "out"
+    run([raw_dir], out)
+    stored = tree_hash(out)
+    shutil.move(raw_dir, tmp_path / "elsewhere")
+    if how == "emptied":
+        raw_dir.mkdir()
+    # When ingest runs again / Then it stops, naming the folder and the batches, and changes nothing
+    with pytest.raises(ValueError, match=rf"input folder {raw_dir} is (empty|missing).*1 batch\(es\).*{A}"):
+        run([raw_dir], out)
+    assert tree_hash(out) == stored
+
+
+def test_a_batch_removed_on_purpose_still_leaves_the_store(raw_dir, lab_bench_a, tmp_path):
+    # Given a store of two batches, then one batch folder deleted while the other stays
+    copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    out = tmp_path / "out"
+    run([raw_dir], out)
+    shutil.rmtree(raw_dir / "lab-bench-b")
+    # When ingest runs again / Then that batch leaves the store, the other stays
+    result = run([raw_dir], out)
+    assert result.removed == ["lab-bench-b"] and result.accepted == [A]

@@ -9,9 +9,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.config import IngestParams
+from pipeline.rig import ingest
 from pipeline.rig.format import BatchMeta
 from pipeline.rig.problems import MAX_PER_COLUMN
 from tests.helpers import tree_hash
@@ -149,6 +152,12 @@ class Bad:
     batch: bool = False  # whole batch set aside?
     trials: tuple[str, ...] = ("t002",)  # trials set aside (if not the whole batch)
     accepted: tuple[str, ...] | None = None  # default: the other trials
+
+
+# nine levels of nine aliases: 9**9 nodes once expanded, a few hundred bytes of text
+ALIAS_BOMB = "a0: &a0 [x, x, x, x, x, x, x, x, x]\n" + "".join(
+    f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]\n" for i in range(1, 9)
+)
 
 
 def _fsr(t: str = "t002") -> str:
@@ -291,6 +300,37 @@ BAD = [
         batch=True,
     ),
     Bad(
+        "recursive alias in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "operator:", "loop: &loop\n  - *loop\noperator:"),
+        "batch.yaml",
+        "a recursive alias",
+        line=15,
+        batch=True,
+    ),
+    Bad(
+        "YAML alias bomb in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "operator:", ALIAS_BOMB + "operator:"),
+        "batch.yaml",
+        "aliases expand the document beyond 10000 nodes",
+        batch=True,
+    ),
+    Bad(
+        "channel named like a reference axis",
+        lambda b: replace_in(b / "batch.yaml", "bottom]", "fx]"),
+        "batch.yaml",
+        "'fx' is reserved",
+        line=7,
+        batch=True,
+    ),
+    Bad(
+        "channel named like a processed column",
+        lambda b: replace_in(b / "batch.yaml", "bottom]", "phase]"),
+        "batch.yaml",
+        "'phase' is reserved",
+        line=7,
+        batch=True,
+    ),
+    Bad(
         "purpose typo in batch.yaml",
         lambda b: replace_in(b / "batch.yaml", "operator:", "purpose: calib\noperator:"),
         "batch.yaml",
@@ -401,6 +441,12 @@ BAD = [
     Bad("trial without its fsr file", lambda b: (b / _fsr()).unlink(), _fsr(), "is missing"),
     Bad("trial without its ref file", lambda b: (b / _ref()).unlink(), _ref(), "is missing"),
     Bad(
+        "a folder where a stream file should be",
+        lambda b: ((b / _fsr()).unlink(), (b / _fsr()).mkdir()),
+        _fsr(),
+        "is not a regular file",
+    ),
+    Bad(
         "stream file without a trial row",
         lambda b: shutil.copy(b / _fsr("t001"), b / _fsr("t009")),
         _fsr("t009"),
@@ -447,6 +493,20 @@ BAD = [
     ),
     Bad("fsr row with a field too many", _malformed, _fsr(), "row has 6 fields, the header has 5", line=12),
     Bad("ref not UTF-8", _not_utf8, _ref(), "not UTF-8", line=5),
+    Bad(
+        "fsr saved as UTF-16",
+        lambda b: (b / _fsr()).write_bytes((b / _fsr()).read_text().encode("utf-16")),
+        _fsr(),
+        "it looks like UTF-16; save it as UTF-8",
+    ),
+    Bad(
+        "ref saved as Windows-1252",
+        lambda b: (b / _ref()).write_bytes(
+            (b / _ref()).read_text().replace("t_s,", "t_s_µ,", 1).encode("cp1252")
+        ),
+        _ref(),
+        "it looks like Windows-1252 (cp1252); save it as UTF-8",
+    ),
     # values
     Bad(
         "text in a number column",
@@ -577,3 +637,55 @@ def test_many_bad_cells_are_summarised_but_all_set_aside(raw_dir, tmp_path):
     assert len(left) == MAX_PER_COLUMN + 1
     assert f"and {len(rows) - 1 - MAX_PER_COLUMN} more" in left[-1].reason
     assert result.batches[0].trials_accepted == ["t001", "t003"]
+
+
+def test_a_file_the_os_will_not_read_is_a_located_problem(raw_dir, lab_bench_a, tmp_path, monkeypatch):
+    # Given a second batch, and one stream file the OS refuses to read (tests run as root, where
+    # chmod cannot make one: the refusal is injected where every read goes through, Path.open)
+    copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    locked = raw_dir / A / _fsr()
+    real_open = Path.open
+
+    def guarded_open(self: Path, *args, **kwargs):
+        if self == locked:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_open(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "open", guarded_open)
+    # When the folder is ingested, and checked
+    result = run([raw_dir], tmp_path / "out")
+    checked = ingest.check_folders([raw_dir], IngestParams())
+    # Then both name the file and the reason, and the other batch goes on
+    for problems in (result.problems, checked):
+        assert [p.reason for p in problems if Path(p.file) == locked] == ["cannot read: Permission denied"]
+    assert "lab-bench-b" in result.accepted
+
+
+def test_angles_are_read_as_their_numbers(raw_dir, tmp_path):
+    # Given angles written "30°" and "-0" in trials.csv
+    trials_csv = raw_dir / A / "trials.csv"
+    set_cell(trials_csv, 2, "angle_deg", "30°")
+    set_cell(trials_csv, 4, "angle_deg", "-0")
+    # When ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then they are the angles 30 and 0 (not -0, which would name a folder "-0")
+    assert result.accepted == [A]
+    angles = pd.read_parquet(tmp_path / "out" / A / "trials.parquet")["angle_deg"].to_numpy()
+    assert angles.tolist() == [30.0, 30.0, 0.0]
+    assert not np.signbit(angles).any()
+
+
+def test_a_last_row_cut_short_is_dropped_with_a_warning_and_the_trial_kept(raw_dir, tmp_path):
+    # Given a stream whose recording lost power mid-row: the last row has 2 of its fields, no line break
+    fsr = raw_dir / A / _fsr()
+    rows = lines_of(fsr)
+    fsr.write_text("\n".join(rows[:-1]) + "\n" + ",".join(rows[-1].split(",")[:2]))
+    # When ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then the trial is kept without that row, and a warning names the file and line
+    assert result.accepted == [A] and result.problems == []
+    kept = pd.read_parquet(tmp_path / "out" / A / "fsr.parquet")
+    assert (kept["trial_id"] == "t002").sum() == len(rows) - 2  # less the header and the cut row
+    assert any(
+        _fsr() in w and f"line {len(rows)}" in w and "cut short" in w for w in result.batches[0].warnings
+    )
