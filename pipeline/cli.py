@@ -111,9 +111,12 @@ def _fail(message: str, code: int = 1) -> typer.Exit:
     return typer.Exit(code)
 
 
-def _calibration_rows(batch_dir: Path, unit_id: str | None, params: Path) -> tuple[str, Any, list[str]]:
-    """Check one batch like `needlecue check` (its problems printed), ingest and resample it in a temp
-    folder: (its unit, its resampled rows, the trials set aside). typer.Exit(1) if nothing is usable."""
+def _batch_rows(
+    batch_dir: Path, unit_id: str | None, params: Path, purpose: str | None = None
+) -> tuple[str, Any, list[str]]:
+    """Check one rig-log/1 batch like `needlecue check` (its problems printed), ingest and resample it
+    in a temp folder: (its unit, its resampled rows, the trials set aside). typer.Exit(1) if nothing is
+    usable or another unit than `unit_id` recorded it; a warning if its purpose is not `purpose`."""
     import tempfile
 
     import pandas as pd
@@ -123,7 +126,6 @@ def _calibration_rows(batch_dir: Path, unit_id: str | None, params: Path) -> tup
     from pipeline.rig.ingest import fingerprint, write_batch
     from pipeline.rig.reader import parse_batch
     from pipeline.signals import resample
-    from pipeline.vocab import CALIBRATION
 
     ingest = _section(IngestParams, "ingest", params)
     parsed = parse_batch(batch_dir, ingest, Validator(ingest))
@@ -136,9 +138,9 @@ def _calibration_rows(batch_dir: Path, unit_id: str | None, params: Path) -> tup
     unit = parsed.meta.sensor.unit_id
     if unit_id is not None and unit_id != unit:
         raise _fail(f"{batch_dir} was recorded by unit {unit!r} (batch.yaml sensor.unit_id), not {unit_id!r}")
-    if parsed.meta.purpose != CALIBRATION:
+    if purpose is not None and parsed.meta.purpose != purpose:
         typer.echo(
-            f"warning: {batch_dir}: purpose {parsed.meta.purpose!r}, not {CALIBRATION!r}: calibrating anyway",
+            f"warning: {batch_dir}: purpose {parsed.meta.purpose!r}, not {purpose!r}: calibrating anyway",
             err=True,
         )
     aside = [f"{parsed.batch_id}/{t}: see the problems above" for t in parsed.trials_set_aside]
@@ -222,7 +224,9 @@ def calibrate(
 
     if not batch_dir.is_dir():
         raise _fail(f"not a folder: {batch_dir}", 2)
-    unit, rows, aside = _calibration_rows(batch_dir, unit_id, params)
+    from pipeline.vocab import CALIBRATION
+
+    unit, rows, aside = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
     try:
         client = store.connect(tracking_uri, must_exist=True)
         champions = units.champion_models(client)
@@ -262,7 +266,11 @@ def calibrate(
 @app.command()
 def replay(
     trial: Annotated[
-        Path, typer.Argument(help="processed parquet file, e.g. data/processed/15/external.parquet")
+        Path,
+        typer.Argument(
+            help="a processed parquet file (data/processed/15/external.parquet), a raw rig-log/1 trial "
+            "file (<batch>/<trial>.fsr.csv) or a raw batch folder"
+        ),
     ],
     angle: Annotated[
         float | None, typer.Option("--angle", help="preset insertion angle (deg) whose model is fetched")
@@ -284,6 +292,9 @@ def replay(
 ) -> None:
     """Replay a recorded trial through the simulator's client as if live: cue timeline, RMSE and a plot.
 
+    A raw trial (or batch folder) is checked, ingested and resampled as the pipeline would (params.yaml),
+    and its batch.yaml names the unit when --unit-id does not.
+
     With --unit-id the unit's registered calibration (needle-unit-<unit>@current) is applied, as on the
     simulator; without it, or when it was made with other models, the force is uncalibrated and there
     are no cues. Exit 1 on a bad input (file, trial, model folder, stream mismatch), 2 if the registry is
@@ -303,10 +314,25 @@ def replay(
 
     if angle is None and model_dir is None:
         raise fail("give --angle (the preset angle whose model to fetch) or --model-dir")
-    try:
-        frame = pd.read_parquet(trial)
-    except (OSError, ValueError) as e:  # missing file, not parquet
-        raise fail(f"cannot read {trial}: {e}") from e
+    raw_trial = trial.name.endswith((".fsr.csv", ".ref.csv"))
+    if trial.is_dir() or raw_trial:  # rig-log/1: checked, ingested and resampled like the pipeline does
+        batch_dir = trial.parent if raw_trial else trial
+        if not (batch_dir / "batch.yaml").is_file():
+            raise fail(f"{batch_dir}: not a rig-log/1 batch folder (no batch.yaml)")
+        if raw_trial:
+            trial_id = trial_id or f"{batch_dir.name}/{trial.name.rsplit('.', 2)[0]}"
+        batch_unit, frame, _aside = _batch_rows(batch_dir, None, Path("params.yaml"))
+        unit_id = unit_id or batch_unit
+    elif trial.suffix == ".parquet":
+        try:
+            frame = pd.read_parquet(trial)
+        except (OSError, ValueError) as e:  # missing file, not parquet
+            raise fail(f"cannot read {trial}: {e}") from e
+    else:
+        raise fail(
+            f"{trial}: not a processed parquet file, a rig-log/1 trial file (<trial>.fsr.csv or "
+            "<trial>.ref.csv) or a batch folder"
+        )
     if frame.empty or not {"batch_id", "trial_id", "t_s"} <= set(frame.columns):
         raise fail(f"{trial}: not a processed split file (needs rows and batch_id, trial_id, t_s)")
     ids = frame[["batch_id", "trial_id"]].astype(str).drop_duplicates()

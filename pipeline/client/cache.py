@@ -49,6 +49,11 @@ class ModelNotFound(LookupError):
     """The registry answered, but holds no model version under that name and alias."""
 
 
+class CachedCopyRefused(store.RegistryUnreachable):
+    """The registry cannot be used and the local copy fails its check (changed, damaged, or another
+    model's): it is not run."""
+
+
 def default_cache_dir() -> Path:
     """`$NEEDLECUE_MODEL_CACHE` if set, else `~/.cache/needlecue/models` (read at call time)."""
     env = os.environ.get(CACHE_ENV)
@@ -71,8 +76,10 @@ def read_metadata(model_dir: Path) -> dict[str, Any]:
         raise FileNotFoundError(f"{model_dir} is not a fetched model folder: it has no MLmodel file")
     try:
         spec = yaml.safe_load(mlmodel.read_text()) or {}
-    except yaml.YAMLError as e:
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
         raise ValueError(f"{mlmodel}: not valid YAML: {e}") from e
+    if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
+        raise ValueError(f"{mlmodel}: not an MLmodel file (a mapping with a metadata mapping)")
     meta = (spec.get("metadata") or {}).get("needlecue")
     if not isinstance(meta, dict) or meta.get("format") not in DEPLOY_FORMATS:
         found = meta.get("format") if isinstance(meta, dict) else None
@@ -119,7 +126,15 @@ def fetch(
     """
     name = store.model_name(angle_deg)
     return _fetch_version(
-        name, alias, cache_dir, tracking_uri, "model.onnx", "onnx_sha256", MODEL_HINT, _model_info
+        name,
+        alias,
+        cache_dir,
+        tracking_uri,
+        "model.onnx",
+        "onnx_sha256",
+        MODEL_HINT,
+        _model_info,
+        _model_problem(name, angle_deg),
     )
 
 
@@ -155,6 +170,7 @@ def fetch_unit(
         "calibration_sha256",
         UNIT_HINT,
         _unit_info(unit_id),
+        _unit_problem(name, unit_id),
         offline_needs_file=True,
     )
 
@@ -168,12 +184,14 @@ def _fetch_version(
     sha_key: str,
     hint: str,
     describe: Describe,
+    problem: Verify,
     *,
     offline_needs_file: bool = False,
 ) -> Path:
     """`fetch` and `fetch_unit`: `<cache_dir>/<name>/<alias>/`, downloaded (and described) unless the
     cached copy is that very version with `file` intact (its sha256 under `sha_key` in version.json);
-    the cached copy when the registry cannot be used (a unit's only if its `file` is there)."""
+    the cached copy when the registry cannot be used (a unit's only if its `file` is there), once
+    `problem(folder, version.json)` finds nothing wrong with it."""
     uri = f"models:/{name}@{alias}"
     target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
     registry_uri = tracking_uri or store.tracking_uri()
@@ -182,7 +200,7 @@ def _fetch_version(
         client = store.connect(registry_uri, must_exist=True)
         mv = _resolve(client, name, alias, registry_uri, hint)
     except store.RegistryUnreachable as e:
-        return _offline_copy(target, cached, uri, e)
+        return _offline_copy(target, cached, uri, e, problem)
     if (
         cached is not None
         and cached.get("name") == name
@@ -196,7 +214,7 @@ def _fetch_version(
     try:
         return _download(mv, alias, target, registry_uri, describe)
     except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
-        return _offline_copy(target, cached, uri, e)
+        return _offline_copy(target, cached, uri, e, problem)
 
 
 def _resolve(client: Any, name: str, alias: str, registry_uri: str, hint: str = MODEL_HINT) -> Any:
@@ -219,11 +237,19 @@ def _resolve(client: Any, name: str, alias: str, registry_uri: str, hint: str = 
     return mv
 
 
-def _offline_copy(target: Path, cached: dict[str, Any] | None, uri: str, error: Exception) -> Path:
-    """The cached copy, with a warning, when the registry cannot be used; else a clear error."""
+def _offline_copy(
+    target: Path, cached: dict[str, Any] | None, uri: str, error: Exception, problem: Verify
+) -> Path:
+    """The cached copy, checked, with a warning, when the registry cannot be used; else a clear error
+    (`CachedCopyRefused` when the copy fails its check)."""
     if cached is None:
         raise store.RegistryUnreachable(
             f"cannot fetch {uri}: {error}; and there is no local copy at {target}"
+        ) from error
+    if why := problem(target, cached):
+        raise CachedCopyRefused(
+            f"cannot fetch {uri}: {error}; the local copy at {target} is refused: {why}. Reconnect to "
+            "the registry to fetch it again, or delete that folder"
         ) from error
     log.warning(
         "offline: %s; using the local copy of %s (version %s, fetched %s) at %s",
@@ -237,6 +263,57 @@ def _offline_copy(target: Path, cached: dict[str, Any] | None, uri: str, error: 
 
 
 Describe = Callable[[Path, Any], dict[str, Any]]  # (downloaded folder, ModelVersion) -> version.json fields
+Verify = Callable[[Path, dict[str, Any]], str | None]  # (cached folder, its version.json) -> what is wrong
+
+
+def _copy_problem(folder: Path, info: dict[str, Any], name: str, file: str, sha_key: str) -> str | None:
+    """What makes a cached copy of `name` unusable, as far as version.json and `file` tell."""
+    if info.get("name") != name:
+        return f"its version.json is of {info.get('name')!r}, not {name!r}"
+    if not info.get("version"):
+        return "its version.json names no version"
+    if not (folder / file).is_file():
+        return f"it has no {file}"
+    if file_sha256([folder / file]) != info.get(sha_key):
+        return f"{file} is not the file fetched (its sha256 differs from version.json's): changed or damaged"
+    return None
+
+
+def _model_problem(name: str, angle_deg: float) -> Verify:
+    """A cached force model: the copy of `name`, its ONNX as fetched, its MLmodel readable and of that
+    angle and checkpoint."""
+
+    def problem(folder: Path, info: dict[str, Any]) -> str | None:
+        if why := _copy_problem(folder, info, name, "model.onnx", "onnx_sha256"):
+            return why
+        try:
+            meta = read_metadata(folder)
+        except (OSError, ValueError) as e:
+            return f"its MLmodel is unusable ({e})"
+        if float(meta.get("angle_deg", "nan")) != float(angle_deg):
+            return f"its MLmodel is of the {meta.get('angle_deg')}° model, not {angle_deg:g}°"
+        if meta.get("checkpoint_sha256") != info.get("checkpoint_sha256"):
+            return "its MLmodel names another checkpoint than the one fetched"
+        return None
+
+    return problem
+
+
+def _unit_problem(name: str, unit_id: str) -> Verify:
+    """A cached unit calibration: the copy of `name`, its document as fetched and of that unit."""
+
+    def problem(folder: Path, info: dict[str, Any]) -> str | None:
+        if why := _copy_problem(folder, info, name, UNIT_FILE, "calibration_sha256"):
+            return why
+        try:
+            doc = read_unit(folder / UNIT_FILE)
+        except (OSError, ValueError) as e:
+            return f"its calibration document is unusable ({e})"
+        if doc.get("unit_id") != unit_id or info.get("unit_id") != unit_id:
+            return f"it holds the calibration of unit {doc.get('unit_id')!r}, not {unit_id!r}"
+        return None
+
+    return problem
 
 
 def _model_info(folder: Path, mv: Any) -> dict[str, Any]:

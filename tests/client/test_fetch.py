@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from pathlib import Path
 
 import pytest
@@ -102,3 +103,66 @@ def test_a_default_store_that_is_not_there_is_unreachable_not_created(
     with pytest.raises(store.RegistryUnreachable, match="no such database"):
         fc.fetch(30, cache_dir=tmp_path / "cache", tracking_uri=store_uri)
     assert not (tmp_path / "elsewhere" / "mlflow.db").exists()
+
+
+def _cached_copy(registered: Registered, tmp_path: Path) -> tuple[Path, Path]:
+    """(cache, its 30° champion folder) fetched from the registry."""
+    cache = tmp_path / "cache"
+    return cache, fc.fetch(30, cache_dir=cache, tracking_uri=registered.uri)
+
+
+@pytest.mark.parametrize(
+    ("tamper", "why"),
+    [
+        (
+            lambda f: f.joinpath("model.onnx").write_bytes(b"\0" + f.joinpath("model.onnx").read_bytes()),
+            "model.onnx is not the file fetched",
+        ),
+        (lambda f: f.joinpath("MLmodel").write_text("- just\n- a list\n"), "its MLmodel is unusable"),
+        (
+            lambda f: f.joinpath("MLmodel").write_text(
+                f.joinpath("MLmodel").read_text().replace("angle_deg: 30.0", "angle_deg: 45.0")
+            ),
+            "not 30°",
+        ),
+        (
+            lambda f: f.joinpath("version.json").write_text(
+                f.joinpath("version.json").read_text().replace('"1"', '""')
+            ),
+            "names no version",
+        ),
+    ],
+    ids=["onnx changed", "MLmodel not a mapping", "another angle's MLmodel", "no version"],
+)
+def test_offline_a_copy_that_fails_its_check_is_refused(
+    registered: Registered, tmp_path: Path, tamper, why: str
+) -> None:
+    # given: a fetched champion, then changed in the cache
+    cache, folder = _cached_copy(registered, tmp_path)
+    tamper(folder)
+    # when: the registry is unreachable / then: the copy is refused, saying where and why
+    with pytest.raises(fc.CachedCopyRefused, match=why) as err:
+        fc.fetch(30, cache_dir=cache, tracking_uri=UNREACHABLE)
+    assert str(folder) in str(err.value) and "models:/needle-force-30@champion" in str(err.value)
+
+
+def test_offline_another_angle_s_copy_in_the_folder_is_refused(
+    registered: Registered, tmp_path: Path
+) -> None:
+    # given: the 30° champion's whole folder copied where the 45° champion's belongs
+    cache, folder = _cached_copy(registered, tmp_path)
+    shutil.copytree(folder, cache / "needle-force-45" / "champion")
+    # when / then: offline, the 45° client does not run the 30° model
+    with pytest.raises(fc.CachedCopyRefused, match=r"version\.json is of 'needle-force-30'"):
+        fc.fetch(45, cache_dir=cache, tracking_uri=UNREACHABLE)
+
+
+def test_a_malformed_mlmodel_is_a_clear_error(registered: Registered, tmp_path: Path) -> None:
+    # given: a model folder whose MLmodel is not YAML at all
+    _, folder = _cached_copy(registered, tmp_path)
+    broken = tmp_path / "broken"
+    shutil.copytree(folder, broken)
+    (broken / "MLmodel").write_bytes(b"\xff\xfe{{{not yaml")
+    # when / then: a ValueError naming the file, not a traceback from deep in a parser
+    with pytest.raises(ValueError, match="MLmodel: not valid YAML"):
+        fc.ForceClient(broken)

@@ -85,3 +85,41 @@ def test_replay_command_prints_the_summary_and_writes_the_plot(
     assert "no trial 'held/t09'" in bad_trial.output and "held/t00, held/t01" in bad_trial.output
     assert "--angle 45 but the model" in wrong_angle.output
     assert "needle-force-15@champion" in offline.output and "no local copy" in offline.output
+
+
+def test_replay_takes_a_raw_trial_and_its_unit_from_the_batch_folder(
+    registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: a raw rig-log/1 batch of one trial at 30°, recorded by unit est-r1 (calibrated with the
+    # 30° champion), the registry and an empty model cache
+    from pipeline.config import SimulateParams
+    from pipeline.sim.rig import BatchPlan, write_batch
+
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    write_batch(SimulateParams(), BatchPlan("lab-r1", 1, (30.0,), 1, 1, "est-r1"), raw)
+    register_unit(registered.uri, unit_document("est-r1", {30: registered.checkpoint}))
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", registered.uri)
+    monkeypatch.setenv(fc.CACHE_ENV, str(tmp_path / "cache"))
+    monkeypatch.chdir(Path(__file__).resolve().parents[2])  # params.yaml of the project
+    fsr_file = next((raw / "lab-r1").glob("*.fsr.csv"))
+    png = tmp_path / "raw.png"
+    # when: replaying the raw trial file, with no --unit-id
+    result = CliRunner().invoke(app, ["replay", str(fsr_file), "--angle", "30", "--out", str(png)])
+    # then: it is ingested and resampled like the pipeline does, and the unit comes from batch.yaml
+    assert result.exit_code == 0, result.output
+    trial = fsr_file.name.removesuffix(".fsr.csv")
+    assert result.output.startswith(f"lab-r1/{trial}: ")
+    assert "unit est-r1: calibrated (needle-unit-est-r1 v1)" in result.output
+    assert png.is_file()
+
+
+@pytest.mark.parametrize("name", ["notes.txt", "t001.csv"])
+def test_replay_of_something_else_is_a_clear_error(tmp_path: Path, name: str) -> None:
+    # given: a file that is neither a processed parquet, a rig-log/1 trial file nor a batch folder
+    path = tmp_path / name
+    path.write_text("t_ms,a\n1,2\n")
+    # when / then: exit 1 naming what replay takes, not "Parquet magic bytes not found"
+    result = CliRunner().invoke(app, ["replay", str(path), "--angle", "30"])
+    assert result.exit_code == 1
+    assert "not a processed parquet file, a rig-log/1 trial file" in result.output
