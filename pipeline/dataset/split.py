@@ -30,7 +30,7 @@ import json
 import math
 import sys
 from collections import Counter
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
 from pathlib import Path
@@ -241,11 +241,36 @@ def _schema(trials: list[Trial], channels: tuple[str, ...]) -> pa.Schema:
     return table_schema(channels)
 
 
-def run(in_dir: Path, out_dir: Path, p: SplitParams, *, log: Log = _stderr) -> dict[str, Any]:
+def untrainable(angles: list[AngleSplit], trained: Sequence[float]) -> str | None:
+    """Why the models of `trained` (params.yaml `train.angles`) cannot all be trained on this data:
+    the angles without a training trial, the angles found and the params line to set; None if none."""
+    have = [a.angle for a in angles if a.splits["train"]]
+    missing = [angle_name(a) for a in trained if angle_name(a) not in have]
+    if not missing:
+        return None
+    found = ", ".join(f"{a}°" for a in have) or "none"
+    fix = f"train.angles: [{', '.join(have)}]" if have else "a batch with training trials under data.raw_dir"
+    return (
+        f"train.angles lists {', '.join(f'{a}°' for a in missing)}, but the data has no training trial "
+        f"there (angles with training trials: {found}); set `{fix}` in params.yaml"
+    )
+
+
+def run(
+    in_dir: Path,
+    out_dir: Path,
+    p: SplitParams,
+    *,
+    trained: Sequence[float] | None = None,
+    log: Log = _stderr,
+) -> dict[str, Any]:
     """Write every angle's four split files, the calibration files and the manifest; returns the
-    manifest."""
+    manifest. With `trained` (the angles models are trained at), ValueError before writing anything if
+    one of them has no training trial (`untrainable`)."""
     trials, rate_hz = load_trials(in_dir)
     angles = plan([t for t in trials if t.purpose != CALIBRATION], p)
+    if trained is not None and (why := untrainable(angles, trained)):
+        raise ValueError(why)
     calibration = plan_calibration(
         [t for t in trials if t.purpose == CALIBRATION], {a.angle: a.channels for a in angles}
     )

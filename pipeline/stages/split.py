@@ -15,7 +15,7 @@ from pathlib import Path
 
 import typer
 
-from pipeline.config import SplitParams, load_section
+from pipeline.config import SplitParams, TrainParams, load_section
 from pipeline.dataset.split import run
 
 
@@ -26,7 +26,8 @@ def _log(msg: str) -> None:
 def main(in_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Split the resampled trials per angle into train/val/test/external files."""
     try:
-        run(in_dir, out_dir, load_section(SplitParams, "split", params), log=_log)
+        trained = load_section(TrainParams, "train", params).angles
+        run(in_dir, out_dir, load_section(SplitParams, "split", params), trained=trained, log=_log)
     except (OSError, ValueError) as e:  # missing metadata, mixed grid rates: one clear line, not a traceback
         _log(f"split: error: {e}")
         raise typer.Exit(1) from e

@@ -220,3 +220,20 @@ def test_a_calibration_trial_with_other_channels_is_set_aside(tmp_path):
     assert [(s["batch_id"], s["trial_id"]) for s in manifest["set_aside"]] == [("calib-b", "t1")]
     assert "differ from the channels" in manifest["set_aside"][0]["reason"]
     assert manifest["calibration"] == {} and not (tmp_path / "out" / "calibration").exists()
+
+
+def test_angles_to_train_without_data_stop_the_split_with_the_params_line_to_set(tmp_path):
+    # Given trials at 30 and 45° only, and models to train at 15, 30 and 45°
+    src = make_input(tmp_path / "in")
+    # When the split runs / Then one message names the angle, the angles found and what to set,
+    # before anything is written
+    with pytest.raises(
+        ValueError, match=r"train\.angles lists 15°.*training trials: 30°, 45°.*`train\.angles: \[30, 45\]`"
+    ):
+        sp.run(src, tmp_path / "out", SplitParams(), trained=(15.0, 30.0, 45.0))
+    assert not (tmp_path / "out").exists()
+    # and with the angles of the data it splits as before
+    assert sorted(sp.run(src, tmp_path / "out", SplitParams(), trained=(30.0, 45.0))["angles"]) == [
+        "30",
+        "45",
+    ]
