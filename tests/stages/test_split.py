@@ -12,10 +12,14 @@ from tests.dataset.resampled import make_input
 
 
 def test_cli_entry_reads_params(tmp_path):
-    # Given params.yaml marking the 45 deg held-out batch and the second cast as external
+    # Given params.yaml training the data's two angles and marking the 45 deg held-out batch and the
+    # second cast as external
     src = make_input(tmp_path / "in")
     params = tmp_path / "params.yaml"
-    params.write_text("split:\n  seed: 3\n  external_batches: ['*heldout-45*', 'sim-tissue-2']\n")
+    params.write_text(
+        "train:\n  angles: [30, 45]\n"
+        "split:\n  seed: 3\n  external_batches: ['*heldout-45*', 'sim-tissue-2']\n"
+    )
     # When the stage's entry point runs
     split.main(src, tmp_path / "out", params)
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
