@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup repro verify test lint bench ui clean
+.PHONY: setup repro verify test ci lint bench ui clean
 
 setup: $(VENV)/.installed
 
@@ -25,6 +25,17 @@ verify: repro         ## the pipeline, then: nothing out of date; dvc.lock and m
 test: setup           ## lint and run the test suite (on both cores: the slow tests are mostly waiting on dvc)
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q -n 2
+
+ci: setup             ## what CI runs: `make test` and `make verify` side by side, verify's log after the tests'
+	@# The pipeline's stages run on one thread each (docs/reproducibility.md), so a verify alone
+	@# leaves a core idle; side by side the two take about the time of the longer one.
+	@mkdir -p .ci/logs
+	@$(MAKE) --no-print-directory verify > .ci/logs/verify.log 2>&1 & verify=$$!; \
+	$(MAKE) --no-print-directory test; tested=$$?; \
+	wait $$verify; verified=$$?; \
+	echo "--- make verify (exit $$verified), log .ci/logs/verify.log:"; tail -n 40 .ci/logs/verify.log; \
+	echo "ci: make test exit $$tested, make verify exit $$verified"; \
+	[ $$tested -eq 0 ] && [ $$verified -eq 0 ]
 
 lint: setup
 	$(BIN)/ruff check .
