@@ -82,21 +82,78 @@ def retrain(
 def check(
     raw_dirs: Annotated[list[Path], typer.Argument(help="raw folders, each holding batch folders")],
     params: ParamsOption = Path("params.yaml"),
+    ledger: Annotated[
+        Path, typer.Option(help="the last `dvc repro`'s ledger, for where the trials ended up")
+    ] = Path("reports/ledger/ledger.json"),
 ) -> None:
-    """Check rig-log/1 folders without running the pipeline; exit 1 if anything would be set aside."""
+    """Check rig-log/1 folders without running the pipeline: every problem, then every batch's trials
+    (pass ingest or set aside, and where the last run's ledger placed them); exit 1 if anything would
+    be set aside."""
     from pipeline.config import IngestParams, load_section
-    from pipeline.rig.ingest import check_folders
+    from pipeline.rig.ingest import check_batches
 
     p = load_section(IngestParams, "ingest", params) if params.exists() else IngestParams()
     missing = [d for d in raw_dirs if not d.is_dir()]
     if missing:
         typer.echo(f"error: not a folder: {', '.join(map(str, missing))}", err=True)
         raise typer.Exit(2)
-    problems = check_folders(raw_dirs, p)
+    checked = check_batches(raw_dirs, p)
+    problems = [problem for c in checked for problem in c.problems]
     for problem in problems:
         typer.echo(str(problem))
+    last_run, repeats = _ledger_places(ledger), _repeats(checked)
+    for c in checked:
+        _print_trials(c, last_run, repeats)
     typer.echo(f"{len(problems)} problem(s) in {', '.join(map(str, raw_dirs))}", err=True)
-    raise typer.Exit(1 if problems else 0)
+    if repeats:
+        typer.echo(f"{len(repeats)} trial(s) repeat another's recording: split will set them aside", err=True)
+    raise typer.Exit(1 if problems or repeats else 0)
+
+
+def _repeats(checked: list[Any]) -> dict[tuple[str, str], str]:
+    """{(batch, trial): the batch/trial it repeats} for trials whose files are byte for byte those of
+    an earlier one in (batch, trial) order: the split stage keeps the first and sets the others aside."""
+    first: dict[str, str] = {}
+    out = {}
+    for batch, trial, sha in sorted((c.batch_id, t, h) for c in checked for t, h in c.files_sha256.items()):
+        original = first.setdefault(sha, f"{batch}/{trial}")
+        if original != f"{batch}/{trial}":
+            out[(batch, trial)] = original
+    return out
+
+
+def _ledger_places(path: Path) -> dict[tuple[Path, str], dict[str, Any]]:
+    """{(batch folder, trial): its ledger entry} from a written ledger; empty if there is none.
+    Folders are resolved from here, as the pipeline's are from the project folder."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text())
+        return {
+            (Path(e["source"]).resolve(), str(e["trial_id"])): e for e in doc["entries"] if e.get("trial_id")
+        }
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def _print_trials(
+    c: Any, last_run: dict[tuple[Path, str], dict[str, Any]], repeats: dict[tuple[str, str], str]
+) -> None:
+    """One batch's accounting: each trial passes ingest's checks or is set aside (the problems above
+    say why); for a trial the last run's ledger knows, where it ended up."""
+    from pipeline.reporting.ledger import entry_text
+
+    n = len(c.trials_accepted) + len(c.trials_set_aside)
+    typer.echo(
+        f"{c.batch_id} ({c.folder}): {n} trial(s), {len(c.trials_accepted)} pass ingest's checks, "
+        f"{len(c.trials_set_aside)} set aside" + ("" if n else "; the batch is set aside as a whole")
+    )
+    for trial in sorted([*c.trials_accepted, *c.trials_set_aside]):
+        state = "passes ingest" if trial in c.trials_accepted else "set aside at ingest (problems above)"
+        if (c.batch_id, trial) in repeats:
+            state += f", but its files are those of {repeats[c.batch_id, trial]}: split will set it aside"
+        known = last_run.get((c.folder.resolve(), trial))
+        typer.echo(f"  {trial}: {state}" + (f"; last dvc repro: {entry_text(known)}" if known else ""))
 
 
 def _section(model: Any, name: str, params: Path) -> Any:

@@ -98,6 +98,19 @@ class IngestParams(Section):
     min_rate_hz: float = Field(5.0, gt=0)
     max_rate_hz: float = Field(10_000.0, gt=0)
     min_samples: int = Field(10, ge=2)
+    # physical plausibility (pipeline/rig/plausible.py)
+    reference_max_n: float = Field(50.0, gt=0, description="the reference sensor's range, |force| in N")
+    reference_max_n_by_model: dict[str, float] = Field(
+        default_factory=dict, description="range per batch.yaml reference.model, N"
+    )
+    reference_glitch_n: float = Field(
+        5.0, gt=0, description="one sample jumping this far and back is a glitch"
+    )
+    max_volts: float = Field(5.0, gt=0, description="estimator volts without sensor.vref_v: 0 to this")
+    max_trial_factor: float = Field(6.0, gt=1, description="a trial may last this many robot insertions")
+    max_trial_s: float = Field(
+        600.0, gt=0, description="a trial's limit when batch.yaml has no robot programme"
+    )
 
 
 class ResampleParams(Section):
@@ -105,6 +118,9 @@ class ResampleParams(Section):
 
     rate_hz: float = Field(30.0, gt=0)
     max_offset_s: float = Field(0.5, gt=0, description="search window for the clock offset, +/-")
+    min_quality: float = Field(
+        0.7, ge=0, le=1, description="alignment quality (R²) below which a trial is set aside"
+    )
     offset_step_s: float = Field(0.002, gt=0)
     max_gap_s: float = Field(0.25, gt=0, description="grid points inside longer gaps are dropped")
     lowpass_order: int = Field(4, ge=1)

@@ -11,7 +11,8 @@ Exit codes (also in the README):
      the last stage, so a failure before it leaves every alias as it was (one inside `register`
      keeps the decisions made for the angles before it); the next run resumes.
   2  retrained: new models trained, tracked and registered (champions moved only where better)
-  3  retrained, but some new or changed batch was set aside (see the report)
+  3  retrained, but some trial of a new or changed batch was set aside, at whichever stage (the
+     report lists every new trial's place, from the ledger stage's reports/ledger/ledger.json)
   4  busy: another retrain (or a DVC command) holds the project; this one did nothing
 
 A run killed half way leaves `data/raw` untouched (the pipeline never writes there), the
@@ -36,11 +37,15 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.config import DataParams, IngestParams, load_section
+from pipeline.ledger import USED, of_batches
+from pipeline.reporting.ledger import entry_text
 
 EXIT_NOTHING, EXIT_FAILED, EXIT_RETRAINED, EXIT_SET_ASIDE, EXIT_BUSY = 0, 1, 2, 3, 4
 LOCK_FILE = Path(".dvc/tmp/needlecue-retrain.lock")
 INGESTED = Path("data/interim/ingested")
 REPORT_DIR = Path("reports/retrain")
+LEDGER = Path("reports/ledger/ledger.json")  # the ledger stage's output (dvc.yaml)
+MAX_LISTED = 50  # trials listed per batch in the report; the ledger has them all
 Log = Callable[[str], None]
 
 
@@ -235,23 +240,25 @@ def summarise(
     before: dict[str, Any],
     after: dict[str, Any],
     registry: dict[str, Any],
-    quarantine: list[dict[str, Any]],
+    ledger: dict[str, Any],
 ) -> dict[str, Any]:
-    """The retrain report's content (pure: tests call it directly)."""
+    """The retrain report's content (pure: tests call it directly). `ledger` is the ledger stage's
+    `ledger.json`: every trial of the new batches, used where or set aside at which stage and why."""
     retrained = sorted(
         {s.split("@", 1)[1].split("-", 1)[0] for s in ran if s.startswith("train@")}, key=float
     )
     nrmse_before, nrmse_after = _mean_nrmse(before), _mean_nrmse(after)
-    new_ids = {p.batch_id for p in pending}
-    set_aside = sorted(
-        {q["batch_id"] for q in quarantine if q.get("batch_id") in new_ids and not q.get("trial_id")}
-    )
-    trials_set_aside = [q for q in quarantine if q.get("batch_id") in new_ids and q.get("trial_id")]
+    entries = of_batches(ledger, [p.batch_id for p in pending])
+    used = {e["batch_id"] for e in entries if e["outcome"] == USED}
+    # nothing of the batch was used, or the ledger does not know it (then nobody can say it was)
+    set_aside = sorted({p.batch_id for p in pending} - used)
+    trials_set_aside = [e for e in entries if e["outcome"] != USED and e.get("trial_id")]
     registered = registry.get("angles", {}) if "register" in ran else {}
     return {
         "batches": [asdict(p) for p in pending],
         "batches_set_aside": set_aside,
         "trials_set_aside": trials_set_aside,
+        "trials": entries,
         "stages_run": ran,
         "angles_retrained": retrained,
         "metrics": {
@@ -264,10 +271,21 @@ def summarise(
     }
 
 
+def outcome(repro_code: int, report: dict[str, Any]) -> tuple[int, str]:
+    """(exit code, outcome) of a retrain whose `dvc repro` exited `repro_code`: set aside (3) as soon
+    as one trial of a new or changed batch was set aside at any stage."""
+    if repro_code != 0:
+        return EXIT_FAILED, "failed"
+    if report["batches_set_aside"] or report["trials_set_aside"]:
+        return EXIT_SET_ASIDE, "retrained, some new data set aside"
+    return EXIT_RETRAINED, "retrained"
+
+
 EMPTY_REPORT: dict[str, Any] = {
     "batches": [],
     "batches_set_aside": [],
     "trials_set_aside": [],
+    "trials": [],
     "stages_run": [],
     "angles_retrained": [],
     "metrics": {},
@@ -296,12 +314,14 @@ def render(report: dict[str, Any]) -> str:
     for b in report["batches"]:
         status = "set aside" if b["batch_id"] in report["batches_set_aside"] else "used"
         lines.append(f"- `{b['batch_id']}` ({b['status']}, {status}): {b['path']}")
-        lines += [f"  - {p}" for p in b["problems"][:20]]
+        mine = [e for e in report.get("trials", []) if e["batch_id"] == b["batch_id"]]
+        for e in mine[:MAX_LISTED]:  # every trial's place, from the ledger
+            lines.append(f"  - `{e.get('trial_id') or '(whole batch)'}`: {entry_text(e)}")
+        if len(mine) > MAX_LISTED:
+            lines.append(f"  - ... and {len(mine) - MAX_LISTED} more: `reports/ledger/ledger.md`")
     if report["trials_set_aside"]:
-        lines += ["", "Trials set aside in them:", ""]
-        lines += [
-            f"- `{q['batch_id']}/{q['trial_id']}`: {q['reason']}" for q in report["trials_set_aside"][:50]
-        ]
+        n = len(report["trials_set_aside"])
+        lines += ["", f"{n} new trial(s) set aside: see above and `reports/ledger/ledger.md`."]
     lines += ["", "## Angles retrained", ""]
     if not report["angles_retrained"]:
         lines.append("None.")
@@ -392,19 +412,14 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
         before,
         _read_json(root / "reports" / "metrics.json"),
         _read_json(root / "reports" / "registry.json"),
-        _read_json(root / "reports" / "ingest" / "quarantine.json") or [],  # type: ignore[arg-type]
+        _read_json(root / LEDGER),
     )
     report["started"] = started
     report["seconds"] = round(time.perf_counter() - t0, 1)
+    exit_code, report["outcome"] = outcome(code, report)
+    report["exit_code"] = exit_code
     if code != 0:
-        report |= {"outcome": "failed", "exit_code": EXIT_FAILED, "error": "\n".join(tail)}
-        exit_code = EXIT_FAILED
-    elif report["batches_set_aside"] or report["trials_set_aside"]:
-        exit_code = EXIT_SET_ASIDE
-        report |= {"outcome": "retrained, some new data set aside", "exit_code": exit_code}
-    else:
-        exit_code = EXIT_RETRAINED
-        report |= {"outcome": "retrained", "exit_code": exit_code}
+        report["error"] = "\n".join(tail)
     path = write_report(root, report)
     log(
         f"{report['outcome']} in {report['seconds']:.0f} s: angles {report['angles_retrained'] or 'none'}, "

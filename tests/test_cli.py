@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -28,6 +29,65 @@ def test_check_passes_a_good_folder_and_names_what_is_wrong_in_a_bad_one(tmp_pat
     assert good.exit_code == 0, good.output
     assert bad.exit_code == 1
     assert "t002.fsr.csv:5" in bad.output and "oops" in bad.output
+    # and every trial is accounted for
+    folder = tmp_path / "raw" / "lab-bench-a"
+    assert f"lab-bench-a ({folder}): 3 trial(s), 2 pass ingest's checks, 1 set aside" in bad.output
+    assert "  t001: passes ingest\n" in bad.output
+    assert "  t002: set aside at ingest (problems above)\n" in bad.output
+
+
+def test_check_says_where_the_last_run_placed_each_trial(tmp_path, monkeypatch):
+    # Given a project whose last run's ledger placed t001 in training and set t003 aside at resample
+    shutil.copytree(LAB_BATCH, tmp_path / "data" / "raw" / "lab-bench-a")
+    monkeypatch.chdir(tmp_path)
+    ledger = Path("reports/ledger/ledger.json")
+    ledger.parent.mkdir(parents=True)
+    src = "data/raw/lab-bench-a"
+    entries = [
+        {
+            "batch_id": "lab-bench-a",
+            "trial_id": "t001",
+            "source": src,
+            "outcome": "used",
+            "angle": "30",
+            "use": "train",
+        },
+        {
+            "batch_id": "lab-bench-a",
+            "trial_id": "t003",
+            "source": src,
+            "outcome": "set aside",
+            "stage": "resample",
+            "where": [{"file": f"{src}/t003.*", "reason": "reference stream is constant"}],
+        },
+    ]
+    ledger.write_text(json.dumps({"entries": entries}))
+    # When the raw folder is checked from the project folder
+    result = runner.invoke(app, ["check", "data/raw", "--params", "none.yaml"])
+    # Then each trial known to the ledger says where it ended up
+    assert result.exit_code == 0, result.output
+    assert "  t001: passes ingest; last dvc repro: used: train at 30°\n" in result.output
+    assert (
+        f"  t003: passes ingest; last dvc repro: set aside at resample: {src}/t003.*: reference stream"
+        in result.output
+    )
+    assert "  t002: passes ingest\n" in result.output
+
+
+def test_check_names_a_batch_copied_under_another_name(tmp_path):
+    # Given a batch and a copy of it under another batch id
+    shutil.copytree(LAB_BATCH, tmp_path / "raw" / "lab-bench-a")
+    copy = shutil.copytree(LAB_BATCH, tmp_path / "raw" / "lab-bench-z")
+    (copy / "batch.yaml").write_text((copy / "batch.yaml").read_text().replace("lab-bench-a", "lab-bench-z"))
+    # When checked
+    result = runner.invoke(app, ["check", str(tmp_path / "raw"), "--params", str(tmp_path / "none.yaml")])
+    # Then each copied trial names the one it repeats, and the check fails
+    assert result.exit_code == 1
+    assert (
+        "  t002: passes ingest, but its files are those of lab-bench-a/t002: split will set it aside"
+        in result.output
+    )
+    assert "3 trial(s) repeat another's recording" in result.output
 
 
 def test_check_refuses_a_missing_folder(tmp_path):

@@ -66,18 +66,64 @@ def test_summary_lists_retrained_angles_metrics_and_promotions() -> None:
         "action": "registered",
     }
     registry = {"angles": {"15": entry, "45": {**entry, "action": "unchanged"}}}
-    quarantine = [{"batch_id": "bad", "trial_id": None, "reason": "no batch.yaml"}]
+    # and a ledger: cast-7's t1 trained on, its t2 set aside by split, `bad` set aside whole by ingest
+    used = {"outcome": "used", "stage": "split", "angle": "15", "use": "train"}
+    channels = {
+        "file": "data/raw/cast-7/t2.*",
+        "reason": "channels ['a0'] differ from the channels ['a0', 'a1']",
+    }
+    no_yaml = {"file": "data/raw/bad", "reason": "no batch.yaml"}
+    ledger = {
+        "entries": [
+            {
+                "batch_id": "bad",
+                "source": "data/raw/bad",
+                "outcome": "set aside",
+                "stage": "ingest",
+                "where": [no_yaml],
+            },
+            {"batch_id": "cast-7", "trial_id": "t1", "source": "data/raw/cast-7", **used},
+            {
+                "batch_id": "cast-7",
+                "trial_id": "t2",
+                "source": "data/raw/cast-7",
+                "outcome": "set aside",
+                "stage": "split",
+                "where": [channels],
+            },
+            {"batch_id": "old", "trial_id": "t1", "source": "data/raw/old", **used},
+        ]
+    }
     # when
-    report = retrain.summarise(pending, ran, before, after, registry, quarantine)
+    report = retrain.summarise(pending, ran, before, after, registry, ledger)
     # then
     assert report["angles_retrained"] == ["15"]
     assert report["metrics"] == {"15": {"before": {"fnn": 5.0}, "after": {"fnn": 4.0}}}
     assert report["batches_set_aside"] == ["bad"]
+    assert [(e["batch_id"], e["trial_id"], e["stage"]) for e in report["trials_set_aside"]] == [
+        ("cast-7", "t2", "split")
+    ]
     assert list(report["registered"]) == ["15"] and report["promoted"] == ["15"]
+    # and a trial set aside by split, after ingest passed it, makes the retrain exit 3
+    assert retrain.outcome(0, report) == (retrain.EXIT_SET_ASIDE, "retrained, some new data set aside")
     text = retrain.render(
         {**report, "started": "2026-11-23T12:00:00Z", "outcome": "retrained", "exit_code": 3}
     )
     assert "| 15° | fnn | 5.00 | 4.00 |" in text and "`needle-force-15` v2 (fnn) → champion" in text
+    # and the report gives every new trial's place
+    assert "  - `t1`: used: train at 15°" in text
+    assert f"  - `t2`: set aside at split: data/raw/cast-7/t2.*: {channels['reason']}" in text
+    assert "  - `(whole batch)`: set aside at ingest: data/raw/bad: no batch.yaml" in text
+
+
+def test_outcome_is_retrained_only_when_every_new_trial_was_used() -> None:
+    clean = {"batches_set_aside": [], "trials_set_aside": []}
+    assert retrain.outcome(0, clean) == (retrain.EXIT_RETRAINED, "retrained")
+    assert retrain.outcome(2, clean)[0] == retrain.EXIT_FAILED
+    # a batch the ledger does not know is not called used
+    report = retrain.summarise([retrain.Pending("ghost", "data/raw/ghost", "new")], [], {}, {}, {}, {})
+    assert report["batches_set_aside"] == ["ghost"]
+    assert retrain.outcome(0, report)[0] == retrain.EXIT_SET_ASIDE
 
 
 def retrain_env() -> dict[str, str]:
@@ -187,3 +233,48 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
     report = json.loads((root / "reports" / "retrain" / "latest.json").read_text())
     assert report["angles_retrained"] == ["45"] and list(report["registered"]) == ["45"]
     assert len(client.search_model_versions("name = 'needle-force-45'")) == 2
+
+
+def test_a_new_batch_that_split_sets_aside_makes_retrain_exit_3(tmp_path: Path) -> None:
+    # given: a lab batch, and a new one at 30° whose estimator names its channels otherwise: ingest
+    # and resample pass it, split sets it aside (its channels differ from the rest at 30°)
+    from pipeline import ledger
+    from pipeline.config import ResampleParams, SplitParams
+    from pipeline.dataset import split
+    from pipeline.reporting.ingest import write_reports
+    from pipeline.rig.ingest import ingest_batches
+    from pipeline.signals import resample
+
+    raw = tmp_path / "raw"
+    shutil.copytree(LAB_BATCH, raw / "lab-bench-a")
+    new = shutil.copytree(LAB_BATCH, raw / "lab-bench-b")
+    (new / "batch.yaml").write_text(
+        (new / "batch.yaml").read_text().replace("lab-bench-a", "lab-bench-b").replace("bottom]", "back]")
+    )
+    (new / "trials.csv").write_text("trial_id,tissue_point,angle_deg\nt001,P1,30\n")
+    for name in ("t002.fsr.csv", "t002.ref.csv", "t003.fsr.csv", "t003.ref.csv"):
+        (new / name).unlink()
+    fsr = new / "t001.fsr.csv"
+    renamed = fsr.read_text().replace("t_ms,left,right,top,bottom", "t_ms,left,right,top,back")
+    fsr.write_text(renamed.replace("0.7931", "0.7932", 1))  # another recording, not a copy
+    quiet = lambda _m: None  # noqa: E731
+    # when: the stages run on it and the ledger is built from their records
+    result = ingest_batches([raw], tmp_path / "ingested", IngestParams(), log=quiet)
+    write_reports(result, tmp_path / "reports", data_docs=False)
+    rows = resample.run(tmp_path / "ingested", tmp_path / "resampled", ResampleParams(), log=quiet).rows
+    manifest = split.run(tmp_path / "resampled", tmp_path / "processed", SplitParams(), log=quiet)
+    records = {
+        n: json.loads((tmp_path / "reports" / f"{n}.json").read_text()) for n in ("batches", "quarantine")
+    }
+    doc = ledger.document(
+        ledger.build(records["batches"], records["quarantine"], rows, manifest, [], trained=[30, 45])
+    )
+    report = retrain.summarise([retrain.Pending("lab-bench-b", str(new), "new")], [], {}, {}, {}, doc)
+    # then: the new trial is set aside at split, with the reason, and the retrain exits 3
+    assert [(e["trial_id"], e["stage"]) for e in report["trials_set_aside"]] == [("t001", "split")]
+    assert (
+        "channels ['left', 'right', 'top', 'back'] differ"
+        in report["trials_set_aside"][0]["where"][0]["reason"]
+    )
+    assert report["batches_set_aside"] == ["lab-bench-b"]
+    assert retrain.outcome(0, report)[0] == retrain.EXIT_SET_ASIDE

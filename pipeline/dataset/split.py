@@ -17,6 +17,10 @@ Rules:
   correlated, so a split by sample would leak), with a generator seeded from
   (`split.seed`, angle) alone over the sorted trial list: adding data to one angle never
   changes another angle's files;
+- each recording is used once: a trial whose samples (estimator channels and forces, whatever
+  their names) equal an earlier trial's, in (batch, trial) order, is set aside naming that trial,
+  so a batch copied under another name, a held-out one included, is never trained on and scored
+  at once;
 - one angle, one channel list: trials whose channels differ from the majority's are set
   aside (a model per angle takes one fixed input vector); calibration trials must have the
   channels of their angle's other trials (the majority of calibration trials where there are
@@ -42,7 +46,7 @@ import pyarrow.parquet as pq
 
 from pipeline.config import SplitParams
 from pipeline.dataset.tables import columns_for, table_schema, write_table
-from pipeline.vocab import CALIBRATION, SPLITS, angle_name, sorted_angles
+from pipeline.vocab import AXES, CALIBRATION, SPLITS, angle_name, sorted_angles
 
 MANIFEST = "manifest.json"
 
@@ -109,6 +113,33 @@ def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table, p
         unit = str(part.column("unit_id")[0].as_py())
         out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part, unit, purpose))
     return out
+
+
+def samples_sha256(t: Trial) -> str:
+    """SHA-256 of a trial's samples: its channels' and forces' values in order, not their names."""
+    h = hashlib.sha256()
+    for column in [*t.channels, *AXES]:
+        h.update(np.ascontiguousarray(t.table.column(column).to_numpy(), dtype="<f8").tobytes())
+        h.update(b"|")
+    return h.hexdigest()
+
+
+def drop_repeats(trials: list[Trial]) -> tuple[list[Trial], list[dict[str, str]]]:
+    """The trials with each recording once (the first in (batch, trial) order), and the set-aside
+    record of every repeat."""
+    first: dict[str, Trial] = {}
+    kept, aside = [], []
+    for t in sorted(trials, key=lambda t: t.key):
+        original = first.setdefault(samples_sha256(t), t)
+        if original is t:
+            kept.append(t)
+            continue
+        reason = (
+            f"the same samples as {original.batch_id}/{original.trial_id}: a recording is used once "
+            "(a batch or trial copied under another name?)"
+        )
+        aside.append({"angle": t.angle, "batch_id": t.batch_id, "trial_id": t.trial_id, "reason": reason})
+    return kept, aside
 
 
 def is_external(batch_id: str, globs: Iterable[str]) -> bool:
@@ -268,6 +299,7 @@ def run(
     manifest. With `trained` (the angles models are trained at), ValueError before writing anything if
     one of them has no training trial (`untrainable`)."""
     trials, rate_hz = load_trials(in_dir)
+    trials, repeats = drop_repeats(trials)
     angles = plan([t for t in trials if t.purpose != CALIBRATION], p)
     if trained is not None and (why := untrainable(angles, trained)):
         raise ValueError(why)
@@ -275,7 +307,7 @@ def run(
         [t for t in trials if t.purpose == CALIBRATION], {a.angle: a.channels for a in angles}
     )
     out_dir.mkdir(parents=True, exist_ok=True)
-    manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": []}
+    manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": list(repeats)}
     schemas: dict[str, pa.Schema] = {}
     for a in angles:
         schema = schemas[a.angle] = _schema([t for ts in a.splits.values() for t in ts], a.channels)

@@ -1,11 +1,14 @@
 """The ingest stage's reports, rewritten each run in REPORT_DIR: ``quarantine.json`` (every
-Problem), ``summary.md``, ``gx/<batch_id>.json`` and GX Data Docs under ``data_docs/index.html``.
+Problem), ``batches.json`` (every batch folder read: its trials accepted and set aside, which the
+ledger stage starts from), ``summary.md``, ``gx/<batch_id>.json`` and GX Data Docs under
+``data_docs/index.html``.
 """
 
 from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 from pipeline.rig.datadocs import write_data_docs
 from pipeline.rig.ingest import IngestResult, write_json
@@ -52,8 +55,23 @@ def summary_md(result: IngestResult) -> str:
     return "\n".join(lines)
 
 
+def batches_record(result: IngestResult) -> list[dict[str, Any]]:
+    """batches.json: every batch folder read (a second copy of a batch id too), with its trials."""
+    return [
+        {
+            "batch_id": b.batch_id,
+            "source_dir": str(b.source_dir),
+            "accepted": b.accepted,
+            "duplicate": b.action == "duplicate",
+            "trials_accepted": list(b.trials_accepted),
+            "trials_set_aside": list(b.trials_set_aside),
+        }
+        for b in result.batches
+    ]
+
+
 def write_reports(result: IngestResult, report_dir: Path, *, data_docs: bool = True) -> None:
-    """quarantine.json, summary.md, gx/<batch_id>.json and GX Data Docs (all rewritten)."""
+    """quarantine.json, batches.json, summary.md, gx/<batch_id>.json and GX Data Docs (all rewritten)."""
     report_dir.mkdir(parents=True, exist_ok=True)
     for sub in ("gx", "data_docs"):
         if (report_dir / sub).exists():
@@ -70,6 +88,7 @@ def write_reports(result: IngestResult, report_dir: Path, *, data_docs: bool = T
         for p in result.problems
     ]
     write_json(quarantine, report_dir / "quarantine.json")
+    write_json(batches_record(result), report_dir / "batches.json")
     (report_dir / "summary.md").write_text(summary_md(result))
     gx_dir = report_dir / "gx"
     gx_dir.mkdir()

@@ -22,7 +22,8 @@ written, moved or deleted.
 
 Incremental: a batch whose fingerprint matches its stored fingerprint.json is not parsed
 again (its bytes are hashed, nothing more); folders of batches no longer present are removed.
-`check_folders` parses and validates like ingest but writes nothing (`needlecue check`).
+`check_batches` (and `check_folders`, its problems) parse and validate like ingest but write
+nothing (`needlecue check`).
 """
 
 from __future__ import annotations
@@ -45,7 +46,16 @@ import pyarrow.parquet as pq
 
 from pipeline.config import IngestParams
 from pipeline.rig.expectations import Validator
-from pipeline.rig.format import BATCH_FILE, ID_PATTERN, TRIAL_COLUMNS, TRIALS_FILE, Problem, batch_dirs
+from pipeline.rig.format import (
+    BATCH_FILE,
+    ID_PATTERN,
+    TRIAL_COLUMNS,
+    TRIALS_FILE,
+    Problem,
+    batch_dirs,
+    fsr_file,
+    ref_file,
+)
 from pipeline.rig.reader import ParsedBatch, parse_batch
 
 FINGERPRINT = "fingerprint.json"
@@ -64,6 +74,7 @@ CODE_FILES = (
     "csvfile.py",
     "expectations.py",
     "reader.py",
+    "plausible.py",
     "ingest.py",
 )
 
@@ -380,29 +391,55 @@ def ingest_batches(
     return IngestResult(outcomes, removed)
 
 
-def check_folders(dirs: Sequence[Path], params: IngestParams) -> list[Problem]:
-    """Parse and validate batch folders like ingest does, writing nothing; return every Problem.
+@dataclass(frozen=True)
+class CheckedBatch:
+    """What ingest would do with one batch folder: its trials accepted and set aside, and why."""
+
+    batch_id: str
+    folder: Path
+    trials_accepted: list[str]
+    trials_set_aside: list[str]
+    problems: list[Problem]
+    files_sha256: dict[str, str] = field(default_factory=dict)  # accepted trial -> its two files' hash
+
+
+def _trial_sha256(batch_dir: Path, trial_id: str) -> str:
+    """SHA-256 of a trial's two stream files (the same bytes give the same samples downstream)."""
+    h = hashlib.sha256()
+    for name in (fsr_file(trial_id), ref_file(trial_id)):
+        h.update((batch_dir / name).read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def check_batches(dirs: Sequence[Path], params: IngestParams) -> list[CheckedBatch]:
+    """Parse and validate batch folders like ingest does, writing nothing.
 
     Each dir is a batch folder (it holds batch.yaml or trials.csv) or a folder of batch folders.
     """
     validator = Validator(params)
-    problems: list[Problem] = []
+    out: list[CheckedBatch] = []
     seen: dict[str, Path] = {}
     for d in dirs:
         if not d.is_dir():
-            problems.append(Problem(d.name, str(d), "no such folder"))
+            out.append(CheckedBatch(d.name, d, [], [], [Problem(d.name, str(d), "no such folder")]))
             continue
         is_batch = (d / BATCH_FILE).exists() or (d / TRIALS_FILE).exists()
         for b in [d] if is_batch else batch_dirs(d):
             if b.name in seen:
-                problems.append(
-                    Problem(
-                        b.name,
-                        str(b),
-                        f"batch_id {b.name!r} was already read from {seen[b.name]}; this copy is set aside",
-                    )
-                )
+                why = f"batch_id {b.name!r} was already read from {seen[b.name]}; this copy is set aside"
+                out.append(CheckedBatch(b.name, b, [], [], [Problem(b.name, str(b), why)]))
                 continue
             seen[b.name] = b
-            problems.extend(parse_batch(b, params, validator).problems)
-    return problems
+            parsed = parse_batch(b, params, validator)
+            accepted = (
+                list(parsed.trials["trial_id"]) if parsed.accepted and parsed.trials is not None else []
+            )
+            hashes = {t: _trial_sha256(b, t) for t in accepted}
+            out.append(CheckedBatch(b.name, b, accepted, parsed.trials_set_aside, parsed.problems, hashes))
+    return out
+
+
+def check_folders(dirs: Sequence[Path], params: IngestParams) -> list[Problem]:
+    """Every Problem `check_batches` finds."""
+    return [p for c in check_batches(dirs, params) for p in c.problems]

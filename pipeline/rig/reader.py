@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import IngestParams
+from pipeline.rig import plausible
 from pipeline.rig.batch_yaml import read_meta
 from pipeline.rig.csvfile import column_index, numbers, read_csv, well_formed
 from pipeline.rig.expectations import Check, Validator, frame_dt
@@ -175,6 +176,37 @@ def _rate_row(frame: pd.DataFrame, file: str, time_col: str, per_second: float) 
     }
 
 
+def _plausible_fsr(
+    frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
+) -> None:
+    """Volts within 0 and the ADC's reference (counts: GX checks the ADC range), not flat, one insertion."""
+    channels = list(meta.sensor.channels)
+    if meta.sensor.units == "volts":
+        top = plausible.volts_limit(meta, p)
+        what = "V (0 to sensor.vref_v, else ingest.max_volts: counts declared as volts?)"
+        plausible.check_range(frame, channels, 0.0, top, what, file, probs)
+    plausible.check_flat(frame, channels, "estimator stream", file, probs)
+    plausible.check_length(frame, FSR_TIME, 1000.0, meta, p, file, probs)
+
+
+def _plausible_ref(
+    frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
+) -> None:
+    """Forces within the reference sensor's range, no isolated glitch, not flat, one insertion."""
+    forces = list(REF_COLUMNS[1:])
+    unit = meta.reference.units
+    scale = plausible.MN_PER_N if unit == "mN" else 1.0
+    top = plausible.reference_limit_n(meta, p) * scale
+    what = (
+        f"{unit} (the reference sensor's range: ingest.reference_max_n, or ingest.reference_max_n_by_model)"
+    )
+    plausible.check_range(frame, forces, -top, top, what, file, probs)
+    jump = p.reference_glitch_n * scale
+    plausible.check_glitches(frame, forces, jump, unit, "ingest.reference_glitch_n", file, probs)
+    plausible.check_flat(frame, forces, "reference stream", file, probs)
+    plausible.check_length(frame, REF_COLUMNS[0], 1.0, meta, p, file, probs)
+
+
 # --------------------------------------------------------------------------- one batch
 
 
@@ -233,6 +265,7 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
     for tid in trials.table["trial_id"]:
         f = _read_stream(batch_dir / fsr_file(tid), tid, FSR_TIME, channels, (), counts, probs, warn)
         if f is not None:
+            _plausible_fsr(f, str(batch_dir / fsr_file(tid)), meta, params, probs)
             fsr_frames.append(f)
             summary.append(_rate_row(f, fsr_file(tid), FSR_TIME, 1000.0))
         r = _read_stream(
@@ -246,6 +279,7 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
             warn,
         )
         if r is not None:
+            _plausible_ref(r, str(batch_dir / ref_file(tid)), meta, params, probs)
             ref_frames.append(r)
             summary.append(_rate_row(r, ref_file(tid), REF_COLUMNS[0], 1.0))
 

@@ -87,6 +87,12 @@ def resample_trial(
             f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
             f"(quality {est.quality:.2f}): the true offset is probably outside it"
         )
+    if est.quality < p.min_quality:  # the streams do not record the same insertion, or not in this window
+        raise SetAside(
+            f"clock alignment quality {est.quality:.2f} below resample.min_quality = {p.min_quality:g}: "
+            "do the two files record the same insertion (reference files swapped?), within "
+            f"±{p.max_offset_s:g} s of each other?"
+        )
     t_ref_host = t_ref_s + est.offset_s
     lo, hi = max(t_fsr_s[0], t_ref_host[0]), min(t_fsr_s[-1], t_ref_host[-1])
     # The grid is anchored to the estimator's own uniform grid, so that at equal rates its

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from pipeline.config import SplitParams
 from pipeline.dataset import split as sp
 from pipeline.dataset.splits import SplitFiles, unit_roles
+from pipeline.dataset.tables import write_table
 from pipeline.vocab import AXES, ID_COLUMNS, SPLITS
 from tests.dataset.resampled import CHANNELS, files_of, make_input, trials_in, write_resampled
 
@@ -88,6 +90,46 @@ def test_a_batch_with_other_channels_is_set_aside_at_its_angle(tmp_path):
         table = pq.read_table(tmp_path / "out" / "30" / f"{name}.parquet")
         assert "lab-bench-a" not in set(table.column("batch_id").to_pylist())
         assert table.column_names == [*ID_COLUMNS, *CHANNELS, *AXES]
+
+
+def test_a_batch_copied_under_a_held_out_name_is_used_once(tmp_path):
+    # Given a training cast copied, samples and all, under a held-out name, and one trial of it
+    # copied inside the cast under another trial id
+    src = make_input(tmp_path / "in")
+    table = pq.read_table(src / "sim-tissue-1.parquet")
+    copy = table.set_column(0, "batch_id", pa.array(["sim-heldout-copy"] * table.num_rows))
+    write_table(copy, src / "sim-heldout-copy.parquet")
+    meta = json.loads((src / "sim-tissue-1.json").read_text())
+    (src / "sim-heldout-copy.json").write_text(json.dumps({**meta, "batch_id": "sim-heldout-copy"}))
+    # When split
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    # Then each recording is in one split of one angle only, and every repeat is set aside naming
+    # the trial it repeats
+    aside = {(s["batch_id"], s["trial_id"]): s["reason"] for s in manifest["set_aside"]}
+    assert set(aside) == {("sim-tissue-1", t) for t in table.column("trial_id").unique().to_pylist()}
+    assert aside["sim-tissue-1", "a30-t01"].startswith("the same samples as sim-heldout-copy/a30-t01")
+    for angle in ("30", "45"):
+        placed = [k for name in SPLITS for k in trials_in(tmp_path / "out" / angle / f"{name}.parquet")]
+        assert len(placed) == len(set(placed))
+        assert not {k for k in placed if k[0] == "sim-tissue-1"}
+        assert {
+            k for k in trials_in(tmp_path / "out" / angle / "external.parquet") if k[0] == "sim-heldout-copy"
+        }
+
+
+def test_a_trial_repeated_under_another_id_is_set_aside():
+    # Given two trials with the same samples under different ids, and a third of its own
+    base = {"batch_id": ["b"] * 3, "trial_id": ["t1"] * 3, "fsr1": [1.0, 2.0, 3.0]}
+    forces = {a: [0.0, 0.5, 1.0] for a in AXES}
+    t1 = sp.Trial("b", "t1", "30", ("fsr1",), pa.table({**base, **forces}))
+    t2 = sp.Trial("b", "t2", "30", ("fsr1",), pa.table({**base, "trial_id": ["t2"] * 3, **forces}))
+    other = {**forces, "fx": [0.0, 0.5, 1.5]}
+    t3 = sp.Trial("b", "t3", "30", ("fsr1",), pa.table({**base, "trial_id": ["t3"] * 3, **other}))
+    # When repeats are dropped
+    kept, aside = sp.drop_repeats([t3, t2, t1])
+    # Then the first in (batch, trial) order stays
+    assert [t.trial_id for t in kept] == ["t1", "t3"]
+    assert [(s["trial_id"], s["reason"].split(":")[0]) for s in aside] == [("t2", "the same samples as b/t1")]
 
 
 def test_empty_splits_are_written_with_the_schema(tmp_path):

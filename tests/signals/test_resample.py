@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline.signals.filters import SetAside
-from tests.signals.fabricate import PARAMS, fabricate, resample_fab
+from pipeline.signals.resample import resample_trial
+from tests.signals.fabricate import PARAMS, fabricate, resample_fab, volts_of
 
 
 def test_offset_outside_the_search_window_is_set_aside():
@@ -16,6 +17,18 @@ def test_offset_outside_the_search_window_is_set_aside():
     # When the trial is resampled, then it is set aside with the reason, not silently misaligned
     with pytest.raises(SetAside, match="edge of the"):
         resample_fab(fab, narrow)
+
+
+def test_streams_of_two_different_insertions_are_set_aside_for_their_alignment_quality():
+    # Given one trial's estimator stream with another trial's reference stream (files swapped), and
+    # the same trial aligned as recorded
+    fab, other = fabricate(seed=11, offset_s=0.1), fabricate(seed=12, offset_s=-0.2)
+    good = resample_fab(fab)
+    # When the swapped pair is resampled, then it is set aside for its alignment quality
+    with pytest.raises(SetAside, match=r"clock alignment quality 0\.\d\d below resample.min_quality = 0.7"):
+        resample_trial(fab.t_ms / 1e3, volts_of(fab), other.t_s, other.force, PARAMS)
+    # and the matching pair is well above the gate
+    assert good.offset.quality > PARAMS.min_quality
 
 
 @pytest.mark.parametrize("rate_hz", [30.0, 20.0])

@@ -51,6 +51,11 @@ def test_stage_writes_reports_and_data_docs(raw_dir, lab_bench_a, tmp_path, caps
             "reason": "text 'oops' in a number column",
         }
     ]
+    # and batches.json lists each batch's trials, the one set aside apart (the ledger starts there)
+    batches = {b["batch_id"]: b for b in json.loads((reports / "batches.json").read_text())}
+    assert batches["sim-b"]["source_dir"] == "sim/sim-b" and batches["sim-b"]["accepted"]
+    assert batches["sim-b"]["trials_set_aside"] == ["t003"]
+    assert "t003" not in batches["sim-b"]["trials_accepted"] and batches["sim-b"]["trials_accepted"]
     line = "sim/sim-b/t003.ref.csv:12 column 'fy': text 'oops' in a number column"
     assert line in (reports / "summary.md").read_text()
     assert line in capsys.readouterr().err

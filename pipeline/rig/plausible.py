@@ -1,0 +1,138 @@
+"""Physical plausibility of one trial's streams, after their cells have parsed: values a sensor can
+give, no isolated glitch, not a flat line, and a recording as long as one insertion.
+
+Each check blames the first offending sample by file, line and column; the caller's ProblemLog sets
+the trial aside. What is plausible comes from batch.yaml (the ADC's reference voltage, the reference
+sensor's model, the robot's programme) and params.yaml `ingest` (the limits, each with a default).
+docs/rig-log-format.md lists the checks and the reasons.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import IngestParams
+from pipeline.rig.format import BatchMeta
+from pipeline.rig.problems import ProblemLog
+
+MN_PER_N = 1000.0
+
+
+def reference_limit_n(meta: BatchMeta, p: IngestParams) -> float:
+    """The largest |force| the batch's reference sensor reads, N: its model's range if params name
+    it (`ingest.reference_max_n_by_model`), else `ingest.reference_max_n`."""
+    return p.reference_max_n_by_model.get(meta.reference.model or "", p.reference_max_n)
+
+
+def volts_limit(meta: BatchMeta, p: IngestParams) -> float:
+    """The largest voltage an estimator channel in volts can read: the ADC's reference, else the
+    default supply (`ingest.max_volts`)."""
+    return meta.sensor.vref_v or p.max_volts
+
+
+def protocol_s(meta: BatchMeta) -> float | None:
+    """How long one insertion and its retraction take by the robot's programme, s (None if
+    batch.yaml does not say)."""
+    robot = meta.robot
+    if robot is None or not robot.insertion_time_s:
+        return None
+    back = 1.0  # retraction at the insertion speed when batch.yaml gives no speeds
+    if robot.insertion_speed_mm_s and robot.retraction_speed_mm_s:
+        back = robot.insertion_speed_mm_s / robot.retraction_speed_mm_s
+    return robot.insertion_time_s * (1.0 + back)
+
+
+def _first(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+def check_range(
+    frame: pd.DataFrame, cols: Sequence[str], low: float, high: float, what: str, file: str, probs: ProblemLog
+) -> None:
+    """The first value of each column outside [low, high], blamed by line and column."""
+    trial = str(frame["trial_id"].iat[0])
+    for c in cols:
+        v = frame[c].to_numpy(dtype=float)
+        out = (v < low) | (v > high)
+        if out.any():
+            i = _first(out)
+            reason = f"{c} = {v[i]:g} outside [{low:g}, {high:g}] {what}"
+            probs.add(file, reason, trial_id=trial, line=int(frame["line"].iat[i]), column=c)
+
+
+def check_glitches(
+    frame: pd.DataFrame, cols: Sequence[str], jump: float, unit: str, knob: str, file: str, probs: ProblemLog
+) -> None:
+    """An isolated glitch: one sample that jumps more than `jump` from both neighbours, in opposite
+    directions (a step, a puncture's drop, moves once and stays)."""
+    trial = str(frame["trial_id"].iat[0])
+    for c in cols:
+        v = frame[c].to_numpy(dtype=float)
+        if len(v) < 3:
+            continue
+        up, down = v[1:-1] - v[:-2], v[1:-1] - v[2:]
+        spike = (np.abs(up) > jump) & (np.abs(down) > jump) & (np.sign(up) == np.sign(down))
+        if spike.any():
+            i = _first(spike) + 1
+            reason = (
+                f"glitch: {c} = {v[i]:g} {unit} between {v[i - 1]:g} and {v[i + 1]:g} "
+                f"(a single sample jumping more than {knob} = {jump:g} {unit} and back)"
+            )
+            probs.add(file, reason, trial_id=trial, line=int(frame["line"].iat[i]), column=c)
+
+
+def check_flat(frame: pd.DataFrame, cols: Sequence[str], what: str, file: str, probs: ProblemLog) -> None:
+    """Every value column constant over the whole trial: a disconnected or frozen sensor."""
+    if len(frame) < 2:
+        return
+    values = frame[list(cols)].to_numpy(dtype=float)
+    if (values.max(axis=0) == values.min(axis=0)).all():
+        reason = (
+            f"{what} constant over all {len(frame)} samples "
+            f"({', '.join(f'{c} = {values[0, k]:g}' for k, c in enumerate(cols))}): sensor disconnected?"
+        )
+        probs.add(file, reason, trial_id=str(frame["trial_id"].iat[0]), line=int(frame["line"].iat[0]))
+
+
+def check_length(
+    frame: pd.DataFrame,
+    time_col: str,
+    per_second: float,
+    meta: BatchMeta,
+    p: IngestParams,
+    file: str,
+    probs: ProblemLog,
+) -> None:
+    """A recording far longer than one insertion by the robot's programme (several insertions in one
+    trial), or than `ingest.max_trial_s` when batch.yaml gives no programme."""
+    t = frame[time_col].to_numpy(dtype=float)
+    if len(t) < 2:
+        return
+    seconds = float(t[-1] - t[0]) / per_second
+    one = protocol_s(meta)
+    if one is not None:
+        limit = one * p.max_trial_factor
+        why = (
+            f"one insertion and retraction take {one:g} s by the robot's programme in batch.yaml; "
+            f"limit {limit:g} s (ingest.max_trial_factor = {p.max_trial_factor:g})"
+        )
+    else:
+        limit, why = (
+            p.max_trial_s,
+            f"limit ingest.max_trial_s = {p.max_trial_s:g} s (no robot programme in batch.yaml)",
+        )
+    if seconds > limit:
+        reason = (
+            f"the recording lasts {seconds:g} s: {why}. Several insertions in one trial? "
+            "Record each insertion as its own trial"
+        )
+        probs.add(
+            file,
+            reason,
+            trial_id=str(frame["trial_id"].iat[0]),
+            line=int(frame["line"].iat[-1]),
+            column=time_col,
+        )
