@@ -363,6 +363,7 @@ def replay(
     from pipeline.client import replay as rp
     from pipeline.client.force import CALIBRATE_FIX
     from pipeline.registry.store import RegistryUnreachable
+    from pipeline.rig.format import BATCH_FILE, fsr_file, ref_file
     from pipeline.vocab import channels_of, rate_hz
 
     def fail(message: str, code: int = 1) -> typer.Exit:
@@ -371,13 +372,13 @@ def replay(
 
     if angle is None and model_dir is None:
         raise fail("give --angle (the preset angle whose model to fetch) or --model-dir")
-    raw_trial = trial.name.endswith((".fsr.csv", ".ref.csv"))
-    if trial.is_dir() or raw_trial:  # rig-log/1: checked, ingested and resampled like the pipeline does
-        batch_dir = trial.parent if raw_trial else trial
-        if not (batch_dir / "batch.yaml").is_file():
-            raise fail(f"{batch_dir}: not a rig-log/1 batch folder (no batch.yaml)")
-        if raw_trial:
-            trial_id = trial_id or f"{batch_dir.name}/{trial.name.rsplit('.', 2)[0]}"
+    suffix = next((s for s in (fsr_file(""), ref_file("")) if trial.name.endswith(s)), None)
+    if trial.is_dir() or suffix:  # rig-log/1: checked, ingested and resampled like the pipeline does
+        batch_dir = trial.parent if suffix else trial
+        if not (batch_dir / BATCH_FILE).is_file():
+            raise fail(f"{batch_dir}: not a rig-log/1 batch folder (no {BATCH_FILE})")
+        if suffix:
+            trial_id = trial_id or f"{batch_dir.name}/{trial.name.removesuffix(suffix)}"
         batch_unit, frame, _aside = _batch_rows(batch_dir, None, Path("params.yaml"))
         unit_id = unit_id or batch_unit
     elif trial.suffix == ".parquet":

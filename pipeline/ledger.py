@@ -62,7 +62,7 @@ class _Later:
     split_aside: dict[Key, Mapping[str, Any]]
     placed: dict[Key, tuple[str, str]]  # (angle, split)
     calibrating: dict[Key, str]  # unit
-    calibrated: dict[Key, tuple[str, str]]  # (unit, angle)
+    calibrated: set[Key]  # in some unit's calibration document
     calibrate_aside: dict[Key, Mapping[str, Any]]
 
 
@@ -98,11 +98,9 @@ def build(
         for trials in manifest.get("calibration", {}).values()
         for t in trials
     }
-    calibrated: dict[Key, tuple[str, str]] = {}
+    calibrated = {(t["batch_id"], t["trial_id"]) for doc in calibrations for t in doc.get("trials", [])}
     calibrate_aside: dict[Key, Mapping[str, Any]] = {}
     for doc in calibrations:
-        for t in doc.get("trials", []):
-            calibrated[(t["batch_id"], t["trial_id"])] = (doc["unit_id"], t["angle"])
         for s in doc.get("set_aside", []):
             calibrate_aside[(s["batch_id"], s["trial_id"])] = s
     later = _Later(resampled, split_aside, placed, calibrating, calibrated, calibrate_aside)
@@ -154,9 +152,7 @@ def _after_ingest(key: Key, source: str, later: _Later, trained: set[str]) -> En
     """The entry of a trial ingest accepted: the first later stage that set it aside, or its use."""
     batch_id, trial = key
     files = _trial_files(source, trial)
-    resampled, split_aside, placed = later.resampled, later.split_aside, later.placed
-    calibrating, calibrated, calibrate_aside = later.calibrating, later.calibrated, later.calibrate_aside
-    row = resampled.get(key)
+    row = later.resampled.get(key)
     angle = angle_name(float(row["angle_deg"])) if row and row.get("angle_deg") not in (None, "") else None
     if row is None:
         reason = "accepted by ingest, but resample has no row for it"
@@ -165,21 +161,21 @@ def _after_ingest(key: Key, source: str, later: _Later, trained: set[str]) -> En
     if status != "ok":
         reason = status.removeprefix(RESAMPLE_ASIDE)
         return Entry(batch_id, trial, source, SET_ASIDE, "resample", angle, where=(Where(files, reason),))
-    if key in split_aside:
-        reason = str(split_aside[key]["reason"])
+    if key in later.split_aside:
+        reason = str(later.split_aside[key]["reason"])
         return Entry(batch_id, trial, source, SET_ASIDE, "split", angle, where=(Where(files, reason),))
-    if key in calibrating:
-        unit = calibrating[key]
-        if key in calibrated:
+    if key in later.calibrating:
+        unit = later.calibrating[key]
+        if key in later.calibrated:
             return Entry(batch_id, trial, source, USED, "calibrate", angle, "calibration", unit)
-        s = calibrate_aside.get(key)
+        s = later.calibrate_aside.get(key)
         reason = str(s["reason"]) if s else "split gave it to calibration, but no unit calibration used it"
         file = str(s["file"]) if s else files
         return Entry(
             batch_id, trial, source, SET_ASIDE, "calibrate", angle, unit_id=unit, where=(Where(file, reason),)
         )
-    if key in placed:
-        at, split = placed[key]
+    if key in later.placed:
+        at, split = later.placed[key]
         note = None
         if at not in trained:
             note = f"no model is trained at {at}° (train.angles): only other angles' models are scored on it"

@@ -319,6 +319,8 @@ def render(report: dict[str, Any]) -> str:
             lines.append(f"  - `{e.get('trial_id') or '(whole batch)'}`: {entry_text(e)}")
         if len(mine) > MAX_LISTED:
             lines.append(f"  - ... and {len(mine) - MAX_LISTED} more: `reports/ledger/ledger.md`")
+        if not mine:  # no ledger for it (the pipeline failed first): what the check before the run found
+            lines += [f"  - {p}" for p in b["problems"][:20]]
     if report["trials_set_aside"]:
         n = len(report["trials_set_aside"])
         lines += ["", f"{n} new trial(s) set aside: see above and `reports/ledger/ledger.md`."]

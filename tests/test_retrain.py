@@ -121,9 +121,13 @@ def test_outcome_is_retrained_only_when_every_new_trial_was_used() -> None:
     assert retrain.outcome(0, clean) == (retrain.EXIT_RETRAINED, "retrained")
     assert retrain.outcome(2, clean)[0] == retrain.EXIT_FAILED
     # a batch the ledger does not know is not called used
-    report = retrain.summarise([retrain.Pending("ghost", "data/raw/ghost", "new")], [], {}, {}, {}, {})
+    ghost = retrain.Pending("ghost", "data/raw/ghost", "new", ["data/raw/ghost: no batch.yaml"])
+    report = retrain.summarise([ghost], [], {}, {}, {}, {})
     assert report["batches_set_aside"] == ["ghost"]
     assert retrain.outcome(0, report)[0] == retrain.EXIT_SET_ASIDE
+    # and the report still shows what the check before the run found in it
+    text = retrain.render({**report, "started": "2026-11-23T12:00:00Z", "outcome": "failed", "exit_code": 1})
+    assert "  - data/raw/ghost: no batch.yaml" in text
 
 
 def retrain_env() -> dict[str, str]:
