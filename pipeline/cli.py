@@ -285,7 +285,7 @@ def calibrate(
 
     unit, rows, aside = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
     try:
-        client = store.connect(tracking_uri, must_exist=True)
+        client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
         champions = units.champion_models(client)
         if not champions:
             raise _fail(f"the registry at {client.tracking_uri} has no needle-force-<angle>@champion")
@@ -326,7 +326,7 @@ def replay(
         Path,
         typer.Argument(
             help="a processed parquet file (data/processed/15/external.parquet), a raw rig-log/1 trial "
-            "file (<batch>/<trial>.fsr.csv) or a raw batch folder"
+            "file (<batch>/<trial>.fsr.csv, .ref.csv, .ref.tdms, or a .csv.gz) or a raw batch folder"
         ),
     ],
     angle: Annotated[
@@ -349,8 +349,9 @@ def replay(
 ) -> None:
     """Replay a recorded trial through the simulator's client as if live: cue timeline, RMSE and a plot.
 
-    A raw trial (or batch folder) is checked, ingested and resampled as the pipeline would (params.yaml),
-    and its batch.yaml names the unit when --unit-id does not.
+    A raw trial (either of its files, in any form ingest reads: CSV, gzip-compressed CSV, a TDMS reference)
+    or batch folder is checked, ingested and resampled as the pipeline would (params.yaml), and its
+    batch.yaml names the unit when --unit-id does not.
 
     With --unit-id the unit's registered calibration (needle-unit-<unit>@current) is applied, as on the
     simulator; without it, or when it was made with other models, the force is uncalibrated and there
@@ -363,7 +364,7 @@ def replay(
     from pipeline.client import replay as rp
     from pipeline.client.force import CALIBRATE_FIX
     from pipeline.registry.store import RegistryUnreachable
-    from pipeline.rig.format import BATCH_FILE, fsr_file, ref_file
+    from pipeline.rig.format import BATCH_FILE, STREAM_SUFFIXES
     from pipeline.vocab import channels_of, rate_hz
 
     def fail(message: str, code: int = 1) -> typer.Exit:
@@ -372,7 +373,7 @@ def replay(
 
     if angle is None and model_dir is None:
         raise fail("give --angle (the preset angle whose model to fetch) or --model-dir")
-    suffix = next((s for s in (fsr_file(""), ref_file("")) if trial.name.endswith(s)), None)
+    suffix = next((s for s in STREAM_SUFFIXES if trial.name.endswith(s)), None)
     if trial.is_dir() or suffix:  # rig-log/1: checked, ingested and resampled like the pipeline does
         batch_dir = trial.parent if suffix else trial
         if not (batch_dir / BATCH_FILE).is_file():
@@ -388,8 +389,8 @@ def replay(
             raise fail(f"cannot read {trial}: {e}") from e
     else:
         raise fail(
-            f"{trial}: not a processed parquet file, a rig-log/1 trial file (<trial>.fsr.csv or "
-            "<trial>.ref.csv) or a batch folder"
+            f"{trial}: not a processed parquet file, a rig-log/1 trial file (<trial>.fsr.csv, "
+            "<trial>.ref.csv, either gzip-compressed as .csv.gz, or <trial>.ref.tdms) or a batch folder"
         )
     if frame.empty or not {"batch_id", "trial_id", "t_s"} <= set(frame.columns):
         raise fail(f"{trial}: not a processed split file (needs rows and batch_id, trial_id, t_s)")
@@ -458,18 +459,19 @@ def rollback(
         int | None, typer.Option("--to", help="version to make champion (default: the one it replaced)")
     ] = None,
 ) -> None:
-    """Move `needle-force-<angle>@champion` back to an earlier version (exit 1: refused, 2: offline)."""
-    from pipeline.registry.store import RegistryUnreachable, model_name
+    """Move `needle-force-<angle>@champion` back to an earlier version (exit 1: refused, including by a
+    read-only store or something that is not MLflow; 2: offline). Nothing changes unless it succeeds."""
+    from pipeline.registry.store import NotMlflow, ReadOnlyStore, RegistryUnreachable, model_name
     from pipeline.registry.versions import rollback as do_rollback
 
     try:
         old, new = do_rollback(angle, to)
+    except (NotMlflow, ReadOnlyStore, ValueError) as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
     except RegistryUnreachable as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from e
-    except ValueError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
     typer.echo(f"{model_name(angle)}@champion: version {old} -> {new}")
 
 

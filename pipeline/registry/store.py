@@ -10,6 +10,7 @@ mlflow is imported inside the functions, so importing this module is cheap.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -46,8 +47,22 @@ with its input transform. Tags: `unit_id`, `batches`, `angles_used`, `angles_mis
 _HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
 
 
+# A registered-model name nobody registers: asked for, a real MLflow store says it does not exist.
+PROBE_MODEL = "needlecue-probe-no-such-model"
+# The experiment tag a writer sets to "ok" to learn the store takes writes (a no-op once set).
+WRITE_CHECK_TAG = "needlecue.write_check"
+
+
 class RegistryUnreachable(RuntimeError):
     """The tracking server / registry could not be reached (nothing was changed)."""
+
+
+class NotMlflow(RegistryUnreachable):
+    """Something answers at the tracking URI, but not as an MLflow tracking server does."""
+
+
+class ReadOnlyStore(RegistryUnreachable):
+    """The store answers reads but refuses writes (a read-only database, or read-only credentials)."""
 
 
 def model_name(angle_deg: float) -> str:
@@ -89,8 +104,14 @@ def tracking_uri(start: Path | None = None) -> str:
 
 
 def sqlite_file(uri: str) -> Path | None:
-    """The database file of a `sqlite:///` store URI, None for any other kind of store."""
-    return Path(uri.removeprefix("sqlite:///")) if uri.startswith("sqlite:///") else None
+    """The database file of a `sqlite:///` store URI (also SQLite's URI form,
+    `sqlite:///file:/path/mlflow.db?mode=ro&uri=true`), None for any other kind of store."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    path = uri.removeprefix("sqlite:///")
+    if path.startswith("file:"):
+        path = path.removeprefix("file:").split("?", 1)[0]
+    return Path(path)
 
 
 def experiment_id(client: MlflowClient, name: str = EXPERIMENT, about: str = ABOUT) -> str:
@@ -120,8 +141,11 @@ def create_registered_model(client: MlflowClient, name: str, description: str) -
             raise
 
 
-def connect(uri: str | None = None, *, must_exist: bool = False) -> MlflowClient:
-    """A client on `uri` (default `tracking_uri()`), checked to answer; `RegistryUnreachable` if not.
+def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = False) -> MlflowClient:
+    """A client on `uri` (default `tracking_uri()`), checked to answer as MLflow does; before anything
+    changes, `RegistryUnreachable` if it does not answer, `NotMlflow` if what answers is not MLflow
+    (a web server answering `{}` to everything, say), and with `write`, `ReadOnlyStore` if it refuses
+    writes (a read-only database or a simulator's read-only credentials).
 
     `must_exist`: a sqlite store that is not there yet is unreachable too, instead of being created
     empty (a reader, like the simulator's client run outside the project, wants the real one).
@@ -146,10 +170,62 @@ def connect(uri: str | None = None, *, must_exist: bool = False) -> MlflowClient
     try:
         client.search_registered_models(max_results=1)
     except Exception as e:
-        raise RegistryUnreachable(
-            f"cannot reach the MLflow registry at {uri}: {type(e).__name__}: {str(e).splitlines()[0][:300]}"
-        ) from e
+        if "not in a valid JSON format" in str(e):  # it answered, with a web page or the like
+            raise NotMlflow(f"{uri} answers, but not as an MLflow tracking server: {_said(e)}") from e
+        raise RegistryUnreachable(f"cannot reach the MLflow registry at {uri}: {_said(e)}") from e
+    _speaks_mlflow(client, uri)
+    if write:
+        _takes_writes(client, uri)
     return client
+
+
+def _said(e: Exception) -> str:
+    return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0][:300]}"
+
+
+def _speaks_mlflow(client: MlflowClient, uri: str) -> None:
+    """Ask for a model nobody registers: MLflow answers "does not exist"; anything else is not MLflow
+    (a server answering `{}` or an HTML page to every request passes a plain search, which finds
+    nothing)."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        got = client.get_registered_model(PROBE_MODEL)
+    except MlflowException as e:
+        if e.error_code in ("RESOURCE_DOES_NOT_EXIST", "INVALID_PARAMETER_VALUE"):
+            return
+        answer = f"{e.error_code}: {(e.message.splitlines() or [''])[0][:200]}"
+    except Exception as e:  # a dropped connection, or an answer MLflow's client cannot parse
+        answer = _said(e)
+    else:
+        answer = f"a model named {got.name!r}"
+    raise NotMlflow(
+        f"{uri} answers, but not as an MLflow tracking server: asked for a model that does not exist, "
+        f"it gave {answer}. Is MLFLOW_TRACKING_URI the MLflow server's address (not another service's)?"
+    )
+
+
+def _takes_writes(client: MlflowClient, uri: str) -> None:
+    """Set the tracking experiment's WRITE_CHECK_TAG to "ok" (creating the experiment if needed, as a
+    writer would anyway): a store that refuses is read-only, found before any run, version or alias."""
+    # MLflow logs a refused SQL write with its whole traceback before raising: the error below says it
+    db_log = logging.getLogger("mlflow.store.db.utils")
+    quiet = db_log.disabled
+    db_log.disabled = True
+    try:
+        client.set_experiment_tag(experiment_id(client), WRITE_CHECK_TAG, "ok")
+    except Exception as e:
+        code = getattr(e, "error_code", "")
+        text = str(e).lower()
+        if code in ("PERMISSION_DENIED", "UNAUTHENTICATED") or "readonly" in text or "read-only" in text:
+            raise ReadOnlyStore(
+                f"the MLflow store at {uri} is read-only here ({code or type(e).__name__}: "
+                f"{(str(e).splitlines() or [''])[0][:200]}): it can be read, not written. A read-only "
+                "database, or read-only credentials (a simulator's): writing needs a lab or admin user."
+            ) from e
+        raise RegistryUnreachable(f"cannot write to the MLflow store at {uri}: {_said(e)}") from e
+    finally:
+        db_log.disabled = quiet
 
 
 def versions(client: MlflowClient, name: str) -> list[Any]:

@@ -159,7 +159,7 @@ def rollback(
 ) -> tuple[int | None, int]:
     """Move `needle-force-<angle>@champion` to `to_version` (default: the version the current champion
     replaced). Returns (old champion version, new champion version)."""
-    client = connect(uri)
+    client = connect(uri, write=True)  # a read-only store is refused before the alias moves
     name = model_name(angle_deg)
     champion = alias_version(client, name, CHAMPION)
     if to_version is None:
@@ -189,7 +189,7 @@ def register_all(
     """Track all models, register the best per angle, then every unit calibration in `cal_dir`
     (`<unit_id>.json`; none if None), write `out_json`; returns its content."""
     try:
-        client = connect()  # before anything else: an unreachable store changes nothing
+        client = connect(write=True)  # first: an unreachable, non-MLflow or read-only store changes nothing
     except RegistryUnreachable as e:
         raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
     documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change

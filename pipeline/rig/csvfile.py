@@ -6,7 +6,9 @@ row or non-number becomes a `Problem` naming its file, line and column
 from __future__ import annotations
 
 import csv
+import gzip
 import io
+import zlib
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -15,7 +17,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.rig.format import GZIP
 from pipeline.rig.problems import ProblemLog
+
+# A gzip-compressed CSV is read up to this many bytes: a trial of one insertion is a few MB, and a
+# small file that inflates to gigabytes (a "zip bomb") is refused instead of filling the memory.
+MAX_GUNZIPPED_BYTES = 512 * 2**20
 
 # Text that to_numeric turns into NaN without being "text in a number column": a missing value.
 NAN_LITERALS = frozenset({"", "nan", "+nan", "-nan"})
@@ -51,6 +58,17 @@ def read_csv(path: Path, probs: ProblemLog, trial_id: str | None) -> CsvTable | 
     except OSError as e:
         probs.add(file, f"cannot read: {e.strerror}", trial_id=trial_id)
         return None
+    if path.name.endswith(GZIP):
+        try:
+            with gzip.GzipFile(fileobj=io.BytesIO(data)) as z:
+                data = z.read(MAX_GUNZIPPED_BYTES + 1)
+        except (OSError, EOFError, zlib.error) as e:  # BadGzipFile is an OSError; EOFError: cut short
+            probs.add(file, f"not a readable gzip file: {e or type(e).__name__}", trial_id=trial_id)
+            return None
+        if len(data) > MAX_GUNZIPPED_BYTES:
+            limit = MAX_GUNZIPPED_BYTES // 2**20
+            probs.add(file, f"decompresses to more than {limit} MiB: refused", trial_id=trial_id)
+            return None
     try:
         text = data.decode("utf-8-sig")  # tolerate the BOM spreadsheet programs write
     except UnicodeDecodeError as e:

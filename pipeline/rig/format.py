@@ -26,6 +26,14 @@ REF_TORQUES = ("tx", "ty", "tz")
 FSR_TIME = "t_ms"
 
 
+# Beyond rig-log/1's plain CSV, any CSV may be gzip-compressed (`<name>.gz`) and the reference
+# stream may be an NI TDMS file (`<trial>.ref.tdms`, next to which NI software may write a
+# `.tdms_index`): docs/rig-log-format.md, "Other forms of the same files".
+GZIP = ".gz"
+TDMS = ".tdms"
+TDMS_INDEX = ".tdms_index"
+
+
 def fsr_file(trial_id: str) -> str:
     """Name of a trial's estimator stream file."""
     return f"{trial_id}.fsr.csv"
@@ -34,6 +42,28 @@ def fsr_file(trial_id: str) -> str:
 def ref_file(trial_id: str) -> str:
     """Name of a trial's reference stream file."""
     return f"{trial_id}.ref.csv"
+
+
+def ref_tdms_file(trial_id: str) -> str:
+    """Name of a trial's reference stream as an NI TDMS file."""
+    return f"{trial_id}.ref{TDMS}"
+
+
+def forms(name: str) -> tuple[str, ...]:
+    """Every name a file of rig-log/1 (`trials.csv`, `<trial>.fsr.csv`, `<trial>.ref.csv`) may have."""
+    out = (name, name + GZIP)
+    if name.endswith(ref_file("")):
+        out += (name.removesuffix(".csv") + TDMS,)
+    return out
+
+
+STREAM_SUFFIXES = (*forms(fsr_file("")), *forms(ref_file("")))  # a trial's file is <trial_id><suffix>
+
+
+def find(folder: Path, name: str) -> list[Path]:
+    """The files of `folder` that are `name` in one of its forms (`forms`): one, none or (ambiguous)
+    several."""
+    return [folder / n for n in forms(name) if (folder / n).exists()]
 
 
 def is_valid_id(name: str) -> bool:

@@ -53,6 +53,7 @@ from pipeline.rig.format import (
     TRIALS_FILE,
     Problem,
     batch_dirs,
+    find,
     fsr_file,
     ref_file,
 )
@@ -75,6 +76,7 @@ CODE_FILES = (
     "expectations.py",
     "reader.py",
     "plausible.py",
+    "tdmsfile.py",
     "ingest.py",
 )
 
@@ -123,7 +125,7 @@ def fingerprint(batch_dir: Path, params: IngestParams, source_dir: str | None = 
         "params": params.model_dump(mode="json"),
         "code_sha256": _code_sha256(),
         "id_pattern": ID_PATTERN.pattern,  # lives in pipeline/vocab.py, outside CODE_FILES
-        "versions": {m: metadata.version(m) for m in ("great_expectations", "pandas", "pyarrow")},
+        "versions": {m: metadata.version(m) for m in ("great_expectations", "pandas", "pyarrow", "npTDMS")},
     }
     parts["fingerprint"] = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
     return parts
@@ -407,7 +409,8 @@ def _trial_sha256(batch_dir: Path, trial_id: str) -> str:
     """SHA-256 of a trial's two stream files (the same bytes give the same samples downstream)."""
     h = hashlib.sha256()
     for name in (fsr_file(trial_id), ref_file(trial_id)):
-        h.update((batch_dir / name).read_bytes())
+        for path in find(batch_dir, name):  # the one form that was read (plain, gzip or TDMS)
+            h.update(path.read_bytes())
         h.update(b"\0")
     return h.hexdigest()
 

@@ -26,16 +26,20 @@ from pipeline.rig.format import (
     FSR_TIME,
     REF_COLUMNS,
     REF_TORQUES,
+    STREAM_SUFFIXES,
+    TDMS,
+    TDMS_INDEX,
     TRIAL_COLUMNS,
     TRIALS_FILE,
     BatchMeta,
     Problem,
+    find,
+    forms,
     fsr_file,
     ref_file,
 )
 from pipeline.rig.problems import ProblemLog, group_warnings
-
-FSR_SUFFIX, REF_SUFFIX = fsr_file(""), ref_file("")
+from pipeline.rig.tdmsfile import read_ref
 
 Warn = Callable[[Path, str], None]
 
@@ -55,11 +59,10 @@ def _read_trials(
     batch_dir: Path, batch_id: str, probs: ProblemLog, validator: Validator, warn: Warn
 ) -> _Trials | None:
     """trials.csv read, checked row by row and validated with GX; None if the batch must be set aside."""
-    path = batch_dir / TRIALS_FILE
-    file = str(path)
-    if not path.is_file():
-        probs.add(file, f"missing {TRIALS_FILE}" if not path.exists() else "not a regular file")
+    path = _locate(batch_dir, TRIALS_FILE, probs, None)
+    if path is None:
         return None
+    file = str(path)
     table = read_csv(path, probs, None)
     if table is None:
         return None
@@ -115,6 +118,24 @@ def _read_trials(
 # --------------------------------------------------------------------------- streams
 
 
+def _locate(folder: Path, name: str, probs: ProblemLog, trial_id: str | None) -> Path | None:
+    """The one file that is `name` in any of its forms (plain, gzip, TDMS), else None with a Problem."""
+    found = find(folder, name)
+    why = "" if trial_id is None else f"trial {trial_id!r} is listed in {TRIALS_FILE} but "
+    if not found:
+        others = " nor ".join(forms(name)[1:])
+        probs.add(str(folder / name), f"{why}{name} is missing (and no {others})", trial_id=trial_id)
+        return None
+    if len(found) > 1:
+        names = " and ".join(p.name for p in found)
+        probs.add(str(found[0]), f"{names} both exist: keep one of them", trial_id=trial_id)
+        return None
+    if not found[0].is_file():
+        probs.add(str(found[0]), f"{why}{found[0].name} is not a regular file", trial_id=trial_id)
+        return None
+    return found[0]
+
+
 def _read_stream(
     path: Path,
     trial_id: str,
@@ -125,14 +146,8 @@ def _read_stream(
     probs: ProblemLog,
     warn: Warn,
 ) -> pd.DataFrame | None:
-    """One stream file as trial_id, line, time, values (+ optional columns if all present), float64."""
+    """One CSV stream file as trial_id, line, time, values (+ optional columns if all present), float64."""
     file = str(path)
-    if not path.is_file():
-        what = "is missing" if not path.exists() else "is not a regular file"
-        probs.add(
-            file, f"trial {trial_id!r} is listed in {TRIALS_FILE} but {path.name} {what}", trial_id=trial_id
-        )
-        return None
     table = read_csv(path, probs, trial_id)
     if table is None:
         return None
@@ -262,24 +277,27 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
     fsr_frames: list[pd.DataFrame] = []
     ref_frames: list[pd.DataFrame] = []
     summary: list[dict[str, Any]] = []
+    paths: dict[str, Path] = {}  # file name as rig-log/1 says it -> the file read (maybe .gz or .tdms)
     for tid in trials.table["trial_id"]:
-        f = _read_stream(batch_dir / fsr_file(tid), tid, FSR_TIME, channels, (), counts, probs, warn)
-        if f is not None:
-            _plausible_fsr(f, str(batch_dir / fsr_file(tid)), meta, params, probs)
+        fsr_path = _locate(batch_dir, fsr_file(tid), probs, tid)
+        if (
+            fsr_path is not None
+            and (f := _read_stream(fsr_path, tid, FSR_TIME, channels, (), counts, probs, warn)) is not None
+        ):
+            paths[fsr_file(tid)] = fsr_path
+            _plausible_fsr(f, str(fsr_path), meta, params, probs)
             fsr_frames.append(f)
             summary.append(_rate_row(f, fsr_file(tid), FSR_TIME, 1000.0))
-        r = _read_stream(
-            batch_dir / ref_file(tid),
-            tid,
-            REF_COLUMNS[0],
-            REF_COLUMNS[1:],
-            REF_TORQUES,
-            False,
-            probs,
-            warn,
-        )
+        ref_path = _locate(batch_dir, ref_file(tid), probs, tid)
+        if ref_path is None:
+            continue
+        if ref_path.name.endswith(TDMS):
+            r = read_ref(ref_path, tid, meta.reference.units, probs, lambda msg, p=ref_path: warn(p, msg))
+        else:
+            r = _read_stream(ref_path, tid, REF_COLUMNS[0], REF_COLUMNS[1:], REF_TORQUES, False, probs, warn)
         if r is not None:
-            _plausible_ref(r, str(batch_dir / ref_file(tid)), meta, params, probs)
+            paths[ref_file(tid)] = ref_path
+            _plausible_ref(r, str(ref_path), meta, params, probs)
             ref_frames.append(r)
             summary.append(_rate_row(r, ref_file(tid), REF_COLUMNS[0], 1.0))
 
@@ -303,7 +321,7 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
                 channels,
                 adc_max,
                 folder,
-                lambda t: str(batch_dir / fsr_file(t)),
+                lambda t: str(paths[fsr_file(t)]),
             )
         )
     if ref_frames:
@@ -318,12 +336,12 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
                 ref_cols[1:],
                 None,
                 folder,
-                lambda t: str(batch_dir / ref_file(t)),
+                lambda t: str(paths[ref_file(t)]),
             )
         )
     if summary:
         checks.append(
-            validator.streams(batch_id, pd.DataFrame(summary), folder, lambda name: str(batch_dir / name))
+            validator.streams(batch_id, pd.DataFrame(summary), folder, lambda name: str(paths[name]))
         )
     for check in checks:
         probs.extend(check.problems)
@@ -351,12 +369,14 @@ def _orphans(batch_dir: Path, listed: set[str], probs: ProblemLog, warn: Warn) -
     """Stream files without a trial row are reported (and not read); other stray files are warned about."""
     for p in sorted(batch_dir.iterdir()):
         name = p.name
-        if name.startswith(".") or name in (BATCH_FILE, TRIALS_FILE):
+        if name.startswith(".") or name in (BATCH_FILE, *forms(TRIALS_FILE)):
             continue
         if p.is_dir():
             warn(p, "sub-folder ignored")
             continue
-        for suffix in (FSR_SUFFIX, REF_SUFFIX):
+        if name.endswith(TDMS_INDEX) and p.with_suffix(TDMS).exists():
+            continue  # NI's index of the TDMS file beside it: npTDMS reads the file itself
+        for suffix in STREAM_SUFFIXES:
             if name.endswith(suffix):
                 tid = name[: -len(suffix)]
                 if tid not in listed:

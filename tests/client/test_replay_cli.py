@@ -87,13 +87,16 @@ def test_replay_command_prints_the_summary_and_writes_the_plot(
     assert "needle-force-15@champion" in offline.output and "no local copy" in offline.output
 
 
+@pytest.mark.parametrize("form", ["csv", "tdms"])
 def test_replay_takes_a_raw_trial_and_its_unit_from_the_batch_folder(
-    registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, form: str
 ) -> None:
     # given: a raw rig-log/1 batch of one trial at 30°, recorded by unit est-r1 (calibrated with the
-    # 30° champion), the registry and an empty model cache
+    # 30° champion), as CSV files or as a TDMS reference stream (written by npTDMS) beside a
+    # gzip-compressed estimator stream; the registry and an empty model cache
     from pipeline.config import SimulateParams
     from pipeline.sim.rig import BatchPlan, write_batch
+    from tests.rig.batches import gzip_file, to_tdms
 
     raw = tmp_path / "raw"
     raw.mkdir()
@@ -103,12 +106,16 @@ def test_replay_takes_a_raw_trial_and_its_unit_from_the_batch_folder(
     monkeypatch.setenv(fc.CACHE_ENV, str(tmp_path / "cache"))
     monkeypatch.chdir(Path(__file__).resolve().parents[2])  # params.yaml of the project
     fsr_file = next((raw / "lab-r1").glob("*.fsr.csv"))
+    trial = fsr_file.name.removesuffix(".fsr.csv")
+    given = fsr_file
+    if form == "tdms":
+        gzip_file(fsr_file)
+        given = to_tdms(fsr_file.with_name(f"{trial}.ref.csv"), time="waveform")
     png = tmp_path / "raw.png"
     # when: replaying the raw trial file, with no --unit-id
-    result = CliRunner().invoke(app, ["replay", str(fsr_file), "--angle", "30", "--out", str(png)])
+    result = CliRunner().invoke(app, ["replay", str(given), "--angle", "30", "--out", str(png)])
     # then: it is ingested and resampled like the pipeline does, and the unit comes from batch.yaml
     assert result.exit_code == 0, result.output
-    trial = fsr_file.name.removesuffix(".fsr.csv")
     assert result.output.startswith(f"lab-r1/{trial}: ")
     assert "unit est-r1: calibrated (needle-unit-est-r1 v1)" in result.output
     assert png.is_file()

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import gzip
 import shutil
 from pathlib import Path
+
+import numpy as np
+import pandas as pd
 
 from pipeline.config import IngestParams
 from pipeline.rig import ingest
@@ -71,3 +75,48 @@ def to_counts(b: Path) -> None:
             [",".join(rows[0])]
             + [",".join([r[0], *(str(round(float(v) / 5.0 * 1023)) for v in r[1:])]) for r in rows[1:]],
         )
+
+
+def gzip_file(path: Path) -> Path:
+    """Replace `path` with `<path>.gz`, its gzip-compressed copy (as `gzip FILE` does)."""
+    out = path.with_name(path.name + ".gz")
+    out.write_bytes(gzip.compress(path.read_bytes(), mtime=0))
+    path.unlink()
+    return out
+
+
+def to_tdms(
+    ref_csv: Path,
+    *,
+    time: str = "channel",
+    group: str = "reference",
+    unit: str | None = None,
+    properties: dict[str, dict[str, object]] | None = None,
+    short: str | None = None,
+) -> Path:
+    """Replace a `<trial>.ref.csv` with `<trial>.ref.tdms` written by npTDMS: one group of float64
+    channels fx, fy, fz (and any others of the CSV); the time as a `t_s` channel (time="channel"), as
+    NI's waveform properties on every channel (time="waveform") or not at all (time="none"); `unit` as
+    each force channel's unit_string; `properties` adds to a channel's properties (channel name ->
+    properties); the channel `short` lacks its last sample."""
+    from nptdms import ChannelObject, TdmsWriter
+
+    frame = pd.read_csv(ref_csv)
+    t = frame.pop("t_s").to_numpy()
+    props: dict[str, dict[str, object]] = {c: {} for c in frame.columns}
+    if time == "waveform":
+        for c in props:
+            props[c].update(wf_increment=float(np.median(np.diff(t))), wf_start_offset=float(t[0]))
+    for c in props:
+        if unit is not None and c in ("fx", "fy", "fz"):
+            props[c]["unit_string"] = unit
+        props[c].update((properties or {}).get(c, {}))
+    data = {c: frame[c].to_numpy(np.float64)[: -1 if c == short else None] for c in frame}
+    channels = [ChannelObject(group, c, data[c], properties=props[c]) for c in frame]
+    if time == "channel":
+        channels.append(ChannelObject(group, "t_s", t.astype(np.float64), properties={"unit_string": "s"}))
+    out = ref_csv.with_name(ref_csv.name.removesuffix(".csv") + ".tdms")
+    with TdmsWriter(out) as writer:
+        writer.write_segment(channels)
+    ref_csv.unlink()
+    return out

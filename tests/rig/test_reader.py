@@ -3,6 +3,7 @@ aside precisely."""
 
 from __future__ import annotations
 
+import gzip
 import json
 import shutil
 from collections.abc import Callable
@@ -25,11 +26,13 @@ from tests.rig.batches import (
     cell,
     copy_batch,
     drop_column,
+    gzip_file,
     lines_of,
     replace_in,
     run,
     set_cell,
     to_counts,
+    to_tdms,
     write_lines,
 )
 
@@ -136,6 +139,85 @@ def test_counts_batch_keeps_integer_counts(raw_dir, tmp_path):
     assert (values == values.round()).all() and values.min() >= 0 and values.max() <= 1023
 
 
+# --------------------------------------------------------------------------- other forms of the files
+
+
+def _parquets(out: Path) -> dict[str, bytes]:
+    return {name: (out / A / name).read_bytes() for name in ("trials.parquet", "fsr.parquet", "ref.parquet")}
+
+
+def test_gzip_csv_and_tdms_reference_ingest_to_the_same_bytes_as_plain_csv(raw_dir, lab_bench_a, tmp_path):
+    # Given the batch as plain CSV, and a copy whose trials.csv and estimator streams are gzip-compressed
+    # and whose reference streams are NI TDMS files written by npTDMS (time as a t_s channel, units
+    # said by each channel's unit_string), with the .tdms_index NI software writes beside them
+    other = tmp_path / "other"
+    b = other / A
+    shutil.copytree(lab_bench_a, b)
+    gzip_file(b / "trials.csv")
+    for t in TRIALS:
+        gzip_file(b / f"{t}.fsr.csv")
+        tdms = to_tdms(b / f"{t}.ref.csv", unit="mN")
+        tdms.with_suffix(".tdms_index").write_bytes(b"TDSh")
+    before = tree_hash(other)
+    # When both are ingested
+    plain = run([raw_dir], tmp_path / "out-plain")
+    forms = run([other], tmp_path / "out-forms")
+    # Then both are accepted without problems or warnings, into byte-identical Parquet files
+    assert plain.problems == forms.problems == [] and forms.accepted == [A]
+    assert forms.batches[0].warnings == []
+    assert _parquets(tmp_path / "out-plain") == _parquets(tmp_path / "out-forms")
+    # ... and `needlecue check` agrees, naming no problem
+    assert ingest.check_folders([other], IngestParams()) == []
+    assert tree_hash(other) == before
+
+
+def test_tdms_time_from_ni_waveform_properties(raw_dir, tmp_path):
+    # Given reference streams as TDMS with no t_s channel: NI's wf_increment and wf_start_offset instead
+    b = raw_dir / A
+    csv_ref = pd.read_csv(b / "t001.ref.csv")
+    for t in TRIALS:
+        to_tdms(b / f"{t}.ref.csv", time="waveform")
+    # When the batch is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then it is accepted; the times are start + k * increment, the forces exactly the CSV's
+    assert result.problems == [] and result.accepted == [A]
+    ref = pd.read_parquet(tmp_path / "out" / A / "ref.parquet")
+    first = ref[ref.trial_id == "t001"]
+    np.testing.assert_allclose(first["t_s"], csv_ref["t_s"], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(
+        first[["fx", "fy", "fz"]].to_numpy(), csv_ref[["fx", "fy", "fz"]].to_numpy()
+    )
+
+
+def test_a_tdms_file_without_a_trial_row_is_reported_and_not_ingested(raw_dir, tmp_path):
+    # Given a reference stream in TDMS for a trial trials.csv does not list
+    b = raw_dir / A
+    shutil.copy(b / "t001.ref.csv", b / "t009.ref.csv")
+    to_tdms(b / "t009.ref.csv")
+    # When the batch is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then it is named as having no row; the listed trials go through
+    assert [(Path(p.file).name, p.reason) for p in result.problems] == [
+        ("t009.ref.tdms", "no row for trial 't009' in trials.csv: file not ingested")
+    ]
+    assert result.batches[0].trials_accepted == TRIALS
+
+
+def test_a_gzip_file_that_inflates_beyond_the_limit_is_refused(raw_dir, tmp_path, monkeypatch):
+    # Given a gzip-compressed estimator stream, and a limit below its inflated size
+    from pipeline.rig import csvfile
+
+    gz = gzip_file(raw_dir / A / "t002.fsr.csv")
+    monkeypatch.setattr(csvfile, "MAX_GUNZIPPED_BYTES", 2**20 // 100)
+    # When the batch is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then that trial is set aside with the reason, the others go on
+    assert [(p.file, p.reason) for p in result.problems] == [
+        (str(gz), "decompresses to more than 0 MiB: refused")
+    ]
+    assert result.batches[0].trials_accepted == ["t001", "t003"]
+
+
 # --------------------------------------------------------------------------- bad input corpus
 
 
@@ -214,6 +296,28 @@ def _drop_header(b: Path) -> None:
 def _all_refs_gone(b: Path) -> None:
     for t in TRIALS:
         (b / _ref(t)).unlink()
+
+
+def _rename(src: Path, name: str) -> None:
+    src.rename(src.with_name(name))
+
+
+def _truncate(path: Path, keep: int) -> None:
+    path.write_bytes(path.read_bytes()[:keep])
+
+
+def _gzip_cut(b: Path) -> None:
+    gz = gzip_file(b / _ref())
+    _truncate(gz, gz.stat().st_size // 2)
+
+
+def _tdms_two_groups(ref: Path) -> None:
+    from nptdms import ChannelObject, TdmsFile, TdmsWriter
+
+    tdms = to_tdms(ref)
+    group = TdmsFile.read(tdms)["reference"]
+    with TdmsWriter(tdms, mode="a") as w:
+        w.write_segment([ChannelObject("copy", c.name, c[:]) for c in group.channels()])
 
 
 BAD = [
@@ -350,7 +454,7 @@ BAD = [
         "missing trials.csv",
         lambda b: (b / "trials.csv").unlink(),
         "trials.csv",
-        "missing trials.csv",
+        "trials.csv is missing (and no trials.csv.gz)",
         batch=True,
     ),
     Bad(
@@ -439,7 +543,12 @@ BAD = [
     ),
     # trials vs files
     Bad("trial without its fsr file", lambda b: (b / _fsr()).unlink(), _fsr(), "is missing"),
-    Bad("trial without its ref file", lambda b: (b / _ref()).unlink(), _ref(), "is missing"),
+    Bad(
+        "trial without its ref file",
+        lambda b: (b / _ref()).unlink(),
+        _ref(),
+        "t002.ref.csv is missing (and no t002.ref.csv.gz nor t002.ref.tdms)",
+    ),
     Bad(
         "a folder where a stream file should be",
         lambda b: ((b / _fsr()).unlink(), (b / _fsr()).mkdir()),
@@ -577,6 +686,91 @@ BAD = [
     ),
     Bad("too few samples", _few_samples, _fsr(), "only 5 samples"),
     Bad("implausible rate", _slow_rate, _fsr(), "sample rate", column="t_ms"),
+    # the other forms: gzip-compressed CSV, the reference stream as NI TDMS (written by npTDMS)
+    Bad(
+        "gzip: text in a cell",
+        lambda b: (set_cell(b / _fsr(), 9, "left", "oops"), gzip_file(b / _fsr())),
+        _fsr() + ".gz",
+        "text 'oops' in a number column",
+        line=9,
+        column="left",
+    ),
+    Bad("gzip: cut short", _gzip_cut, _ref() + ".gz", "not a readable gzip file"),
+    Bad(
+        "gzip: not gzip", lambda b: _rename(b / _ref(), _ref() + ".gz"), _ref() + ".gz", "not a readable gzip"
+    ),
+    Bad(
+        "trials.csv and trials.csv.gz",
+        lambda b: (b / "trials.csv.gz").write_bytes(gzip.compress((b / "trials.csv").read_bytes())),
+        "trials.csv",
+        "trials.csv and trials.csv.gz both exist: keep one of them",
+        batch=True,
+    ),
+    Bad(
+        "ref as CSV and as TDMS",
+        lambda b: (
+            shutil.copy(b / _ref(), b / "keep.csv"),
+            to_tdms(b / _ref()),
+            _rename(b / "keep.csv", _ref()),
+        ),
+        _ref(),
+        "t002.ref.csv and t002.ref.tdms both exist",
+    ),
+    Bad(
+        "tdms: no channel fz",
+        lambda b: (drop_column(b / _ref(), "fz"), to_tdms(b / _ref())),
+        "t002.ref.tdms",
+        "missing channel 'fz' in group 'reference'",
+        column="fz",
+    ),
+    Bad(
+        "tdms: forces in two groups",
+        lambda b: _tdms_two_groups(b / _ref()),
+        "t002.ref.tdms",
+        "channel 'fx' is in groups 'reference' and 'copy'",
+        column="fx",
+    ),
+    Bad("tdms: no time", lambda b: to_tdms(b / _ref(), time="none"), "t002.ref.tdms", "no time: no 't_s'"),
+    Bad(
+        "tdms: other units than batch.yaml",
+        lambda b: to_tdms(b / _ref(), unit="N"),
+        "t002.ref.tdms",
+        "channel 'fx' is in 'N' but batch.yaml says reference.units: mN",
+        column="fx",
+    ),
+    Bad(
+        "tdms: damaged file",
+        lambda b: (to_tdms(b / _ref()), _truncate(b / "t002.ref.tdms", 30)),
+        "t002.ref.tdms",
+        "no data: an empty or damaged TDMS file (npTDMS: Last segment metadata is incomplete)",
+    ),
+    Bad(
+        "tdms: not TDMS at all",
+        lambda b: (to_tdms(b / _ref()), (b / "t002.ref.tdms").write_text("t_s,fx,fy,fz\n" * 9)),
+        "t002.ref.tdms",
+        "not a readable TDMS file (ValueError: File should either start with",
+    ),
+    Bad(
+        "tdms: cut in the middle of its data",
+        lambda b: (to_tdms(b / _ref()), _truncate(b / "t002.ref.tdms", 40_000)),
+        "t002.ref.tdms",
+        "samples, 'fx' has 2001 (a file cut short?)",
+    ),
+    Bad(
+        "tdms: a glitch, located by sample number",
+        lambda b: (set_cell(b / _ref(), 801, "fy", "30000"), to_tdms(b / _ref(), time="waveform")),
+        "t002.ref.tdms",
+        "glitch: fy = 30000 mN",
+        line=800,
+        column="fy",
+    ),
+    Bad(
+        "tdms: channel lengths differ",
+        lambda b: to_tdms(b / _ref(), short="fz"),
+        "t002.ref.tdms",
+        "channel 'fz' has 2000 samples, 'fx' has 2001",
+        column="fz",
+    ),
 ]
 
 

@@ -1,0 +1,184 @@
+"""Reading a trial's reference stream from an NI TDMS file (`<trial>.ref.tdms`, npTDMS) into the frame
+the CSV reader gives: trial_id, line, t_s, fx, fy, fz (+ tx, ty, tz when all three are there).
+
+The layout (docs/rig-log-format.md, "The reference stream as NI TDMS"): one group holds channels named
+`fx`, `fy`, `fz` (optionally `tx`, `ty`, `tz`) of equal length, in `reference.units`; the time is a
+`t_s` channel of seconds in that group, or else the waveform properties NI writes on the force
+channels (`wf_increment` s per sample, `wf_start_offset` s). A TDMS file has no lines, so a Problem's
+`line` is the 1-based sample number in its channel. Never raises on bad input.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.rig.format import REF_COLUMNS, REF_TORQUES
+from pipeline.rig.problems import ProblemLog
+
+TIME = REF_COLUMNS[0]
+FORCES = REF_COLUMNS[1:]
+WF_INCREMENT, WF_OFFSET, UNIT = "wf_increment", "wf_start_offset", "unit_string"
+
+
+def read_ref(
+    path: Path, trial_id: str, unit: str, probs: ProblemLog, warn: Callable[[str], None]
+) -> pd.DataFrame | None:
+    """The reference stream of `path` (values in `unit`, batch.yaml's reference.units), or None with
+    Problems saying why it cannot be used."""
+    from nptdms import TdmsFile
+
+    file = str(path)
+
+    def bad(reason: str, column: str | None = None, line: int | None = None) -> None:
+        probs.add(file, reason, trial_id=trial_id, column=column, line=line)
+
+    heard: list[str] = []
+    try:
+        # Opened as a file object, not a path, so that npTDMS reads the file itself and never a
+        # `.tdms_index` beside it (which may be stale). Metadata now, data channel by channel.
+        with _npTDMS_says(heard), path.open("rb") as handle, TdmsFile.open(handle) as tdms:
+            frame = _frame(tdms, path.stat().st_size, trial_id, unit, bad, warn, heard)
+    # npTDMS raises many kinds of error on a damaged file (ValueError, KeyError, struct.error,
+    # EOFError, ...): each means the same to a lab, so all are one Problem.
+    except Exception as e:
+        bad(f"not a readable TDMS file ({type(e).__name__}: {str(e)[:200]})")
+        return None
+    for message in dict.fromkeys(heard):
+        warn(f"npTDMS: {message}")
+    return frame
+
+
+@contextmanager
+def _npTDMS_says(heard: list[str]) -> Iterator[None]:
+    """npTDMS's warnings (a file cut short, say) collected into `heard` instead of printed. npTDMS gives
+    each module's logger its own console handler, and a logging set-up elsewhere (GX's) may disable
+    them, so each is taken over while a file is read and then restored."""
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            heard.append(record.getMessage())
+
+    names = [n for n in logging.root.manager.loggerDict if n.split(".")[0] == "nptdms"]
+    loggers = [logging.getLogger(n) for n in names]
+    saved = [(lg.handlers, lg.propagate, lg.disabled) for lg in loggers]
+    collect = Collect(logging.WARNING)
+    for lg in loggers:
+        lg.handlers, lg.propagate, lg.disabled = [collect], False, False
+    try:
+        yield
+    finally:
+        for lg, (handlers, propagate, disabled) in zip(loggers, saved, strict=True):
+            lg.handlers, lg.propagate, lg.disabled = handlers, propagate, disabled
+
+
+def _frame(
+    tdms: Any,
+    size: int,
+    trial_id: str,
+    unit: str,
+    bad: Callable[..., None],
+    warn: Callable[[str], None],
+    heard: list[str],
+) -> pd.DataFrame | None:
+    if not tdms.groups():
+        said = f" (npTDMS: {heard[0]})" if heard else ""
+        bad(f"no data: an empty or damaged TDMS file{said}")
+        return None
+    groups = [g for g in tdms.groups() if FORCES[0] in _names(g)]
+    if len(groups) != 1:
+        layout = "; ".join(f"{g.name!r}: {', '.join(_names(g)) or 'no channels'}" for g in tdms.groups())
+        if groups:
+            names = " and ".join(repr(g.name) for g in groups)
+            bad(f"channel {FORCES[0]!r} is in groups {names}: keep one group of forces", FORCES[0])
+        else:
+            bad(f"no group has a channel {FORCES[0]!r} (groups: {layout or 'none'})", FORCES[0])
+        return None
+    group = groups[0]
+    have = _names(group)
+    missing = [c for c in FORCES if c not in have]
+    for c in missing:
+        bad(f"missing channel {c!r} in group {group.name!r} (channels: {', '.join(have)})", c)
+    if missing:
+        return None
+    torques = [c for c in REF_TORQUES if c in have]
+    if torques and len(torques) != len(REF_TORQUES):
+        warn(f"only {', '.join(torques)} of {', '.join(REF_TORQUES)} present; ignored")
+        torques = []
+    used = [*FORCES, *torques, *([TIME] if TIME in have else [])]
+    if extra := [c for c in have if c not in used]:
+        warn(f"extra channel(s) {', '.join(map(repr, extra))} ignored")
+
+    channels = {c: group[c] for c in used}
+    n = len(channels[FORCES[0]])
+    ok = True
+    for c, ch in channels.items():
+        if len(ch) != n:
+            cut = " (a file cut short?)" if heard else ""
+            bad(f"channel {c!r} has {len(ch)} samples, {FORCES[0]!r} has {n}{cut}", c)
+            ok = False
+        elif not np.issubdtype(ch.dtype, np.number) or np.issubdtype(ch.dtype, np.complexfloating):
+            bad(f"channel {c!r} holds {ch.dtype}, not real numbers", c)
+            ok = False
+        found = ch.properties.get(UNIT)
+        if c != TIME and found not in (None, "", unit):
+            bad(f"channel {c!r} is in {found!r} but batch.yaml says reference.units: {unit}", c)
+            ok = False
+    if not ok:
+        return None
+    if n == 0:
+        bad("empty stream: no samples")
+        return None
+    if n * len(channels) > size:  # damaged metadata: reading would allocate more than the file holds
+        bad(f"declares {n} samples per channel, more than its {size} bytes can hold: damaged file")
+        return None
+
+    values = {c: np.asarray(channels[c][:], dtype=np.float64) for c in used}
+    if TIME not in values:
+        t = _waveform_time(channels, n, bad)
+        if t is None:
+            return None
+        values[TIME] = t
+    for c in used:
+        for i in np.flatnonzero(np.isinf(values[c]))[:1]:  # NaN stays: GX reports missing values
+            bad(f"{values[c][i]} is not a finite number", c, int(i) + 1)
+    return pd.DataFrame(
+        {
+            "trial_id": pd.Series([trial_id] * n, dtype=object),
+            "line": np.arange(1, n + 1, dtype=np.int64),
+            **{c: values[c] for c in [TIME, *FORCES, *torques]},
+        }
+    )
+
+
+def _waveform_time(channels: dict[str, Any], n: int, bad: Callable[..., None]) -> np.ndarray | None:
+    """Sample times from the force channels' waveform properties, which must agree where given."""
+    first = channels[FORCES[0]].properties
+    step = first.get(WF_INCREMENT)
+    if step is None:
+        bad(f"no time: no {TIME!r} channel and no waveform property {WF_INCREMENT!r} on {FORCES[0]!r}")
+        return None
+    try:
+        step, start = float(step), float(first.get(WF_OFFSET, 0.0))
+    except (TypeError, ValueError):
+        bad(f"waveform properties {WF_INCREMENT!r} and {WF_OFFSET!r} must be numbers", FORCES[0])
+        return None
+    if not (np.isfinite(step) and step > 0 and np.isfinite(start)):
+        bad(f"{WF_INCREMENT!r} must be a positive number of seconds, got {step}", FORCES[0])
+        return None
+    for c in FORCES[1:]:
+        other = channels[c].properties.get(WF_INCREMENT)
+        if other is not None and other != step:
+            bad(f"{WF_INCREMENT!r} is {other}, {FORCES[0]!r} has {step}", c)
+            return None
+    return start + step * np.arange(n, dtype=np.float64)
+
+
+def _names(group: Any) -> list[str]:
+    return [ch.name for ch in group.channels()]

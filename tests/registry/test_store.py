@@ -1,0 +1,112 @@
+"""The registry check before anything changes: a server that is not MLflow and a read-only store are
+told apart from a working store, and from each other."""
+
+from __future__ import annotations
+
+import http.server
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from mlflow import MlflowClient
+from typer.testing import CliRunner
+
+from pipeline.cli import app
+from pipeline.registry import store, versions
+from pipeline.registry.store import CHAMPION, TAG, model_name
+
+
+class _Answers(http.server.BaseHTTPRequestHandler):
+    """Answers every request with 200 and the same body, as a misconfigured proxy or web app might."""
+
+    body = b"{}"
+    seen: list[str]
+
+    def _answer(self) -> None:
+        self.seen.append(f"{self.command} {self.path.split('?')[0]}")
+        length = int(self.headers.get("Content-Length") or 0)
+        self.rfile.read(length)
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(self.body)))
+        self.end_headers()
+        self.wfile.write(self.body)
+
+    do_GET = do_POST = do_PATCH = do_DELETE = _answer
+
+    def log_message(self, *args: object) -> None:  # quiet
+        pass
+
+
+@pytest.fixture
+def not_mlflow(request: pytest.FixtureRequest) -> Iterator[tuple[str, list[str]]]:
+    """http://127.0.0.1:<port> of a server answering `request.param` (default `{}`) to everything,
+    and the requests it saw."""
+    seen: list[str] = []
+    handler = type("H", (_Answers,), {"body": getattr(request, "param", b"{}"), "seen": seen})
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}", seen
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@pytest.mark.parametrize("not_mlflow", [b"{}", b"<html><body>Welcome</body></html>"], indirect=True)
+def test_a_server_that_is_not_mlflow_is_named_so_before_any_write(not_mlflow, monkeypatch) -> None:
+    # given: a web server answering every request with 200 and the same body, as the tracking URI
+    uri, seen = not_mlflow
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    # when: a writer connects (rollback, as `needlecue rollback 30` does)
+    result = CliRunner().invoke(app, ["rollback", "30", "--to", "1"])
+    # then: refused (exit 1) as not MLflow, not as unreachable or read-only
+    assert result.exit_code == 1, result.output
+    assert f"{uri} answers, but not as an MLflow tracking server" in result.output
+    assert "Traceback" not in result.output
+    # ... and it was only ever asked, never told to change anything
+    assert seen and all(line.startswith("GET ") for line in seen), seen
+    # and: a reader is told the same
+    with pytest.raises(store.NotMlflow, match="answers, but not as an MLflow tracking server"):
+        store.connect(uri)
+
+
+def _store_with_two_versions(tmp_path: Path, uri: str) -> None:
+    """needle-force-30 v1 and v2, v2 the champion that replaced v1."""
+    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+    name = model_name(30)
+    client.create_registered_model(name)
+    for v in (1, 2):
+        source = tmp_path / f"v{v}"
+        source.mkdir()
+        client.create_model_version(name, source.as_uri())
+    client.set_registered_model_alias(name, CHAMPION, "2")
+    client.set_model_version_tag(name, "2", f"{TAG}previous_champion", "1")
+
+
+def test_a_read_only_store_is_read_but_refuses_a_rollback_before_the_alias_moves(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: a store whose champion v2 replaced v1, opened read-only (SQLite's mode=ro)
+    db = tmp_path / "mlflow.db"
+    _store_with_two_versions(tmp_path, f"sqlite:///{db}")
+    read_only = f"sqlite:///file:{db}?mode=ro&uri=true"
+    # when: a reader connects, and a writer
+    reader = store.connect(read_only, must_exist=True)
+    with pytest.raises(store.ReadOnlyStore, match="is read-only here") as refused:
+        store.connect(read_only, write=True)
+    # then: the reader sees the champion; the writer is told it is read-only, not unreachable
+    assert str(store.alias_version(reader, model_name(30), CHAMPION).version) == "2"
+    assert "not MLflow" not in str(refused.value)
+    # when: `needlecue rollback 30` on it
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", read_only)
+    result = CliRunner().invoke(app, ["rollback", "30"])
+    # then: exit 1 saying read-only (no traceback), and the champion is still v2
+    assert result.exit_code == 1 and "read-only" in result.output, result.output
+    assert "Traceback" not in result.output
+    writable = MlflowClient(tracking_uri=f"sqlite:///{db}", registry_uri=f"sqlite:///{db}")
+    assert str(writable.get_model_version_by_alias(model_name(30), CHAMPION).version) == "2"
+    # and: on the same store writable, the rollback goes through
+    assert versions.rollback(30, uri=f"sqlite:///{db}") == (2, 1)
