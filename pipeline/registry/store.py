@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import logging
 import os
+import re
+import sqlite3
+from contextlib import closing
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -164,14 +167,17 @@ def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = F
             raise RegistryUnreachable(f"MLflow store {uri}: folder {db.parent} does not exist")
         if must_exist and not db.is_file():
             raise RegistryUnreachable(f"MLflow store {uri}: no such database (run `make repro` to create it)")
-    mlflow.set_tracking_uri(uri)
-    mlflow.set_registry_uri(uri)
-    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+        _is_mlflow_sqlite(db, uri, must_exist)
     try:
+        # Inside the try: MLflow opens (and for sqlite, migrates) the store here, and an unknown
+        # scheme, a missing database driver or a bad URI raise here too.
+        mlflow.set_tracking_uri(uri)
+        mlflow.set_registry_uri(uri)
+        client = MlflowClient(tracking_uri=uri, registry_uri=uri)
         client.search_registered_models(max_results=1)
     except Exception as e:
-        if "not in a valid JSON format" in str(e):  # it answered, with a web page or the like
-            raise NotMlflow(f"{uri} answers, but not as an MLflow tracking server: {_said(e)}") from e
+        if (why := _not_mlflow(e)) is not None:
+            raise NotMlflow(f"{uri} answers, but not as an MLflow tracking server: {why}") from e
         raise RegistryUnreachable(f"cannot reach the MLflow registry at {uri}: {_said(e)}") from e
     _speaks_mlflow(client, uri)
     if write:
@@ -179,8 +185,50 @@ def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = F
     return client
 
 
+def _is_mlflow_sqlite(db: Path, uri: str, must_exist: bool) -> None:
+    """`NotMlflow` for a sqlite file that is there but is not an MLflow store (another program's
+    database, or not a database), read-only and before MLflow would add its tables to it. An empty
+    file is a store to be created, unless `must_exist`."""
+    if not db.is_file():
+        return
+    try:
+        with closing(sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True)) as con:
+            tables = {row[0] for row in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.Error as e:
+        raise NotMlflow(f"MLflow store {uri}: {db} is not an SQLite database ({e})") from e
+    if not tables and not must_exist:
+        return
+    if not {"experiments", "alembic_version"} <= tables:
+        found = ", ".join(sorted(tables)[:8]) or "none"
+        raise NotMlflow(
+            f"MLflow store {uri}: {db} is not an MLflow database (tables: {found}); left as it is"
+        )
+
+
+def _not_mlflow(e: Exception) -> str | None:
+    """Why the error of a plain search says something other than MLflow answered (a web page, or an
+    HTTP error MLflow gives to no search), else None (unreachable, refused credentials, a server error)."""
+    from mlflow.exceptions import RestException
+
+    text = str(e)
+    if "not in a valid JSON format" in text:  # it answered 200, with a web page or the like
+        return _said(e)
+    status = re.search(r"failed with error code (\d{3})", text)
+    code = getattr(e, "error_code", "")
+    if status is not None:  # an HTTP error with a body that is not MLflow's JSON
+        http = int(status.group(1))
+        return None if http in (401, 403) or http >= 500 else f"HTTP {http} to a search: {_said(e)}"
+    if isinstance(e, RestException) and code in ("RESOURCE_DOES_NOT_EXIST", "ENDPOINT_NOT_FOUND"):
+        return f"{code} to a search of registered models, which MLflow always answers"
+    return None
+
+
 def _said(e: Exception) -> str:
-    return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0][:300]}"
+    """The error's first line, its start and end when long (a connection error's cause comes last)."""
+    line = (str(e).splitlines() or [""])[0]
+    if len(line) > 400:
+        line = f"{line[:200]} ... {line[-200:]}"
+    return f"{type(e).__name__}: {line}"
 
 
 def _speaks_mlflow(client: MlflowClient, uri: str) -> None:
@@ -217,11 +265,16 @@ def _takes_writes(client: MlflowClient, uri: str) -> None:
     except Exception as e:
         code = getattr(e, "error_code", "")
         text = str(e).lower()
-        if code in ("PERMISSION_DENIED", "UNAUTHENTICATED") or "readonly" in text or "read-only" in text:
+        if code == "UNAUTHENTICATED":
             raise ReadOnlyStore(
-                f"the MLflow store at {uri} is read-only here ({code or type(e).__name__}: "
-                f"{(str(e).splitlines() or [''])[0][:200]}): it can be read, not written. A read-only "
-                "database, or read-only credentials (a simulator's): writing needs a lab or admin user."
+                f"the MLflow server at {uri} takes writes only from a known user ({_said(e)}): set "
+                "MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD to a lab or admin user's."
+            ) from e
+        if code == "PERMISSION_DENIED" or "readonly" in text or "read-only" in text:
+            raise ReadOnlyStore(
+                f"the MLflow store at {uri} is read-only here ({_said(e)}): it can be read, not written. "
+                "A read-only database, or read-only credentials (a simulator's): writing needs a lab or "
+                "admin user."
             ) from e
         raise RegistryUnreachable(f"cannot write to the MLflow store at {uri}: {_said(e)}") from e
     finally:

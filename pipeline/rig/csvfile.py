@@ -21,8 +21,9 @@ from pipeline.rig.format import GZIP
 from pipeline.rig.problems import ProblemLog
 
 # A gzip-compressed CSV is read up to this many bytes: a trial of one insertion is a few MB, and a
-# small file that inflates to gigabytes (a "zip bomb") is refused instead of filling the memory.
-MAX_GUNZIPPED_BYTES = 512 * 2**20
+# small file that inflates to gigabytes (a "zip bomb") is refused instead of filling the memory: parsed,
+# text takes some 30 times its size, so 64 MiB of CSV is about 2 GB at its peak.
+MAX_GUNZIPPED_BYTES = 64 * 2**20
 
 # Text that to_numeric turns into NaN without being "text in a number column": a missing value.
 NAN_LITERALS = frozenset({"", "nan", "+nan", "-nan"})

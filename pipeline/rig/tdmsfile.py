@@ -11,7 +11,7 @@ channels (`wf_increment` s per sample, `wf_start_offset` s). A TDMS file has no 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -93,7 +93,7 @@ def _frame(
         return None
     groups = [g for g in tdms.groups() if FORCES[0] in _names(g)]
     if len(groups) != 1:
-        layout = "; ".join(f"{g.name!r}: {', '.join(_names(g)) or 'no channels'}" for g in tdms.groups())
+        layout = _few(f"{g.name!r}: {_few(_names(g), ', ') or 'no channels'}" for g in tdms.groups())
         if groups:
             names = " and ".join(repr(g.name) for g in groups)
             bad(f"channel {FORCES[0]!r} is in groups {names}: keep one group of forces", FORCES[0])
@@ -104,7 +104,7 @@ def _frame(
     have = _names(group)
     missing = [c for c in FORCES if c not in have]
     for c in missing:
-        bad(f"missing channel {c!r} in group {group.name!r} (channels: {', '.join(have)})", c)
+        bad(f"missing channel {c!r} in group {group.name!r} (channels: {_few(have, ', ')})", c)
     if missing:
         return None
     torques = [c for c in REF_TORQUES if c in have]
@@ -113,7 +113,7 @@ def _frame(
         torques = []
     used = [*FORCES, *torques, *([TIME] if TIME in have else [])]
     if extra := [c for c in have if c not in used]:
-        warn(f"extra channel(s) {', '.join(map(repr, extra))} ignored")
+        warn(f"extra channel(s) {_few(map(repr, extra), ', ')} ignored")
 
     channels = {c: group[c] for c in used}
     n = len(channels[FORCES[0]])
@@ -127,13 +127,19 @@ def _frame(
             bad(f"channel {c!r} holds {ch.dtype}, not real numbers", c)
             ok = False
         found = ch.properties.get(UNIT)
-        if c != TIME and found not in (None, "", unit):
+        if c in FORCES and found not in (None, "", unit):  # torques are in N·m, whatever `unit` is
             bad(f"channel {c!r} is in {found!r} but batch.yaml says reference.units: {unit}", c)
             ok = False
     if not ok:
         return None
     if n == 0:
         bad("empty stream: no samples")
+        return None
+    shifted = [m for m in heard if "not a multiple of the chunk size" in m]
+    if shifted and not any("less data than expected" in m for m in heard):
+        # A segment declaring fewer bytes than its channels need, not at a cut-off end: npTDMS
+        # shares the shortfall out among the channels, which shifts non-interleaved data.
+        bad(f"damaged file: a segment's data does not fit its channels (npTDMS: {shifted[0]})")
         return None
     if n * len(channels) > size:  # damaged metadata: reading would allocate more than the file holds
         bad(f"declares {n} samples per channel, more than its {size} bytes can hold: damaged file")
@@ -173,11 +179,28 @@ def _waveform_time(channels: dict[str, Any], n: int, bad: Callable[..., None]) -
         bad(f"{WF_INCREMENT!r} must be a positive number of seconds, got {step}", FORCES[0])
         return None
     for c in FORCES[1:]:
-        other = channels[c].properties.get(WF_INCREMENT)
-        if other is not None and other != step:
-            bad(f"{WF_INCREMENT!r} is {other}, {FORCES[0]!r} has {step}", c)
-            return None
+        for name, mine in ((WF_INCREMENT, step), (WF_OFFSET, start)):
+            other = channels[c].properties.get(name)
+            if other is not None and _number(other) != mine:
+                bad(f"waveform property {name!r} is {other}, {FORCES[0]!r} has {mine}", c)
+                return None
     return start + step * np.arange(n, dtype=np.float64)
+
+
+def _number(value: Any) -> float | None:
+    """A property as a float ("0.005" and 0.005 agree), None if it is not a number."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+def _few(names: Iterable[str], sep: str = "; ", most: int = 10) -> str:
+    """The first `most` of `names` joined, and how many more: a file of thousands of channels gives a
+    readable message."""
+    names = list(names)
+    more = f"{sep}... {len(names) - most} more" if len(names) > most else ""
+    return sep.join(names[:most]) + more
 
 
 def _names(group: Any) -> list[str]:

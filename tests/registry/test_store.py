@@ -4,8 +4,11 @@ told apart from a working store, and from each other."""
 from __future__ import annotations
 
 import http.server
+import re
+import sqlite3
 import threading
 from collections.abc import Iterator
+from contextlib import closing
 from pathlib import Path
 
 import pytest
@@ -18,8 +21,9 @@ from pipeline.registry.store import CHAMPION, TAG, model_name
 
 
 class _Answers(http.server.BaseHTTPRequestHandler):
-    """Answers every request with 200 and the same body, as a misconfigured proxy or web app might."""
+    """Answers every request with the same status and body, as a misconfigured proxy or web app might."""
 
+    status = 200
     body = b"{}"
     seen: list[str]
 
@@ -27,7 +31,7 @@ class _Answers(http.server.BaseHTTPRequestHandler):
         self.seen.append(f"{self.command} {self.path.split('?')[0]}")
         length = int(self.headers.get("Content-Length") or 0)
         self.rfile.read(length)
-        self.send_response(200)
+        self.send_response(self.status)
         self.send_header("Content-Type", "application/json")
         self.send_header("Content-Length", str(len(self.body)))
         self.end_headers()
@@ -41,10 +45,11 @@ class _Answers(http.server.BaseHTTPRequestHandler):
 
 @pytest.fixture
 def not_mlflow(request: pytest.FixtureRequest) -> Iterator[tuple[str, list[str]]]:
-    """http://127.0.0.1:<port> of a server answering `request.param` (default `{}`) to everything,
-    and the requests it saw."""
+    """http://127.0.0.1:<port> of a server answering `request.param` (status, body; default 200 and
+    `{}`) to everything, and the requests it saw."""
     seen: list[str] = []
-    handler = type("H", (_Answers,), {"body": getattr(request, "param", b"{}"), "seen": seen})
+    status, body = getattr(request, "param", (200, b"{}"))
+    handler = type("H", (_Answers,), {"status": status, "body": body, "seen": seen})
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
@@ -55,9 +60,18 @@ def not_mlflow(request: pytest.FixtureRequest) -> Iterator[tuple[str, list[str]]
         server.server_close()
 
 
-@pytest.mark.parametrize("not_mlflow", [b"{}", b"<html><body>Welcome</body></html>"], indirect=True)
+PAGE = b"<html><body>Welcome</body></html>"
+NO_SUCH = b'{"error_code": "RESOURCE_DOES_NOT_EXIST", "message": "Not found"}'
+
+
+@pytest.mark.parametrize(
+    "not_mlflow",
+    [(200, b"{}"), (200, PAGE), (404, PAGE), (404, NO_SUCH)],
+    ids=["200 {}", "200 page", "404 page", "404 JSON no such thing"],
+    indirect=True,
+)
 def test_a_server_that_is_not_mlflow_is_named_so_before_any_write(not_mlflow, monkeypatch) -> None:
-    # given: a web server answering every request with 200 and the same body, as the tracking URI
+    # given: a web server answering every request with the same status and body, as the tracking URI
     uri, seen = not_mlflow
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     # when: a writer connects (rollback, as `needlecue rollback 30` does)
@@ -110,3 +124,62 @@ def test_a_read_only_store_is_read_but_refuses_a_rollback_before_the_alias_moves
     assert str(writable.get_model_version_by_alias(model_name(30), CHAMPION).version) == "2"
     # and: on the same store writable, the rollback goes through
     assert versions.rollback(30, uri=f"sqlite:///{db}") == (2, 1)
+
+
+@pytest.mark.parametrize(
+    "not_mlflow", [(503, PAGE), (401, PAGE)], ids=["503: down for now", "401: credentials"], indirect=True
+)
+def test_a_server_error_or_a_refused_login_is_unreachable_not_another_service(not_mlflow) -> None:
+    # given: a server answering 503 (a proxy before a stopped MLflow) or 401 (a login) to everything
+    uri, _ = not_mlflow
+    # when: a reader connects
+    with pytest.raises(store.RegistryUnreachable, match="cannot reach the MLflow registry") as failed:
+        store.connect(uri)
+    # then: unreachable (try again, or with credentials), not "not MLflow"
+    assert type(failed.value) is store.RegistryUnreachable
+
+
+def _other_database(db: Path) -> None:
+    with closing(sqlite3.connect(db)) as con:
+        con.execute("CREATE TABLE patients (id INTEGER PRIMARY KEY, name TEXT)")
+        con.commit()
+
+
+@pytest.mark.parametrize(
+    ("make", "must_exist", "says"),
+    [
+        (_other_database, False, "is not an MLflow database (tables: patients)"),
+        (lambda db: db.write_bytes(b"t_s,fx,fy,fz\n" * 40), False, "is not an SQLite database"),
+        (lambda db: db.write_bytes(b""), True, "is not an MLflow database (tables: none)"),
+    ],
+    ids=["another program's database", "not a database", "empty file, for a reader"],
+)
+def test_a_sqlite_file_that_is_not_an_mlflow_store_is_refused_and_left_as_it_is(
+    tmp_path: Path, make, must_exist: bool, says: str
+) -> None:
+    # given: a file at the store's path that is not an MLflow store
+    db = tmp_path / "mlflow.db"
+    make(db)
+    before = db.read_bytes()
+    # when: connecting to it (as a writer, or as a reader for the empty file)
+    with pytest.raises(store.NotMlflow, match=re.escape(says)):
+        store.connect(f"sqlite:///{db}", must_exist=must_exist, write=not must_exist)
+    # then: refused, and not a byte of it changed (MLflow never added its tables)
+    assert db.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("uri", "says"),
+    [
+        ("ftp://127.0.0.1/mlflow", "ftp"),
+        ("postgresql+nosuchdriver://lab@127.0.0.1:1/mlflow", "nosuchdriver"),
+    ],
+    ids=["unknown scheme", "missing database driver"],
+)
+def test_a_tracking_uri_mlflow_cannot_use_is_unreachable_with_its_reason(uri: str, says: str) -> None:
+    # given: a tracking URI MLflow cannot open at all
+    # when: connecting
+    with pytest.raises(store.RegistryUnreachable) as failed:
+        store.connect(uri)
+    # then: one error naming the URI and why, not MLflow's or SQLAlchemy's own exception
+    assert uri in str(failed.value) and says in str(failed.value)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import gzip
 import json
 import shutil
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -173,10 +174,12 @@ def test_gzip_csv_and_tdms_reference_ingest_to_the_same_bytes_as_plain_csv(raw_d
 
 def test_tdms_time_from_ni_waveform_properties(raw_dir, tmp_path):
     # Given reference streams as TDMS with no t_s channel: NI's wf_increment and wf_start_offset instead
+    # (fz's increment written as text, as some writers do: it agrees with fx's number)
     b = raw_dir / A
     csv_ref = pd.read_csv(b / "t001.ref.csv")
     for t in TRIALS:
-        to_tdms(b / f"{t}.ref.csv", time="waveform")
+        step = float(np.median(np.diff(pd.read_csv(b / f"{t}.ref.csv")["t_s"])))
+        to_tdms(b / f"{t}.ref.csv", time="waveform", properties={"fz": {"wf_increment": repr(step)}})
     # When the batch is ingested
     result = run([raw_dir], tmp_path / "out")
     # Then it is accepted; the times are start + k * increment, the forces exactly the CSV's
@@ -187,6 +190,39 @@ def test_tdms_time_from_ni_waveform_properties(raw_dir, tmp_path):
     np.testing.assert_array_equal(
         first[["fx", "fy", "fz"]].to_numpy(), csv_ref[["fx", "fy", "fz"]].to_numpy()
     )
+
+
+def test_tdms_torques_in_newton_metres_are_kept_beside_forces_in_millinewtons(raw_dir, tmp_path):
+    # Given TDMS reference streams with forces in mN (as batch.yaml says) and torques in N·m
+    b = raw_dir / A
+    for t in TRIALS:
+        ref = pd.read_csv(b / f"{t}.ref.csv")
+        ref[["tx", "ty", "tz"]] = ref[["fx", "fy", "fz"]].to_numpy() * 1e-5
+        ref.to_csv(b / f"{t}.ref.csv", index=False)
+        torque = {c: {"unit_string": "N·m"} for c in ("tx", "ty", "tz")}
+        to_tdms(b / f"{t}.ref.csv", unit="mN", properties=torque)
+    # When the batch is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then it is accepted with its torques: their unit is not the forces'
+    assert result.problems == [] and result.accepted == [A]
+    ref = pd.read_parquet(tmp_path / "out" / A / "ref.parquet")
+    assert {"tx", "ty", "tz"} <= set(ref.columns)
+
+
+def test_a_tdms_file_of_many_extra_channels_is_named_in_a_warning_of_readable_length(raw_dir, tmp_path):
+    # Given a reference stream in TDMS whose forces' group also holds 50 other channels
+    b = raw_dir / A
+    ref = pd.read_csv(b / "t001.ref.csv")
+    for k in range(50):
+        ref[f"aux{k:02d}"] = 0.0
+    ref.to_csv(b / "t001.ref.csv", index=False)
+    to_tdms(b / "t001.ref.csv")
+    # When the batch is ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then the trial is used, with one warning naming the first ten and how many more
+    assert result.problems == [] and result.batches[0].trials_accepted == TRIALS
+    (said,) = [w for w in result.batches[0].warnings if "extra channel" in w]
+    assert "'aux00', 'aux01'" in said and "'aux09', ... 40 more ignored" in said and "aux10" not in said
 
 
 def test_a_tdms_file_without_a_trial_row_is_reported_and_not_ingested(raw_dir, tmp_path):
@@ -309,6 +345,18 @@ def _truncate(path: Path, keep: int) -> None:
 def _gzip_cut(b: Path) -> None:
     gz = gzip_file(b / _ref())
     _truncate(gz, gz.stat().st_size // 2)
+
+
+def _tdms_segment_short(ref: Path) -> None:
+    """A TDMS file whose only segment declares (and holds) 100 samples' bytes fewer than its channels
+    need, with nothing cut off at the end: the lead-in's next-segment offset says where it ends."""
+    tdms = to_tdms(ref)
+    data = bytearray(tdms.read_bytes())
+    lead_in = 28  # "TDSm", ToC mask, version, next-segment offset (u64 at 12), raw-data offset
+    (length,) = struct.unpack_from("<Q", data, 12)
+    length -= 100 * 8
+    struct.pack_into("<Q", data, 12, length)
+    tdms.write_bytes(bytes(data[: lead_in + length]))
 
 
 def _tdms_two_groups(ref: Path) -> None:
@@ -763,6 +811,19 @@ BAD = [
         "glitch: fy = 30000 mN",
         line=800,
         column="fy",
+    ),
+    Bad(
+        "tdms: a segment shorter than its channels",
+        lambda b: _tdms_segment_short(b / _ref()),
+        "t002.ref.tdms",
+        "damaged file: a segment's data does not fit its channels (npTDMS: Data size",
+    ),
+    Bad(
+        "tdms: waveform start of fz differs",
+        lambda b: to_tdms(b / _ref(), time="waveform", properties={"fz": {"wf_start_offset": 1.5}}),
+        "t002.ref.tdms",
+        "waveform property 'wf_start_offset' is 1.5, 'fx' has 0.0",
+        column="fz",
     ),
     Bad(
         "tdms: channel lengths differ",
