@@ -40,8 +40,6 @@ def make_project(root: Path, simulate: dict) -> Path:
     params["simulate"].update(simulate)
     if "angles_deg" in simulate:  # train only the angles the small rig records
         params["train"]["angles"] = simulate["angles_deg"]
-    if not params["simulate"].get("enabled", True):
-        params["train"]["angles"] = [30, 45]  # the hand-written lab batch's angles
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     (root / "data" / "raw").mkdir(parents=True)
     run(root, "dvc", "init", "--no-scm", "-q")

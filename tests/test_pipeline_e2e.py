@@ -90,38 +90,62 @@ def test_repro_builds_per_angle_datasets_then_reruns_only_what_a_change_touches(
     }, out
 
 
-def test_a_lab_folder_goes_through_with_params_only(tmp_path):
-    # Given a hand-written rig-log/1 batch (4 channels, volts, mN) and the simulator off
+def _recording(share: Path, name: str, *, angle: int, later: int) -> Path:
+    """The hand-written lab batch as batch `name` in `share`, every trial at `angle`°, each estimator
+    stream's first sample `later` hundredths of a millisecond later (another recording for each
+    `later`, not a copy, which split would set aside)."""
+    batch = shutil.copytree(LAB_BATCH, share / name)
+    (batch / "batch.yaml").write_text((batch / "batch.yaml").read_text().replace("lab-bench-a", name))
+    trials = pd.read_csv(batch / "trials.csv")
+    trials["angle_deg"] = angle
+    trials.to_csv(batch / "trials.csv", index=False)
+    for fsr in batch.glob("*.fsr.csv"):
+        rows = fsr.read_text().splitlines()
+        rows[1] = rows[1].replace(",", f"{later},", 1)
+        fsr.write_text("\n".join(rows) + "\n")
+    return batch
+
+
+def test_a_single_angle_lab_follows_the_readme_with_params_only(tmp_path):
+    # Given a lab with one angle, as the README's lab section says: hand-written rig-log/1 batches
+    # (4 channels, volts, mN) in a folder of its own, the simulator off, `train.angles: [30]`,
+    # its held-out batch named in `split.external_batches`
     root = make_project(tmp_path / "proj", {"enabled": False})
-    raw = root / "data" / "raw"
-    shutil.copytree(LAB_BATCH, raw / LAB_BATCH.name)
-    before = tree_hash(raw)
+    share = tmp_path / "lab-share"
+    _recording(share, "lab-bench-a", angle=30, later=1)
+    _recording(share, "lab-heldout-a", angle=30, later=2)
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["data"]["raw_dir"] = str(share)
+    params["train"]["angles"] = [30]
+    params["split"]["external_batches"] = ["lab-heldout-*"]
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    before = tree_hash(share)
     # When the pipeline runs
     run(root, "dvc", "repro")
-    # Then its angles come out with its own channel names, in volts and newtons
+    # Then its one angle comes out with its own channel names, in volts and newtons
     manifest = json.loads((root / "data" / "processed" / "manifest.json").read_text())
-    assert sorted(manifest["angles"]) == ["30", "45"]
+    assert sorted(manifest["angles"]) == ["30"]
     assert manifest["angles"]["30"]["channels"] == ["left", "right", "top", "bottom"]
+    external = pd.read_parquet(root / "data" / "processed" / "30" / "external.parquet")
+    assert set(external.batch_id) == {"lab-heldout-a"}
     frames = [pd.read_parquet(p) for p in (root / "data" / "processed" / "30").glob("*.parquet")]
     data = pd.concat([f for f in frames if len(f)])
     assert data.fx.abs().max() < 5.0  # newtons, not millinewtons
-    # And the raw folder is exactly as it was
-    assert tree_hash(raw) == before
+    # And its champion is registered, in the store MLFLOW_TRACKING_URI names
+    champion = MlflowClient().get_model_version_by_alias("needle-force-30", "champion")
+    assert int(champion.version) == 1
+    # And the lab's folder is exactly as it was
+    assert tree_hash(share) == before
 
-    # When a second batch arrives (another recording: not a copy, which split would set aside)
-    new = shutil.copytree(LAB_BATCH, raw / "lab-bench-b")
-    (new / "batch.yaml").write_text((new / "batch.yaml").read_text().replace("lab-bench-a", "lab-bench-b"))
-    for fsr in new.glob("*.fsr.csv"):
-        rows = fsr.read_text().splitlines()
-        rows[1] = rows[1].replace(",", "1,", 1)  # its first sample a hundredth of a millisecond later
-        fsr.write_text("\n".join(rows) + "\n")
+    # When a second batch arrives
+    _recording(share, "lab-bench-b", angle=30, later=3)
     out = run(root, "dvc", "repro")
-    # Then only the new batch is parsed; the first one is reused from the ingest cache
+    # Then only the new batch is parsed; the first ones are reused from the ingest cache
     assert "lab-bench-b: parsed" in out, out
     assert "lab-bench-a: reused" in out, out
-    # And the ledger has all six trials used
+    # And the ledger has all nine trials used
     ledger = json.loads((root / "reports" / "ledger" / "ledger.json").read_text())
-    assert ledger["counts"]["trials"] == ledger["counts"]["used"] == 6, ledger["counts"]
+    assert ledger["counts"]["trials"] == ledger["counts"]["used"] == 9, ledger["counts"]
 
 
 def changed_stages(root: Path) -> set[str]:
