@@ -21,7 +21,7 @@ import pandas as pd
 from pipeline.config import CalibrateParams
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
-from pipeline.modelling.networks import deterministic_torch
+from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
 from pipeline.modelling.predict import Predictor
 from pipeline.vocab import AXES
 
@@ -96,7 +96,8 @@ def _fit(
         loss.backward()
         return loss
 
-    opt.step(closure)
+    with exact_lbfgs():
+        opt.step(closure)
     with torch.no_grad():
         after = float(objective())
     return (eye + delta * mask).detach().numpy().copy(), offset.detach().numpy().copy(), before, after

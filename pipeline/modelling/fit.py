@@ -31,7 +31,7 @@ import pandas as pd
 from pipeline.config import PARAMS_MODELS, FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
 from pipeline.modelling.inputs import column_stats, features_of, inputs_of, trial_codes
-from pipeline.modelling.networks import build_network, deterministic_torch
+from pipeline.modelling.networks import build_network, deterministic_torch, exact_sqrt
 from pipeline.modelling.predict import Predictor
 from pipeline.vocab import AXES, KINDS, channels_of, rate_hz
 
@@ -54,7 +54,8 @@ def _angle_deg(frame: pd.DataFrame) -> float:
 
 class Adam:
     """Adam (Kingma & Ba), the arithmetic of torch.optim.Adam's single-tensor CPU path op for op
-    (L2 `weight_decay` added to the gradient, as there); a test checks the two agree bit for bit.
+    (L2 `weight_decay` added to the gradient, as there) but for an exact square root (`exact_sqrt`:
+    torch's depends on the CPU); a test checks the two agree bit for bit given the same root.
 
     Why not torch.optim.Adam itself: every torch.optim optimizer imports torch._dynamo on first
     use (~1 s measured per process, for torch.compile support unused here), and the 12 network
@@ -95,7 +96,7 @@ class Adam:
                 grad = p.grad if self.weight_decay == 0 else p.grad.add(p, alpha=self.weight_decay)
                 exp_avg.lerp_(grad, 1 - self.beta1)
                 exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
-                denom = (exp_avg_sq.sqrt() / bias_correction2_sqrt).add_(self.eps)
+                denom = exact_sqrt(exp_avg_sq).div_(bias_correction2_sqrt).add_(self.eps)
                 p.addcdiv_(exp_avg, denom, value=-step_size)
 
 

@@ -80,6 +80,49 @@ def _set_deterministic(mode: bool, warn_only: bool = False) -> None:
         setter(mode, warn_only=warn_only)
 
 
+def exact_sqrt(t: torch.Tensor) -> torch.Tensor:
+    """The square root of each element, correctly rounded (IEEE), as a new tensor. torch's own sqrt
+    (float32 and float64, even under `ATEN_CPU_CAPABILITY=default`) is an approximation whose last
+    bits depend on the CPU: measured here, 17 % of float32 roots off by an ulp, a different 17 % on
+    an emulated older CPU (docs/reproducibility.md). numpy's is the hardware's exact one."""
+    import numpy as np
+    import torch
+
+    return torch.as_tensor(np.sqrt(t.detach().numpy()), dtype=t.dtype)
+
+
+@contextmanager
+def exact_lbfgs() -> Iterator[None]:
+    """torch.optim.LBFGS's strong-Wolfe line search with `exact_sqrt` in its cubic interpolation (its
+    only square root), restored on exit: the step it picks then does not depend on the CPU."""
+    from torch.optim import lbfgs
+
+    original = lbfgs._cubic_interpolate
+
+    def cubic_interpolate(x1, f1, g1, x2, f2, g2, bounds=None):  # type: ignore[no-untyped-def]
+        # torch's own, line for line (torch/optim/lbfgs.py), but for the square root
+        if bounds is not None:
+            xmin_bound, xmax_bound = bounds
+        else:
+            xmin_bound, xmax_bound = (x1, x2) if x1 <= x2 else (x2, x1)
+        d1 = g1 + g2 - 3 * (f1 - f2) / (x1 - x2)
+        d2_square = d1**2 - g1 * g2
+        if d2_square >= 0:
+            d2 = exact_sqrt(d2_square)
+            if x1 <= x2:
+                min_pos = x2 - (x2 - x1) * ((g2 + d2 - d1) / (g2 - g1 + 2 * d2))
+            else:
+                min_pos = x1 - (x1 - x2) * ((g1 + d2 - d1) / (g1 - g2 + 2 * d2))
+            return min(max(min_pos, xmin_bound), xmax_bound)
+        return (xmin_bound + xmax_bound) / 2.0
+
+    lbfgs._cubic_interpolate = cubic_interpolate
+    try:
+        yield
+    finally:
+        lbfgs._cubic_interpolate = original
+
+
 @contextmanager
 def deterministic_torch(seed: int | None = None, threads: int | None = None) -> Iterator[None]:
     """Fixed thread count, deterministic algorithms, oneDNN off and (optionally) a seeded global RNG,
