@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pandas as pd
@@ -13,6 +12,7 @@ from mlflow import MlflowClient
 
 from tests.helpers import tree_hash
 from tests.projects import LAB_BATCH, make_project, make_tiny_project, run
+from tests.rig.batches import copy_batch
 
 pytestmark = pytest.mark.slow
 
@@ -94,8 +94,7 @@ def _recording(share: Path, name: str, *, angle: int, later: int) -> Path:
     """The hand-written lab batch as batch `name` in `share`, every trial at `angle`°, each estimator
     stream's first sample `later` hundredths of a millisecond later (another recording for each
     `later`, not a copy, which split would set aside)."""
-    batch = shutil.copytree(LAB_BATCH, share / name)
-    (batch / "batch.yaml").write_text((batch / "batch.yaml").read_text().replace("lab-bench-a", name))
+    batch = copy_batch(LAB_BATCH, share, name)
     trials = pd.read_csv(batch / "trials.csv")
     trials["angle_deg"] = angle
     trials.to_csv(batch / "trials.csv", index=False)

@@ -170,9 +170,8 @@ def _waveform_time(channels: dict[str, Any], n: int, bad: Callable[..., None]) -
     if step is None:
         bad(f"no time: no {TIME!r} channel and no waveform property {WF_INCREMENT!r} on {FORCES[0]!r}")
         return None
-    try:
-        step, start = float(step), float(first.get(WF_OFFSET, 0.0))
-    except (TypeError, ValueError):
+    step, start = _number(step), _number(first.get(WF_OFFSET, 0.0))
+    if step is None or start is None:
         bad(f"waveform properties {WF_INCREMENT!r} and {WF_OFFSET!r} must be numbers", FORCES[0])
         return None
     if not (np.isfinite(step) and step > 0 and np.isfinite(start)):
