@@ -1,4 +1,4 @@
-"""Reading and writing a unit's calibration document (format "needlecue-unit/2", built by
+"""Reading and writing a unit's calibration document (format "needlecue-unit/3", built by
 `pipeline.calibration.unit`), and picking the transform that applies to one model. Numpy and json
 only: the simulator's client imports this module."""
 
@@ -12,7 +12,7 @@ from typing import Any
 from pipeline.modelling.features import InputTransform
 from pipeline.vocab import angle_name
 
-FORMAT = "needlecue-unit/2"
+FORMAT = "needlecue-unit/3"
 DIGITS = 6  # decimals in the JSON: small, stable files
 FILE = "calibration.json"  # its name in MLflow and in the client's cache
 
@@ -32,7 +32,9 @@ def read_unit(path: Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not a readable calibration document: {e}") from e
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise ValueError(f"{path}: not a {FORMAT} document (format {found!r})")
+        older = isinstance(found, str) and found.startswith(FORMAT.split("/")[0] + "/")
+        hint = ": made by another needlecue version; calibrate the unit again" if older else ""
+        raise ValueError(f"{path}: not a {FORMAT} document (format {found!r}){hint}")
     for kind, t in (doc.get("transforms") or {}).items():
         InputTransform.from_dict(t)  # raises on a malformed matrix
         if not isinstance(t.get("models"), dict):

@@ -2,7 +2,7 @@
 evidence stage, read through each estimator unit's class means), the preset angle's standard force
 profile, the paper-method thresholds per model kind.
 
-A *cue pack* (format "needlecue-cues/2") is a small JSON-able dict shipped with the preset angle's
+A *cue pack* (format "needlecue-cues/3") is a small JSON-able dict shipped with the preset angle's
 model; `pipeline.cues.tracker.CueTracker` runs it. What cannot be built from the data (the angle
 estimator: one angle only, too few trials, no rest reading; the standard profile: no trial with a
 contact) is left null and `unavailable` says why; the tracker falls back to what the pack has.
@@ -226,8 +226,8 @@ def fit_angle_estimator(
     return {
         "method": "linear discriminant per evidence stage (shared shrunk covariance, uniform priors), "
         "class means per estimator unit (pipeline.cues.units), softmax(scores / temperature)",
-        "features": "log rest volts per channel, then the unit direction of log(v / rest) when its norm "
-        "first reaches each evidence level",
+        "features": "log rest volts per channel, then the unit direction of the conductance change since "
+        "rest (params.divider) when the norm of log(v / rest) first reaches each evidence level",
         "classes_deg": angles,
         "levels": [float(x) for x in params.evidence_levels[: len(out_stages) - 1]],
         "stages": out_stages,

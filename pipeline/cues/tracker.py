@@ -8,12 +8,13 @@ methods every frame from a *cue pack* (`pipeline.cues.fit.build_cue_pack`):
 - **paper** (profile comparison alone): a running, spread-normalised RMS distance between the
   predicted force and the preset angle's *standard profile*, cut by two calibrated thresholds;
 - **combined** (ours): the estimator's own volts say at which angle it is held (the needle's weight
-  at rest, then the direction the voltages move as the load builds), through one linear
+  at rest, then the direction in which the FSRs' conductance moves as the load builds), through one linear
   discriminant per evidence stage read with the estimator unit's own class means (`unit_means`:
   every unit differs), plus the profile's "force in range" check.
 
-Both are debounced (a new cue must hold `debounce_s` before it is shown) with hysteresis. Numpy and
-the params model only: the simulator's client imports this module and nothing of the training code.
+Both are debounced (a new cue must hold `debounce_s` before it is shown) with hysteresis. Numpy, the
+params model and the divider's inversion only: the simulator's client imports this module and
+nothing of the training code.
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import CuesParams
+from pipeline.config import CuesParams, DividerParams
+from pipeline.modelling.features import conductance_us
 
-FORMAT = "needlecue-cues/2"
+FORMAT = "needlecue-cues/3"  # 3: loading directions in conductance (2: in log volts)
 CUES = ("wait", "continue", "correct", "stop")
 VERDICTS = CUES[1:]  # the cues a deviation maps to
 METHODS = ("combined", "paper")
@@ -124,9 +126,9 @@ class Evidence:
     changed (the rest mean moved, or a new loading level was reached)."""
 
     __slots__ = (
-        "_norms",
         "contact_i",
         "contact_t",
+        "divider",
         "levels",
         "min_rest_s",
         "n_ch",
@@ -140,9 +142,17 @@ class Evidence:
         "thr",
     )
 
-    def __init__(self, n_ch: int, levels: Sequence[float], thr: float, n_confirm: int, min_rest_s: float):
+    def __init__(
+        self,
+        n_ch: int,
+        levels: Sequence[float],
+        thr: float,
+        n_confirm: int,
+        min_rest_s: float,
+        divider: DividerParams,
+    ):
         self.n_ch, self.levels, self.thr = n_ch, tuple(levels), thr
-        self.n_confirm, self.min_rest_s = n_confirm, min_rest_s
+        self.n_confirm, self.min_rest_s, self.divider = n_confirm, min_rest_s, divider
         self.reset()
 
     def reset(self) -> None:
@@ -153,8 +163,7 @@ class Evidence:
         self.contact_t: float | None = None
         self.contact_i = -1  # frame index of contact (counted from reset)
         self.rest: list[float] | None = None  # rest mean, frozen at contact
-        self.snaps: list[list[float]] = []
-        self._norms: list[float] = []
+        self.snaps: list[list[float]] = []  # the unit loading direction at each level reached
 
     @property
     def stage(self) -> int:
@@ -174,14 +183,15 @@ class Evidence:
         )
 
     def features(self) -> list[float] | None:
-        """log rest volts per channel, then the unit direction of log(v / rest) at each level reached
-        (the direction, not the size: how hard the tissue pushes back is not the angle's business)."""
+        """log rest volts per channel, then the unit direction of the conductance change since rest at
+        each level reached (the direction, not the size: how hard the tissue pushes back is not the
+        angle's business)."""
         rest = self.rest_mean()
         if rest is None:
             return None
         out = [math.log(x) for x in rest]
-        for s, norm in zip(self.snaps, self._norms, strict=True):
-            out.extend(x / norm for x in s)
+        for s in self.snaps:
+            out.extend(s)
         return out
 
     def push(self, t: float, v: list[float], extra: Any = None, i: int = -1) -> tuple[bool, list]:
@@ -225,14 +235,19 @@ class Evidence:
     def _snap(self, v: list[float]) -> bool:
         if len(self.snaps) >= len(self.levels):
             return False
-        s = [math.log(x / r) for x, r in zip(v, self.rest, strict=True)]  # type: ignore[arg-type]
-        norm = math.sqrt(sum(x * x for x in s))
-        changed = False
+        # The levels are reached by how far the volts moved from rest (log ratio, as contact) ...
+        norm = math.sqrt(sum(math.log(x / r) ** 2 for x, r in zip(v, self.rest, strict=True)))  # type: ignore[arg-type]
+        if len(self.snaps) >= len(self.levels) or norm < self.levels[len(self.snaps)]:
+            return False
+        # ... and the direction is the conductance's: above actuation an FSR's conductance grows in
+        # proportion to its share of the load, whatever its cast-in preload, which the log ratio to
+        # rest carries (docs/units.md, "How the cue estimator reads a unit").
+        dg = conductance_us(np.asarray(v), self.divider) - conductance_us(np.asarray(self.rest), self.divider)
+        size = float(np.sqrt(np.sum(dg * dg))) or 1.0
+        direction = (dg / size).tolist()
         while len(self.snaps) < len(self.levels) and norm >= self.levels[len(self.snaps)]:
-            self.snaps.append(s)
-            self._norms.append(norm)
-            changed = True
-        return changed
+            self.snaps.append(direction)
+        return True
 
 
 @dataclass(frozen=True)
@@ -267,7 +282,11 @@ class _Debounce:
 def check_pack(pack: Mapping[str, Any]) -> None:
     if not isinstance(pack, Mapping) or pack.get("format") != FORMAT:
         got = pack.get("format") if isinstance(pack, Mapping) else type(pack).__name__
-        raise ValueError(f"not a {FORMAT} cue pack (format {got!r})")
+        older = isinstance(got, str) and got.startswith(FORMAT.split("/")[0] + "/")
+        hint = (
+            ": made by another needlecue version; `dvc repro` builds and registers a new one" if older else ""
+        )
+        raise ValueError(f"not a {FORMAT} cue pack (format {got!r}){hint}")
     for key in (
         "preset_angle_deg",
         "channels",
@@ -368,7 +387,7 @@ class CueTracker:
         limit = th.get("force_limit_n")
         self._force_limit2 = float(limit) ** 2 if p.force_check and limit is not None else math.inf
         self._ev = Evidence(
-            len(pack["channels"]), levels, p.contact_threshold, p.contact_samples, p.min_rest_s
+            len(pack["channels"]), levels, p.contact_threshold, p.contact_samples, p.min_rest_s, p.divider
         )
         self._min_stage = min(p.min_stage, len(levels))
         self._deb = _Debounce(p.debounce_s)

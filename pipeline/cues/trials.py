@@ -70,6 +70,7 @@ def run_evidence(trial: Trial, params: CuesParams) -> Evidence:
         params.contact_threshold,
         params.contact_samples,
         params.min_rest_s,
+        params.divider,
     )
     for i, (ti, vi) in enumerate(zip(trial.t.tolist(), trial.volts.tolist(), strict=True)):
         ev.push(ti, vi, None, i)

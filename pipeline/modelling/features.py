@@ -26,7 +26,7 @@ from typing import Any, get_args
 
 import numpy as np
 
-from pipeline.config import InputParams
+from pipeline.config import DividerParams, InputParams
 
 KINDS: tuple[str, ...] = get_args(InputParams.model_fields["kind"].annotation)
 MIN_VOLTS = 1e-3  # an unloaded FSR reads a few mV; below this the divider cannot be inverted
@@ -45,8 +45,8 @@ def _relative(spec: InputParams) -> bool:
     return spec.kind.startswith("rest_")
 
 
-def conductance_us(volts: np.ndarray, spec: InputParams) -> np.ndarray:
-    """FSR conductance in µS from divider volts (elementwise)."""
+def conductance_us(volts: np.ndarray, spec: DividerParams | InputParams) -> np.ndarray:
+    """FSR conductance in µS from divider volts (elementwise), through `spec`'s divider."""
     v = np.clip(np.asarray(volts, dtype=np.float64), MIN_VOLTS, spec.v_plus - MIN_VOLTS)
     r = spec.r_m_kohm * (spec.v_plus / v - 1.0)
     g = 1.0 / np.maximum(r - spec.r_series_kohm, MIN_R_KOHM) - 1.0 / spec.r_open_kohm

@@ -1,9 +1,11 @@
 """Tracking: each trained model as one MLflow run of the `needle-force` experiment, with its
 params, datasets, loss curve, per-split and per-gap metrics, figures, checkpoint and the deployable
-ONNX model. A model already tracked (same model hash) is not logged again."""
+ONNX model with its cue pack. A deployable already tracked (the same model with the same cue pack:
+`deploy_sha256`) is not logged again."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import tempfile
@@ -115,11 +117,18 @@ class Datasets:
         return self._made[(angle, split)]
 
 
-def find_run(client: MlflowClient, exp_id: str, sha: str) -> Any | None:
-    """The latest run of the model with this hash, if any."""
+def deploy_sha256(model_sha256: str, cue_pack: Mapping[str, Any] | None) -> str:
+    """What a simulator gets from a version: the model and the cue pack in its metadata. A new cue
+    pack for the same model is a new deployable (new cues must reach the simulators)."""
+    text = json.dumps({"model_sha256": model_sha256, "cues": cue_pack}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def find_run(client: MlflowClient, exp_id: str, deploy_sha: str) -> Any | None:
+    """The latest run of the deployable with this `deploy_sha256`, if any."""
     runs = client.search_runs(
         [exp_id],
-        filter_string=f"tags.`{TAG}model_sha256` = '{sha}'",
+        filter_string=f"tags.`{TAG}deploy_sha256` = '{deploy_sha}'",
         max_results=1,
         order_by=["attributes.start_time DESC"],
     )
@@ -133,17 +142,19 @@ def track(
     datasets: Datasets,
     metrics: Mapping[str, Any],
     cue_pack: dict[str, Any] | None,
+    deploy: str,
     figures: list[Path],
     commit: str,
     log: Log,
 ) -> tuple[str, str, bool]:
-    """Log `t` as a run (unless a run of the same model exists): (run_id, model_uri, newly_logged)."""
+    """Log `t` with `cue_pack` as a run, unless a run of the same deployable (`deploy`, its
+    `deploy_sha256`) exists: (run_id, model_uri, newly_logged)."""
     import mlflow
     from mlflow.entities import Metric
 
     from pipeline.modelling.export import log_onnx_model
 
-    existing = find_run(client, exp_id, t.model_sha256)
+    existing = find_run(client, exp_id, deploy)
     if existing is not None and existing.data.tags.get(f"{TAG}model_uri"):
         return existing.info.run_id, existing.data.tags[f"{TAG}model_uri"], False
 
@@ -155,6 +166,7 @@ def track(
         "git_commit": commit,
         "data_sha256": str(ck.get("train_data_sha256", "")),
         f"{TAG}model_sha256": t.model_sha256,
+        f"{TAG}deploy_sha256": deploy,
         "mlflow.note.content": (
             f"{t.kind} for {t.angle}° insertions, trained on {t.train_metrics.get('n_train', '?')} samples; "
             f"external-set NRMSE (mean of fx, fy, fz) {t.mean_nrmse():.2f} %."

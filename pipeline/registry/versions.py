@@ -34,7 +34,7 @@ from pipeline.registry.store import (
     model_name,
     versions,
 )
-from pipeline.registry.tracking import TAG, Datasets, git_commit, track
+from pipeline.registry.tracking import TAG, Datasets, deploy_sha256, git_commit, track
 from pipeline.registry.units import load_documents, register_units
 from pipeline.vocab import AXES
 
@@ -75,12 +75,14 @@ def register_angle(
     t: Trained,
     model_uri: str,
     run_id: str,
+    deploy: str,
     external: pd.DataFrame,
     known: Mapping[str, float],
     params: RegisterParams,
     log: Log,
 ) -> dict[str, Any]:
     """Register `t` for its angle and move the aliases by the champion rule; the registry.json entry.
+    `deploy`: the `deploy_sha256` of its model and cue pack (a version is one deployable);
     `external`: the set `t` is judged on; `known`: today's candidates' scores on it, by model hash."""
     import mlflow
 
@@ -92,7 +94,7 @@ def register_angle(
         "external_nrmse_pct_mean": round(t.mean_nrmse(), 4),
         "scored_on": t.judged_on,
     }
-    same = [v for v in versions(client, name) if v.tags.get(f"{TAG}model_sha256") == t.model_sha256]
+    same = [v for v in versions(client, name) if v.tags.get(f"{TAG}deploy_sha256") == deploy]
     mv = max(same, key=lambda v: int(v.version)) if same else None
     if mv is not None:
         # search results may leave aliases out: ask for the version itself
@@ -114,13 +116,17 @@ def register_angle(
             ),
         )
     champion = alias_version(client, name, CHAMPION)
-    champion_score = None if champion is None else rescore_version(client, champion, external, known, log)
+    repack = champion is not None and champion.tags.get(f"{TAG}model_sha256") == t.model_sha256
+    champion_score = (
+        None if champion is None or repack else rescore_version(client, champion, external, known, log)
+    )
     if mv is None:
         mv = mlflow.register_model(
             model_uri,
             name,
             tags={
                 f"{TAG}model_sha256": t.model_sha256,
+                f"{TAG}deploy_sha256": deploy,
                 "model_type": t.kind,
                 "angle_deg": t.angle,
                 "external_nrmse_pct_mean": f"{t.mean_nrmse():.4f}",
@@ -136,6 +142,7 @@ def register_angle(
         None if champion is None else int(champion.version),
         champion_score,
         params.min_improvement_pct,
+        repack=repack,
     )
     alias, reason = decision.alias, decision.reason
     if decision.promote and champion is not None:
@@ -201,7 +208,7 @@ def register_all(
     datasets = Datasets(files)
     commit = git_commit(Path.cwd())
 
-    logged: dict[tuple[str, str], tuple[str, str]] = {}
+    logged: dict[tuple[str, str], tuple[str, str, str]] = {}
     n_new = 0
     # Logged from the last angle and kind to the first, so the UI's newest-first list reads 0°-ls,
     # 0°-fnn, 0°-lstm, 15°-ls, ... from the top.
@@ -210,8 +217,9 @@ def register_all(
     for i, t in enumerate(trained, start=1):
         pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
         pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
-        run_id, uri, new = track(client, t, exp_id, datasets, metrics, pack, figures, commit, log)
-        logged[(t.kind, t.angle)] = (run_id, uri)
+        deploy = deploy_sha256(t.model_sha256, pack)
+        run_id, uri, new = track(client, t, exp_id, datasets, metrics, pack, deploy, figures, commit, log)
+        logged[(t.kind, t.angle)] = (run_id, uri, deploy)
         n_new += new
         if not new:
             log(f"[{i}/{len(trained)}] {t.angle}° {t.kind}: already tracked (run {run_id})")
@@ -229,11 +237,11 @@ def register_all(
             "reason": reason,
         }
     for angle, t in best.items():
-        run_id, uri = logged[(t.kind, t.angle)]
+        run_id, uri, deploy = logged[(t.kind, t.angle)]
         split = t.judged_on
         known = {c.model_sha256: c.mean_nrmse(split) for c in trained if c.angle == angle}
         external = files.frame(angle, split)
-        angles[angle] = register_angle(client, t, uri, run_id, external, known, params, log)
+        angles[angle] = register_angle(client, t, uri, run_id, deploy, external, known, params, log)
     angles = dict(sorted(angles.items(), key=lambda kv: float(kv[0])))
     units = register_units(client, documents, list(angles), log)
     record = {

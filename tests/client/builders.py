@@ -128,7 +128,7 @@ def unit_document(
     matrix: list[list[float]] | None = None,
     offset: list[float] | None = None,
 ) -> dict:
-    """A needlecue-unit/2 document of `unit_id` whose transform (one per kind of `models`, {angle:
+    """A needlecue-unit/3 document of `unit_id` whose transform (one per kind of `models`, {angle:
     checkpoint}) was "made with" those checkpoints; the identity unless `matrix` / `offset` are given."""
     transforms: dict[str, dict] = {}
     for angle, checkpoint in models.items():

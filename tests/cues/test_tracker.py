@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.config import CuesParams
+from pipeline.config import CuesParams, DividerParams
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker
+from pipeline.cues.tracker import CueTracker, Evidence
 from tests.cues.synthetic import (
     CHANNELS,
     end_of_insertion,
@@ -35,7 +35,7 @@ def test_pack_is_only_for_its_own_preset_angle(pack30: dict) -> None:
     # given: the 30° pack / when: a tracker is asked for 45° / then: a clear error
     with pytest.raises(ValueError, match="preset angle 30"):
         CueTracker(pack30, 45)
-    with pytest.raises(ValueError, match="needlecue-cues/2"):
+    with pytest.raises(ValueError, match="needlecue-cues/3"):
         CueTracker({"format": "other"}, 30)
 
 
@@ -150,3 +150,27 @@ def test_without_a_contact_there_is_no_profile_and_the_tracker_says_so(params: C
     json.dumps(pack, allow_nan=False)
     assert {s.cue for s in states} == {"wait"}
     assert "standard profile unavailable" in states[-1].reason
+
+
+def _volts(conductance_us: np.ndarray, d: DividerParams) -> np.ndarray:
+    """The divider's output for an FSR of this conductance (the inverse of `conductance_us`)."""
+    r = 1.0 / (conductance_us * 1e-3 + 1.0 / d.r_open_kohm) + d.r_series_kohm
+    return d.v_plus * d.r_m_kohm / (d.r_m_kohm + r)
+
+
+@pytest.mark.parametrize("rest_us", [[20.0, 30.0, 25.0], [45.0, 12.0, 60.0]])
+def test_the_loading_direction_does_not_depend_on_a_units_preload(rest_us: list[float]) -> None:
+    # given: an estimator unit's FSRs at rest (its cast-in preload), then the needle's load adding
+    # conductance in one direction, as physics says (above actuation G grows with the load)
+    divider, push = DividerParams(), np.array([3.0, 1.0, 2.0])
+    p = CuesParams()
+    t = np.arange(0.0, 4.0, 1 / 30)
+    g = np.array(rest_us) + 20.0 * np.clip(t - 1.0, 0.0, None)[:, None] * push
+    ev = Evidence(3, p.evidence_levels, p.contact_threshold, p.contact_samples, p.min_rest_s, divider)
+    # when: the frames are fed one by one
+    for ti, vi in zip(t.tolist(), _volts(g, divider).tolist(), strict=True):
+        ev.push(ti, vi)
+    # then: every level is reached and each loading direction is the load's, whatever the preload
+    assert ev.stage == len(p.evidence_levels)
+    directions = np.reshape(ev.features()[3:], (-1, 3))
+    np.testing.assert_allclose(directions, np.tile(push / np.linalg.norm(push), (ev.stage, 1)), atol=1e-6)

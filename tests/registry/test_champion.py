@@ -67,3 +67,10 @@ def test_decide_promotes_only_a_real_improvement() -> None:
     not_enough = decide(4.8, 2, 5.0, 0.5)
     assert not not_enough.promote and "better by 0.200, needed > 0.5" in not_enough.reason
     assert "not better" in decide(6.0, 2, 5.0, 0.0).reason
+
+
+def test_decide_gives_the_champions_own_model_with_a_new_cue_pack_the_title() -> None:
+    # given: the champion v2's model, re-registered with a new cue pack (same force, new cues)
+    # when / then: it takes the champion's place whatever the scores, and says why
+    repacked = decide(5.0, 2, 5.0, 0.0, repack=True)
+    assert repacked.alias == "champion" and "v2's own model with a new cue pack" in repacked.reason

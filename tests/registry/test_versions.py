@@ -118,6 +118,28 @@ def test_second_run_with_nothing_changed_registers_nothing(project: Path) -> Non
     assert [int(v.version) for v in client.search_model_versions(f"name = '{model_name(30)}'")] == [1]
 
 
+def test_a_new_cue_pack_for_the_champions_model_becomes_the_champion(project: Path) -> None:
+    # given: a registered champion, with the cue pack the cues stage wrote for 30°
+    packs = project / "reports" / "cues" / "packs"
+    packs.mkdir(parents=True)
+    (packs / "30.json").write_text(json.dumps({"format": "test-pack", "min_confidence": 0.7}))
+    models = train_models(project, "models", GOOD)
+    run_stage(project, models)
+    client = MlflowClient()
+    exp_id = client.get_experiment_by_name("needle-force").experiment_id
+    # when: the cues change (the same model) and the stage runs again
+    (packs / "30.json").write_text(json.dumps({"format": "test-pack", "min_confidence": 0.8}))
+    entry = run_stage(project, models)["angles"]["30"]
+    # then: a new run and version carry the new pack, and the champion moved to it
+    assert len(client.search_runs([exp_id])) == 2
+    assert (entry["action"], entry["version"], entry["aliases"]) == ("registered", 2, ["champion"])
+    assert "v1's own model with a new cue pack" in entry["reason"]
+    champion = client.get_model_version_by_alias(model_name(30), "champion")
+    assert champion.tags["needlecue.previous_champion"] == "1"
+    # and: the stage again with that pack changes nothing
+    assert run_stage(project, models)["angles"]["30"]["action"] == "unchanged"
+
+
 def test_a_better_model_is_promoted_and_a_worse_one_is_only_challenger(project: Path) -> None:
     # given: a poor champion (1 epoch), then a well-trained model, then the poor one's twin again
     bad = train_models(project, "bad", BAD)
