@@ -194,8 +194,19 @@ class ForceClient:
         self._tracker: Any = None
         pack = meta.get("cues")
         if pack is not None:
+            from pipeline.cues.tracker import FORMAT as CUES_FORMAT
             from pipeline.cues.tracker import CueTracker
 
+            if pack.get("format") != CUES_FORMAT:  # force without cues beats no force at all
+                log.warning(
+                    "%s: no cues: its cue pack is %s, this client reads %s (made by another needlecue "
+                    "version; `dvc repro` registers the model with a new one)",
+                    self.model_dir,
+                    pack.get("format"),
+                    CUES_FORMAT,
+                )
+                pack = None
+        if pack is not None:
             if list(pack.get("channels", self.channels)) != list(self.channels):
                 raise ValueError(
                     f"{self.model_dir}: the cue pack reads channels {pack.get('channels')}, "

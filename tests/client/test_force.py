@@ -5,6 +5,7 @@ UncalibratedUnit, which tests/client/test_units.py tests.)"""
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,22 @@ def test_step_output_and_bad_samples(fetched: Path) -> None:
         client.step([0.6, 0.6])
     with pytest.raises(ValueError, match="non-finite"):
         client.step([0.6, float("nan"), 0.6])
+
+
+def test_a_cue_pack_of_another_format_gives_force_without_cues(
+    fetched: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # given: the fetched model, its cue pack marked as made by an older needlecue
+    old = shutil.copytree(fetched, tmp_path / "old-pack")
+    mlmodel = old / "MLmodel"
+    mlmodel.write_text(mlmodel.read_text().replace("needlecue-cues/3", "needlecue-cues/2"))
+    # when: a client loads it, cues asked for
+    with caplog.at_level(logging.WARNING, logger="pipeline.client"), pytest.warns(fc.UncalibratedUnit):
+        client = fc.ForceClient.from_dir(old, cues_uncalibrated=True)
+    # then: force every frame, no cue, and a warning that says why and what to do
+    frame = client.step([0.6, 0.6, 0.6])
+    assert frame.force_n.shape == (3,) and frame.cue is None
+    assert any("cue pack is needlecue-cues/2" in m and "dvc repro" in m for m in caplog.messages)
 
 
 def test_a_stream_the_model_was_not_trained_on_is_refused(fetched: Path) -> None:
