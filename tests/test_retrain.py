@@ -159,6 +159,7 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
     run(root, "dvc", "repro")
     client = MlflowClient()
     champion_15 = client.get_model_version_by_alias("needle-force-15", "champion")
+    champion_45 = client.get_model_version_by_alias("needle-force-45", "champion")
 
     # When nothing is new, retrain does nothing and registers nothing
     idle = retrain_cli(root)
@@ -190,16 +191,19 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
         "train@15-fnn",
         "train@15-lstm",
     }
-    # a new version of needle-force-15 is registered; 45° has none
-    assert [a for a in report["registered"]] == ["15"]
+    # a new version of needle-force-15 is registered; 45° keeps its model, which comes back with the
+    # new cue pack (the angle estimator of every pack learned from the new 15° cast)
+    assert sorted(report["registered"]) == ["15", "45"]
     entry = report["registered"]["15"]
     assert entry["version"] == 2
-    assert len(client.search_model_versions("name = 'needle-force-45'")) == 1
-    # the champion moved only if the new version beat it on the external set
+    repack = report["registered"]["45"]
+    assert repack["model_sha256"] == champion_45.tags["needlecue.model_sha256"]
+    assert repack["aliases"] == ["champion"] and "own model with a new cue pack" in repack["reason"]
+    # the 15° champion moved only if the new version beat it on the external set
     champion_now = client.get_model_version_by_alias("needle-force-15", "champion")
     old_score = entry["previous_champion"]["external_nrmse_pct_mean"]
     if entry["external_nrmse_pct_mean"] < old_score:
-        assert int(champion_now.version) == 2 and report["promoted"] == ["15"]
+        assert int(champion_now.version) == 2 and "15" in report["promoted"]
     else:
         assert champion_now.version == champion_15.version and entry["aliases"] == ["challenger"]
     assert (root / "reports" / "retrain" / "latest.md").read_text().startswith("# Retrain")
@@ -229,14 +233,14 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
     killed.wait(timeout=60)
     # Then the registry and the raw data are as they were
     assert killed.returncode == -signal.SIGKILL
-    assert len(client.search_model_versions("name = 'needle-force-45'")) == 1
+    assert len(client.search_model_versions("name = 'needle-force-45'")) == 2
     assert tree_hash(root / "data" / "raw") == raw_before
     # And the next run completes the job
     resumed = retrain_cli(root)
     assert resumed.returncode == retrain.EXIT_RETRAINED, resumed.stderr
     report = json.loads((root / "reports" / "retrain" / "latest.json").read_text())
-    assert report["angles_retrained"] == ["45"] and list(report["registered"]) == ["45"]
-    assert len(client.search_model_versions("name = 'needle-force-45'")) == 2
+    assert report["angles_retrained"] == ["45"] and "45" in report["registered"]
+    assert len(client.search_model_versions("name = 'needle-force-45'")) == 3
 
 
 def test_a_new_batch_that_split_sets_aside_makes_retrain_exit_3(tmp_path: Path) -> None:
