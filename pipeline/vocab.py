@@ -40,6 +40,17 @@ INPUT_NAME = "inputs"
 OUTPUT_NAME = "force_n"
 
 
+def format_problem(found: Any, expected: str, what: str, redo: str) -> str | None:
+    """None if `found` is the format `expected`, else why a stored `what` cannot be read; one of ours
+    from another needlecue version (the same name before the "/") says how to make a new one: `redo`."""
+    if found == expected:
+        return None
+    ours = isinstance(found, str) and found.split("/")[0] == expected.split("/")[0]
+    return f"not a {expected} {what} (format {found!r})" + (
+        f": made by another needlecue version; {redo}" if ours else ""
+    )
+
+
 def angle_name(angle_deg: float | str) -> str:
     """Folder and key name of an angle: 30.0 -> "30", 22.5 -> "22.5", -0.0 -> "0"."""
     return f"{float(angle_deg) + 0.0:g}"

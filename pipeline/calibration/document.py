@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.modelling.features import InputTransform
-from pipeline.vocab import angle_name
+from pipeline.vocab import angle_name, format_problem
 
 FORMAT = "needlecue-unit/3"
 DIGITS = 6  # decimals in the JSON: small, stable files
@@ -30,11 +30,10 @@ def read_unit(path: Path) -> dict[str, Any]:
         doc = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: not a readable calibration document: {e}") from e
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        older = isinstance(found, str) and found.startswith(FORMAT.split("/")[0] + "/")
-        hint = ": made by another needlecue version; calibrate the unit again" if older else ""
-        raise ValueError(f"{path}: not a {FORMAT} document (format {found!r}){hint}")
+    found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+    problem = format_problem(found, FORMAT, "document", "calibrate the unit again")
+    if problem:
+        raise ValueError(f"{path}: {problem}")
     for kind, t in (doc.get("transforms") or {}).items():
         InputTransform.from_dict(t)  # raises on a malformed matrix
         if not isinstance(t.get("models"), dict):

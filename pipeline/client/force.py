@@ -194,29 +194,22 @@ class ForceClient:
         self._tracker: Any = None
         pack = meta.get("cues")
         if pack is not None:
-            from pipeline.cues.tracker import FORMAT as CUES_FORMAT
-            from pipeline.cues.tracker import CueTracker
+            from pipeline.cues.tracker import CueTracker, pack_format_problem
 
-            if pack.get("format") != CUES_FORMAT:  # force without cues beats no force at all
-                log.warning(
-                    "%s: no cues: its cue pack is %s, this client reads %s (made by another needlecue "
-                    "version; `dvc repro` registers the model with a new one)",
-                    self.model_dir,
-                    pack.get("format"),
-                    CUES_FORMAT,
-                )
-                pack = None
-        if pack is not None:
-            if list(pack.get("channels", self.channels)) != list(self.channels):
+            problem = pack_format_problem(pack)
+            if problem:  # force without cues beats no force at all
+                log.warning("%s: no cues: %s", self.model_dir, problem)
+            elif list(pack.get("channels", self.channels)) != list(self.channels):
                 raise ValueError(
                     f"{self.model_dir}: the cue pack reads channels {pack.get('channels')}, "
                     f"the model {list(self.channels)}"
                 )
-            # the paper-method thresholds were calibrated per model kind: use this model's if there
-            kinds = (pack.get("thresholds") or {}).get("profile") or {}
-            self._tracker = CueTracker(
-                pack, self.angle_deg, model_kind=self.kind if self.kind in kinds else None
-            )
+            else:
+                # the paper-method thresholds were calibrated per model kind: use this model's if there
+                kinds = (pack.get("thresholds") or {}).get("profile") or {}
+                self._tracker = CueTracker(
+                    pack, self.angle_deg, model_kind=self.kind if self.kind in kinds else None
+                )
         self.reset()
 
     @classmethod

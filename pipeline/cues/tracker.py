@@ -28,6 +28,7 @@ import numpy as np
 
 from pipeline.config import CuesParams, DividerParams
 from pipeline.modelling.features import conductance_us
+from pipeline.vocab import format_problem
 
 FORMAT = "needlecue-cues/3"  # 3: loading directions in conductance (2: in log volts)
 CUES = ("wait", "continue", "correct", "stop")
@@ -237,7 +238,7 @@ class Evidence:
             return False
         # The levels are reached by how far the volts moved from rest (log ratio, as contact) ...
         norm = math.sqrt(sum(math.log(x / r) ** 2 for x, r in zip(v, self.rest, strict=True)))  # type: ignore[arg-type]
-        if len(self.snaps) >= len(self.levels) or norm < self.levels[len(self.snaps)]:
+        if norm < self.levels[len(self.snaps)]:
             return False
         # ... and the direction is the conductance's: above actuation an FSR's conductance grows in
         # proportion to its share of the load, whatever its cast-in preload, which the log ratio to
@@ -279,14 +280,16 @@ class _Debounce:
         return self.shown
 
 
+def pack_format_problem(pack: Any) -> str | None:
+    """None if `pack` is a cue pack of this version's format, else why not."""
+    found = pack.get("format") if isinstance(pack, Mapping) else type(pack).__name__
+    return format_problem(found, FORMAT, "cue pack", "`dvc repro` builds and registers a new one")
+
+
 def check_pack(pack: Mapping[str, Any]) -> None:
-    if not isinstance(pack, Mapping) or pack.get("format") != FORMAT:
-        got = pack.get("format") if isinstance(pack, Mapping) else type(pack).__name__
-        older = isinstance(got, str) and got.startswith(FORMAT.split("/")[0] + "/")
-        hint = (
-            ": made by another needlecue version; `dvc repro` builds and registers a new one" if older else ""
-        )
-        raise ValueError(f"not a {FORMAT} cue pack (format {got!r}){hint}")
+    problem = pack_format_problem(pack)
+    if problem:
+        raise ValueError(problem)
     for key in (
         "preset_angle_deg",
         "channels",

@@ -69,7 +69,8 @@ def test_a_cue_pack_of_another_format_gives_force_without_cues(
     # then: force every frame, no cue, and a warning that says why and what to do
     frame = client.step([0.6, 0.6, 0.6])
     assert frame.force_n.shape == (3,) and frame.cue is None
-    assert any("cue pack is needlecue-cues/2" in m and "dvc repro" in m for m in caplog.messages)
+    expected = "no cues: not a needlecue-cues/3 cue pack (format 'needlecue-cues/2'): made by another"
+    assert any(expected in m and "dvc repro" in m for m in caplog.messages)
 
 
 def test_a_stream_the_model_was_not_trained_on_is_refused(fetched: Path) -> None:
