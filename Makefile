@@ -5,15 +5,27 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup repro verify test ci lint bench ui clean
+.PHONY: setup setup-system repro verify test test-team ci lint bench ui clean team-start team-stop team-status
 
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[dev]"
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[dev,team]"
 	touch $@
+
+# PostgreSQL's server, for the team stack (Debian's package; needs root). Nothing if it is there.
+setup-system:
+	@ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 || command -v pg_ctl >/dev/null || \
+	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql; }
+
+team-start: setup setup-system  ## the team stack: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth (README, Team setup)
+	$(BIN)/needlecue team start
+team-stop: setup
+	$(BIN)/needlecue team stop
+team-status: setup
+	$(BIN)/needlecue team status
 
 repro: setup          ## install, then run the whole pipeline on the built-in simulated rig
 	$(BIN)/dvc repro
@@ -22,11 +34,14 @@ verify: repro         ## the pipeline, then: nothing out of date; dvc.lock and m
 	$(BIN)/dvc status --quiet || { $(BIN)/dvc status; echo "verify: dvc status: stages out of date"; exit 1; }
 	git diff --exit-code --stat -- dvc.lock reports/metrics.json || { echo "verify: this machine wrote another dvc.lock (docs/reproducibility.md)"; exit 1; }
 
-test: setup           ## lint and run the test suite (on both cores: the slow tests are mostly waiting on dvc)
+test: setup setup-system  ## lint and run the test suite, the team stack's included (on both cores; its tests on one)
 	$(BIN)/ruff check .
-	$(BIN)/pytest -q -n 2
+	$(BIN)/pytest -q -n 2 --dist loadgroup
 
-ci: setup             ## what CI runs: `make test` and `make verify` side by side, verify's log after the tests'
+test-team: setup setup-system  ## only the tests against the real team stack (tests/team/)
+	$(BIN)/pytest -q -m team
+
+ci: setup setup-system  ## what CI runs: `make test` and `make verify` side by side, verify's log after the tests'
 	@# The pipeline's stages run on one thread each (docs/reproducibility.md), so a verify alone
 	@# leaves a core idle; side by side the two take about the time of the longer one.
 	@mkdir -p .ci/logs

@@ -475,5 +475,164 @@ def rollback(
     typer.echo(f"{model_name(angle)}@champion: version {old} -> {new}")
 
 
+@app.command("data-of")
+def data_of(
+    angle: Annotated[float, typer.Argument(help="insertion angle (deg) of the registered model")],
+    version: Annotated[int, typer.Argument(help="the registered version")],
+    pull: Annotated[bool, typer.Option(help="run `dvc pull` after writing dvc.lock")] = True,
+) -> None:
+    """Bring the exact data behind a registered version into this clone: its dvc.lock from the registry
+    (checked against the version's tag), then `dvc pull` from the DVC remote. Check out the version's
+    commit first (`git_commit` tag; the command says which)."""
+    import subprocess
+    import sys
+
+    from pipeline.registry.provenance import ProvenanceError, restore_lock
+    from pipeline.registry.store import RegistryUnreachable
+
+    try:
+        found = restore_lock(angle, version, Path.cwd())
+    except (ProvenanceError, RegistryUnreachable) as e:
+        raise _fail(str(e)) from e
+    typer.echo(
+        f"{found['model']} v{version}: dvc.lock of run {found['run_id']} (commit {found['git_commit']})"
+    )
+    if pull:
+        done = subprocess.run([sys.executable, "-m", "dvc", "pull"], check=False)
+        if done.returncode != 0:
+            raise _fail(f"dvc pull failed (exit {done.returncode})", done.returncode)
+
+
+team = typer.Typer(
+    no_args_is_help=True,
+    help="The team stack on this machine: PostgreSQL, S3 (SeaweedFS) and MLflow with basic auth "
+    "(README, Team setup).",
+)
+app.add_typer(team, name="team")
+TeamDir = Annotated[
+    Path | None,
+    typer.Option(
+        "--dir",
+        help="the stack's state folder (default $NEEDLECUE_TEAM_DIR or ~/.local/state/needlecue/team)",
+    ),
+]
+
+
+def _stack(folder: Path | None) -> Any:
+    from pipeline.team.stack import Stack
+
+    return Stack(folder)
+
+
+@team.command("start")
+def team_start(
+    folder: TeamDir = None,
+    port: Annotated[
+        int, typer.Option(help="base port: MLflow on it, S3 on +1, PostgreSQL on +2 (first start only)")
+    ] = 5480,
+    host: Annotated[str, typer.Option(help="address every server binds to (first start only)")] = "127.0.0.1",
+) -> None:
+    """Start PostgreSQL, SeaweedFS and the MLflow server (generating credentials on the first start),
+    and print how to use them."""
+    from pipeline.team.stack import StackError
+
+    stack = _stack(folder)
+    try:
+        if stack.init(base_port=port, host=host):
+            typer.echo(f"new team stack in {stack.dir} (credentials in {stack.file}, mode 0600)")
+        stack.start(progress=typer.echo)
+    except (StackError, ValueError) as e:
+        raise _fail(str(e)) from e
+    typer.echo(f"MLflow: {stack.tracking_uri} (users admin, lab, simulator)   S3: {stack.s3_endpoint}")
+    typer.echo(f"as the lab:   set -a; . {stack.dir / 'lab.env'}; set +a")
+    typer.echo(f"a simulator:  set -a; . {stack.dir / 'simulator.env'}; set +a")
+
+
+@team.command("stop")
+def team_stop(
+    folder: TeamDir = None,
+    purge: Annotated[
+        bool, typer.Option(help="also delete everything the stack stored, credentials included")
+    ] = False,
+) -> None:
+    """Stop the stack's servers (their data stays unless --purge)."""
+    from pipeline.team.stack import StackError
+
+    stack = _stack(folder)
+    try:
+        stopped = stack.stop(purge=purge)
+    except StackError as e:
+        raise _fail(str(e)) from e
+    typer.echo(
+        f"stopped: {', '.join(stopped) or 'nothing was running'}"
+        + (f"; deleted {stack.dir}" if purge else "")
+    )
+
+
+@team.command("status")
+def team_status(folder: TeamDir = None) -> None:
+    """Each server: running or not, address, log (exit 1 unless all three run)."""
+    from pipeline.team.stack import StackError
+
+    try:
+        found = _stack(folder).status()
+    except StackError as e:
+        raise _fail(str(e)) from e
+    for server, s in found.items():
+        state = f"running (pid {s['pid']})" if s["running"] else "stopped"
+        typer.echo(f"{server:9} {state:22} {s['address']:28} log {s['log']}")
+    if not all(s["running"] for s in found.values()):
+        raise typer.Exit(1)
+
+
+@team.command("env")
+def team_env(
+    role: Annotated[str, typer.Argument(help="admin, lab or simulator")],
+    folder: TeamDir = None,
+) -> None:
+    """Print `export` lines for one role: `eval "$(needlecue team env lab)"`."""
+    import shlex
+
+    from pipeline.team.stack import StackError
+
+    try:
+        env = _stack(folder).role_env(role)
+    except (StackError, ValueError) as e:
+        raise _fail(str(e)) from e
+    for key, value in env.items():
+        typer.echo(f"export {key}={shlex.quote(value)}")
+
+
+@team.command("add-user")
+def team_add_user(
+    username: Annotated[str, typer.Argument(help="the new user's name")],
+    role: Annotated[str, typer.Option(help="lab or simulator")] = "simulator",
+    folder: TeamDir = None,
+) -> None:
+    """Create a user with a role (as the admin) and print its generated password once."""
+    from pipeline.team import access
+
+    try:
+        password = access.add_user(_stack(folder), username, role)
+    except Exception as e:  # the auth server's refusal, an unknown role, a stopped stack
+        raise _fail(str(e)) from e
+    typer.echo(f"{username} ({role}): password {password}")
+
+
+@team.command("webhook")
+def team_webhook(
+    url: Annotated[str, typer.Argument(help="a simulator's listener, e.g. http://10.0.0.7:8765/mlflow")],
+    folder: TeamDir = None,
+) -> None:
+    """Have MLflow call URL on every alias change (HMAC-signed with the stack's webhook secret)."""
+    from pipeline.team import access
+
+    try:
+        hook = access.add_webhook(_stack(folder), url)
+    except Exception as e:
+        raise _fail(str(e)) from e
+    typer.echo(f"webhook {hook}: alias changes -> {url}")
+
+
 if __name__ == "__main__":
     app()

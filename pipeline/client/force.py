@@ -472,6 +472,22 @@ class ForceClient:
             return self._refresh_unit()
         return self._swap(found)
 
+    def poll_soon(self) -> None:
+        """Have the next `reset()` ask the registry at once, whatever `poll_s` says: a registry webhook
+        said an alias moved (`pipeline.client.webhook`). The swap itself still waits for the reset."""
+        if self._follow is not None:
+            self._follow.next_poll = -math.inf
+
+    @property
+    def followed(self) -> tuple[str, ...]:
+        """The registered models this client follows: its angle's, and its unit's calibrations."""
+        if self._follow is None:
+            return ()
+        names = [store.model_name(self._follow.angle_deg)]
+        if self.unit_id is not None:
+            names.append(store.unit_model_name(self.unit_id))
+        return tuple(names)
+
     def _version_key(self) -> tuple[str, Any] | None:
         """(version, source) of the loaded model: source tells two stores' "v1" apart."""
         v = self.version

@@ -240,7 +240,8 @@ def _speaks_mlflow(client: MlflowClient, uri: str) -> None:
     try:
         got = client.get_registered_model(PROBE_MODEL)
     except MlflowException as e:
-        if e.error_code in ("RESOURCE_DOES_NOT_EXIST", "INVALID_PARAMETER_VALUE"):
+        # a server with workspaces on refuses (403) to say that a model it cannot place does not exist
+        if e.error_code in ("RESOURCE_DOES_NOT_EXIST", "INVALID_PARAMETER_VALUE", "PERMISSION_DENIED"):
             return
         answer = f"{e.error_code}: {(e.message.splitlines() or [''])[0][:200]}"
     except Exception as e:  # a dropped connection, or an answer MLflow's client cannot parse
@@ -292,6 +293,9 @@ def alias_version(client: MlflowClient, name: str, alias: str) -> Any | None:
     (any other error, an unreachable store say, propagates)."""
     from mlflow.exceptions import MlflowException
 
+    # A server with workspaces on answers 403, not 404, for a model that does not exist: ask first
+    if not client.search_registered_models(filter_string=f"name = '{name}'", max_results=1):
+        return None
     try:
         return client.get_model_version_by_alias(name, alias)
     except MlflowException as e:

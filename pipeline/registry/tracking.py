@@ -71,6 +71,9 @@ def run_params(t: Trained) -> dict[str, str]:
     }
 
 
+LOCK_ARTIFACT = "dvc/dvc.lock"  # a run's copy of dvc.lock at registration (pipeline.registry.provenance)
+
+
 def git_commit(root: Path) -> str:
     """HEAD's commit (with "+dirty" if the work tree differs), or "unknown" outside git."""
     try:
@@ -204,6 +207,10 @@ def track(
         for name in (CHECKPOINT_FILE, METRICS_FILE, HISTORY_FILE):
             if (t.folder / name).is_file():
                 mlflow.log_artifact(str(t.folder / name), artifact_path="checkpoint")
+        lock = Path("dvc.lock")  # the stages before this one, as DVC recorded them: the exact data
+        if lock.is_file():
+            mlflow.log_artifact(str(lock), artifact_path=LOCK_ARTIFACT.rsplit("/", 1)[0])
+            mlflow.set_tag(f"{TAG}dvc_lock_sha256", hashlib.sha256(lock.read_bytes()).hexdigest())
         info = log_onnx_model(ck, cue_pack, name="model")
         mlflow.set_tag(f"{TAG}model_uri", info.model_uri)
     log(f"tracked {t.angle}° {t.kind}: run {run.info.run_id}, external NRMSE {t.mean_nrmse():.2f} %")

@@ -121,6 +121,8 @@ def register_angle(
         None if champion is None or repack else rescore_version(client, champion, external, known, log)
     )
     if mv is None:
+        run_tags = client.get_run(run_id).data.tags  # where the data behind it is: commit and dvc.lock
+        provenance = {k: run_tags[k] for k in ("git_commit", f"{TAG}dvc_lock_sha256") if k in run_tags}
         mv = mlflow.register_model(
             model_uri,
             name,
@@ -130,6 +132,7 @@ def register_angle(
                 "model_type": t.kind,
                 "angle_deg": t.angle,
                 "external_nrmse_pct_mean": f"{t.mean_nrmse():.4f}",
+                **provenance,
             },
         )
         client.update_model_version(
