@@ -18,6 +18,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import mlflow
 import pytest
 import requests
 import yaml
@@ -270,9 +271,7 @@ def test_a_webhook_makes_a_client_take_a_new_champion_at_its_next_insertion(team
         as_role("lab")
         lab_client = store.connect(write=True)
         champion = store.alias_version(lab_client, "needle-force-15", store.CHAMPION)
-        new = lab_client.create_model_version(
-            "needle-force-15", champion.source, champion.run_id, tags=champion.tags
-        )
+        new = mlflow.register_model(champion.source, "needle-force-15", tags=champion.tags)
         lab_client.set_registered_model_alias("needle-force-15", store.CHAMPION, new.version)
         deadline = time.monotonic() + 30
         while listener.accepted == 0 and time.monotonic() < deadline:
