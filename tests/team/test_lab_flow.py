@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 import statistics
 import subprocess
@@ -88,9 +89,10 @@ def test_a_simulator_fetches_the_champion_and_cannot_move_an_alias(team, lab, as
     # Given a simulator's credentials
     sim = _env(team, "simulator")
     as_role("simulator")
-    # When it fetches the champion, then it runs
-    client = ForceClient.from_registry(15, cache_dir=tmp_path / "cache", poll_s=None)
+    # When it fetches the champion for the new unit, then it runs it with the unit's calibration
+    client = ForceClient.from_registry(15, unit_id="est-sim-101", cache_dir=tmp_path / "cache", poll_s=None)
     assert client.version["version"] == "1"
+    assert client.calibrated and client.has_cues
     # When it tries to move the champion back, then the server refuses and no alias moves
     before = _aliases(team)
     done = subprocess.run(
@@ -100,11 +102,14 @@ def test_a_simulator_fetches_the_champion_and_cannot_move_an_alias(team, lab, as
     assert done.returncode == 1
     assert "read-only credentials" in done.stderr
     assert _aliases(team) == before
+    # And the lab's rollback goes through (to the version it is: nothing changes, but it may)
+    said = run(
+        lab, sys.executable, "-m", "pipeline.cli", "rollback", "15", "--to", "1", env=_env(team, "lab")
+    )
+    assert "needle-force-15@champion: version 1 -> 1" in said
 
 
 def _os_env() -> dict[str, str]:
-    import os
-
     return {k: v for k, v in os.environ.items() if not k.startswith(("MLFLOW_", "AWS_"))}
 
 
