@@ -15,10 +15,13 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[dev,team]"
 	touch $@
 
-# PostgreSQL's server, for the team stack (Debian's package; needs root). Nothing if it is there.
+# PostgreSQL's server, for the team stack, and Chromium, for the trainee page's browser test (Debian's
+# packages; needs root). Nothing if they are there.
 setup-system:
 	@ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 || command -v pg_ctl >/dev/null || \
 	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql; }
+	@command -v chromium >/dev/null || \
+	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; }
 
 team-start: setup setup-system  ## the team stack: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth (README, Team setup)
 	$(BIN)/needlecue team start

@@ -7,6 +7,9 @@ from typing import Annotated, Any
 
 import typer
 
+from pipeline.live import commands as live_commands
+from pipeline.live.commands import load_client
+
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 
 ParamsOption = Annotated[Path, typer.Option("--params", help="params.yaml to read settings from")]
@@ -360,7 +363,6 @@ def replay(
     """
     import pandas as pd
 
-    from pipeline.client import ForceClient
     from pipeline.client import replay as rp
     from pipeline.client.force import CALIBRATE_FIX
     from pipeline.registry.store import RegistryUnreachable
@@ -373,6 +375,11 @@ def replay(
 
     if angle is None and model_dir is None:
         raise fail("give --angle (the preset angle whose model to fetch) or --model-dir")
+    from pipeline.live.recording import is_session
+
+    if trial.is_dir() and is_session(trial):
+        _replay_session(trial, angle, alias, model_dir, unit_id)
+        return
     suffix = next((s for s in STREAM_SUFFIXES if trial.name.endswith(s)), None)
     if trial.is_dir() or suffix:  # rig-log/1: checked, ingested and resampled like the pipeline does
         batch_dir = trial.parent if suffix else trial
@@ -404,22 +411,7 @@ def replay(
     rows = frame[(frame["batch_id"].astype(str) == batch) & (frame["trial_id"].astype(str) == tid)]
 
     try:
-        if model_dir is not None:
-            calibration = None
-            if unit_id is not None:  # the unit's registered calibration, if there is one
-                from pipeline.calibration.document import FILE
-                from pipeline.client import ModelNotFound, fetch_unit
-
-                try:
-                    calibration = fetch_unit(unit_id) / FILE
-                except (ModelNotFound, RegistryUnreachable) as e:
-                    typer.echo(f"warning: no calibration of unit {unit_id}: {e}", err=True)
-            client = ForceClient.from_dir(model_dir, calibration=calibration, unit_id=unit_id)
-            if angle is not None and client.angle_deg != angle:
-                raise fail(f"--angle {angle:g} but the model in {model_dir} is for {client.angle_deg:g}°")
-        else:
-            assert angle is not None
-            client = ForceClient.from_registry(angle, alias, unit_id=unit_id)
+        client = load_client(angle, alias, model_dir, unit_id)
         client.check_stream(channels_of(rows), rate_hz(rows["t_s"].to_numpy()))
         result = rp.replay(rows, client)
     except RegistryUnreachable as e:
@@ -450,6 +442,39 @@ def replay(
     png = out or Path(f"replay-{batch}-{tid}.png")
     rp.plot_replay(result, png, f"{key} through {client.name}, preset {client.angle_deg:g}°")
     typer.echo(f"wrote {png}")
+
+
+def _replay_session(
+    folder: Path, angle: float | None, alias: str, model_dir: Path | None, unit_id: str | None
+) -> None:
+    """`needlecue replay` of a live session's recording: its lines through the same chain again."""
+    import yaml
+
+    from pipeline.live.app import replay_session
+    from pipeline.live.recording import read_trials
+    from pipeline.registry.store import RegistryUnreachable
+
+    meta = yaml.safe_load((folder / "batch.yaml").read_text(encoding="utf-8"))
+    recorded_unit = (meta.get("sensor") or {}).get("unit_id")
+    unit_id = unit_id or (recorded_unit if recorded_unit != "unknown" else None)
+    try:
+        client = load_client(angle, alias, model_dir, unit_id)
+        summary = replay_session(folder, client)
+    except RegistryUnreachable as e:
+        raise _fail(str(e), 2) from e
+    except (FileNotFoundError, ValueError, LookupError) as e:
+        raise _fail(str(e)) from e
+    recorded = {t["trial_id"]: t["cues"].split() for t in read_trials(folder)}
+    typer.echo(f"{folder}: live session through {client.name}, preset angle {client.angle_deg:g}°")
+    same = True
+    for ins in summary["insertions"]:
+        live = recorded.get(ins["trial_id"])
+        same &= live == ins["cues"]
+        note = "as live" if live == ins["cues"] else f"live showed {' -> '.join(live or ['nothing'])}"
+        typer.echo(f"insertion {ins['number']} ({ins['trial_id']}): {' -> '.join(ins['cues'])} ({note})")
+    typer.echo(f"stream: {summary['counts']}")
+    if not same or len(recorded) != len(summary["insertions"]):
+        raise _fail("the replay differs from what the live session showed (another model or calibration?)")
 
 
 @app.command()
@@ -633,6 +658,9 @@ def team_webhook(
         raise _fail(str(e)) from e
     typer.echo(f"webhook {hook}: alias changes -> {url}")
 
+
+app.command("live")(live_commands.live)
+app.command("emulate-rig")(live_commands.emulate_rig)
 
 if __name__ == "__main__":
     app()

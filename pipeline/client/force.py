@@ -406,6 +406,19 @@ class ForceClient:
         `cues_uncalibrated` was asked for)."""
         return self._cues_on
 
+    @property
+    def contact_t(self) -> float | None:
+        """When the cue tracker saw the needle touch the tissue in this insertion (None before, or
+        without cues): the time origin of the standard profile."""
+        return None if self._tracker is None or not self._cues_on else self._tracker.contact_t
+
+    @property
+    def standard_profile(self) -> dict[str, Any] | None:
+        """The preset angle's standard force profile from the cue pack ({axes, dt_s, mean_n, sd_n, ...},
+        time since contact), or None."""
+        pack = self.metadata.get("cues")
+        return pack.get("standard_profile") if isinstance(pack, Mapping) else None
+
     def __repr__(self) -> str:
         return f"ForceClient({self.name}, angle_deg={self.angle_deg:g}, channels={list(self.channels)})"
 

@@ -1,0 +1,170 @@
+"""The live commands of `needlecue` (`pipeline.cli` registers them): `live`, `emulate-rig`, and the
+client every command that runs the champion builds (`load_client`). Heavy imports stay inside the
+functions, so `needlecue --help` stays quick."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+
+def fail(message: str, code: int = 1) -> typer.Exit:
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(code)
+
+
+def load_client(
+    angle: float | None,
+    alias: str,
+    model_dir: Path | None,
+    unit_id: str | None,
+    cues_uncalibrated: bool = False,
+) -> Any:
+    """The champion (or `model_dir`) with unit `unit_id`'s registered calibration, as the simulator
+    loads it. Raises what the client raises (RegistryUnreachable, ValueError, LookupError, ...)."""
+    from pipeline.client import ForceClient
+
+    if model_dir is None:
+        if angle is None:
+            raise ValueError("give --angle (the preset angle whose model to fetch) or --model-dir")
+        return ForceClient.from_registry(angle, alias, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated)
+    calibration = None
+    if unit_id is not None:  # the unit's registered calibration, if there is one
+        from pipeline.calibration.document import FILE
+        from pipeline.client import ModelNotFound, fetch_unit
+        from pipeline.registry.store import RegistryUnreachable
+
+        try:
+            calibration = fetch_unit(unit_id) / FILE
+        except (ModelNotFound, RegistryUnreachable) as e:
+            typer.echo(f"warning: no calibration of unit {unit_id}: {e}", err=True)
+    client = ForceClient.from_dir(
+        model_dir, calibration=calibration, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated
+    )
+    if angle is not None and client.angle_deg != angle:
+        raise ValueError(f"--angle {angle:g} but the model in {model_dir} is for {client.angle_deg:g}°")
+    return client
+
+
+AngleOption = Annotated[
+    float | None, typer.Option("--angle", help="preset insertion angle (deg) whose champion is fetched")
+]
+AliasOption = Annotated[str, typer.Option("--alias", help="registry alias of the model")]
+ModelDirOption = Annotated[
+    Path | None, typer.Option("--model-dir", help="an already-fetched model folder (skips the registry)")
+]
+
+
+def live(
+    port: Annotated[str, typer.Option("--port", help="the estimator's serial port, e.g. /dev/ttyACM0")],
+    angle: AngleOption = None,
+    unit: Annotated[
+        str | None, typer.Option("--unit", help="the estimator unit: its registered calibration is applied")
+    ] = None,
+    alias: AliasOption = "champion",
+    model_dir: ModelDirOption = None,
+    baud: Annotated[int, typer.Option(help="the port's baud rate (the firmware sends at 115200)")] = 115200,
+    adc_bits: Annotated[
+        int | None, typer.Option(help="ADC resolution (default: the firmware's banner, else 10)")
+    ] = None,
+    vref: Annotated[
+        float | None, typer.Option("--vref", help="ADC full scale, V (default: the banner's, else 5.0)")
+    ] = None,
+    record: Annotated[
+        Path | None, typer.Option("--record", help="the session folder (default recordings/live-DATE-TIME)")
+    ] = None,
+    http_port: Annotated[int, typer.Option(help="the trainee page's port on 127.0.0.1 (0: any free)")] = 8765,
+    reset_wait: Annotated[float, typer.Option(help="seconds to wait out the board's reset on connect")] = 2.0,
+    insertions: Annotated[
+        int | None, typer.Option(help="stop after this many insertions (default: run until Ctrl-C)")
+    ] = None,
+    duration: Annotated[float | None, typer.Option(help="stop after this many seconds")] = None,
+    give_up: Annotated[
+        float | None, typer.Option(help="stop when the port has been gone this many seconds")
+    ] = None,
+    cues_uncalibrated: Annotated[
+        bool, typer.Option(help="show angle cues even for an uncalibrated unit (not advised)")
+    ] = False,
+) -> None:
+    """Run the champion and the cue tracker live on the estimator's serial stream: the trainee's page
+    (http://127.0.0.1:8765/), a terminal line, and a recording `needlecue replay` plays back.
+
+    Exit 1 on a bad model or unit, 2 if the registry is unreachable and nothing is cached."""
+    from pipeline.live.app import LiveOptions, run_live
+    from pipeline.registry.store import RegistryUnreachable
+
+    try:
+        client = load_client(angle, alias, model_dir, unit, cues_uncalibrated)
+    except RegistryUnreachable as e:
+        raise fail(str(e), 2) from e
+    except (FileNotFoundError, ValueError, LookupError) as e:
+        raise fail(str(e)) from e
+    options = LiveOptions(
+        port=port,
+        baud=baud,
+        adc_bits=adc_bits,
+        vref_v=vref,
+        session_dir=record,
+        http_port=http_port,
+        reset_wait_s=reset_wait,
+        insertions=insertions,
+        duration_s=duration,
+        give_up_s=give_up,
+    )
+    try:
+        summary = run_live(client, options, say=typer.echo)
+    except (FileExistsError, OSError, ValueError) as e:
+        raise fail(str(e)) from e
+    typer.echo("")
+    for ins in summary["insertions"]:
+        typer.echo(
+            f"insertion {ins['number']} ({ins['trial_id']}): {' -> '.join(ins['cues'])} [{ins['ended']}]"
+        )
+    typer.echo(f"stream: {json.dumps(summary['counts'], sort_keys=True)}")
+    typer.echo(f"recorded {summary['recording']} ({summary['stopped']})")
+
+
+def emulate_rig(
+    trials: Annotated[
+        list[Path],
+        typer.Argument(help="rig-log/1 estimator files (<batch>/<trial>.fsr.csv), played in order"),
+    ],
+    link: Annotated[
+        Path | None, typer.Option(help="a symlink to the pseudo-terminal, for `needlecue live --port`")
+    ] = None,
+    pause: Annotated[float, typer.Option(help="seconds at rest before, between and after the trials")] = 3.0,
+    speed: Annotated[float, typer.Option(help="playback speed (1: the real rate)")] = 1.0,
+    baud: Annotated[int, typer.Option(help="the baud rate the emulated firmware sends at")] = 115200,
+    pull_at: Annotated[float | None, typer.Option(help="pull the cable at this second")] = None,
+    replug_after: Annotated[
+        float | None, typer.Option(help="plug it in again after this many seconds")
+    ] = None,
+    garbage_at: Annotated[list[float] | None, typer.Option(help="send garbage bytes at this second")] = None,
+    stall_at: Annotated[float | None, typer.Option(help="stall the USB link at this second")] = None,
+    stall: Annotated[
+        float, typer.Option(help="how long the stall lasts (then a burst of late samples)")
+    ] = 0.5,
+    wait_reader: Annotated[float, typer.Option(help="seconds to wait for a reader to open the port")] = 60.0,
+) -> None:
+    """Play recorded or simulated trials over a pseudo-terminal at the real rate, in the firmware's wire
+    format (docs/live.md), optionally with faults. Prints the pseudo-terminal's path."""
+    from pipeline.live.emulate import Faults, load_trial, play
+
+    try:
+        loaded = [load_trial(t) for t in trials]
+    except ValueError as e:
+        raise fail(str(e)) from e
+    faults = Faults(pull_at, replug_after, tuple(garbage_at or ()), stall_at, stall, baud)
+    sent = play(
+        loaded,
+        link=link,
+        pause_s=pause,
+        speed=speed,
+        faults=faults,
+        wait_reader_s=wait_reader,
+        say=lambda m: typer.echo(m),
+    )
+    typer.echo(f"emulate-rig: done: {json.dumps(sent, sort_keys=True)}")

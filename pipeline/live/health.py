@@ -1,0 +1,106 @@
+"""The serial stream's health, judged line by line: rate, gaps, late samples, garbage, a wrong baud
+rate, silence and a pulled cable. Each problem stays on show for `HOLD_S` after it was last seen, so
+a trainee has time to read it; `counts` keeps the session's totals for the recording."""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+from pipeline.live.wire import BAUD
+
+HOLD_S = 2.0  # a problem stays on the display this long after it was last seen
+GAP_FRAMES = 2.5  # a jump of the board's clock longer than this many frames is a gap
+LATE_S = 0.1  # a sample arriving this much later than its board time says (3 frames) is late
+SILENT_S = 0.3  # no sample for this long (9 frames) is silence
+RATE_TOL = 0.1  # the measured rate may be this far (relative) off the nominal one
+RATE_WINDOW = 60  # samples the rate is measured over (2 s)
+BAUD_WINDOW_S = 2.0  # a window with only garbage in it: the baud rate is probably wrong
+
+
+@dataclass
+class StreamHealth:
+    """Feed it every line's fate (`sample`, `garbage`) and the clock (`tick`); `problems` says what is
+    wrong now, as {key: message} in a stable order."""
+
+    rate_hz: float
+    baud: int = BAUD
+    counts: Counter[str] = field(default_factory=Counter)
+    _seen: dict[str, tuple[float, str]] = field(default_factory=dict)  # key -> (last seen, message)
+    _millis: deque[float] = field(default_factory=lambda: deque(maxlen=RATE_WINDOW))
+    _garbage: deque[float] = field(default_factory=deque)
+    _offset: float | None = None  # min over the session of host time - board time
+    _last_sample_host: float | None = None
+    _connected_at: float | None = None
+    _quiet_until: float = 0.0
+    _disconnected: str | None = None
+
+    def _flag(self, now: float, key: str, message: str) -> None:
+        self._seen[key] = (now, message)
+
+    def connected(self, now: float, settle_s: float) -> None:
+        """The port is open; silence is expected while the board resets (`settle_s`)."""
+        self._disconnected = None
+        self._seen.pop("disconnected", None)
+        self._connected_at = now
+        self._quiet_until = now + settle_s
+        self._last_sample_host = None
+        self._millis.clear()
+
+    def disconnected(self, now: float, why: str) -> None:
+        self.counts["disconnects"] += 1
+        self._disconnected = why
+        self._flag(now, "disconnected", f"estimator disconnected ({why}): cable pulled? reconnecting")
+
+    def sample(self, now: float, board_s: float, gap_s: float | None) -> None:
+        """A valid sample arrived at host time `now` with board time `board_s`; `gap_s` is the board
+        time since the previous sample (None for the first after a connect)."""
+        self.counts["samples"] += 1
+        self._last_sample_host = now
+        self._millis.append(board_s)
+        frame = 1.0 / self.rate_hz
+        if gap_s is not None and gap_s > GAP_FRAMES * frame:
+            lost = round(gap_s * self.rate_hz) - 1
+            self.counts["gaps"] += 1
+            self.counts["lost_samples"] += lost
+            self._flag(now, "gap", f"gap in the stream: {lost} sample(s) lost ({gap_s * 1000:.0f} ms)")
+        offset = now - board_s
+        if self._offset is None or offset < self._offset or gap_s is None:
+            self._offset = offset if self._offset is None or gap_s is None else min(self._offset, offset)
+        late = offset - self._offset
+        if late > LATE_S:
+            self.counts["late_samples"] += 1
+            self._flag(now, "late", f"late samples: arrived up to {late * 1000:.0f} ms after they were read")
+        if len(self._millis) == RATE_WINDOW:
+            span = self._millis[-1] - self._millis[0]
+            rate = (len(self._millis) - 1) / span if span > 0 else float("inf")
+            if abs(rate - self.rate_hz) > RATE_TOL * self.rate_hz:
+                self._flag(now, "rate", f"sample rate {rate:.1f} Hz, expected {self.rate_hz:g} Hz")
+
+    def garbage(self, now: float, why: str) -> None:
+        self.counts["garbage_lines"] += 1
+        self._garbage.append(now)
+        self._flag(now, "garbage", f"garbled line(s) ignored ({why})")
+
+    def problems(self, now: float) -> dict[str, str]:
+        """What is wrong at host time `now`."""
+        while self._garbage and self._garbage[0] < now - BAUD_WINDOW_S:
+            self._garbage.popleft()
+        out: dict[str, str] = {}
+        if self._disconnected is not None:
+            out["disconnected"] = self._seen["disconnected"][1]
+            return out
+        recent_sample = self._last_sample_host is not None and now - self._last_sample_host < BAUD_WINDOW_S
+        if len(self._garbage) >= 5 and not recent_sample:
+            out["baud"] = (
+                f"nothing readable, {len(self._garbage)} garbled line(s) in {BAUD_WINDOW_S:g} s: "
+                f"is the port's baud rate ({self.baud}) the firmware's? (--baud)"
+            )
+        if now >= self._quiet_until:
+            since = self._last_sample_host if self._last_sample_host is not None else self._connected_at
+            if since is not None and now - since > SILENT_S:
+                out["silent"] = f"no samples for {now - since:.1f} s: cable pulled or estimator stopped?"
+        for key, (seen, message) in self._seen.items():
+            if key not in out and now - seen <= HOLD_S and key != "disconnected":
+                out[key] = message
+        return out
