@@ -1,0 +1,118 @@
+"""Faults on the wire, with the real processes: the display says what is wrong, nothing crashes, and
+the recording keeps what arrived. Each run is bounded (--duration, --give-up) to under 30 s."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from tests.live.conftest import UNIT, LiveModel, write_trials
+from tests.live.test_live_e2e import NEEDLECUE, _display_url, _env
+
+pytestmark = pytest.mark.xdist_group("live")
+
+
+def _run(
+    model: LiveModel, tmp_path: Path, rig_args: list[str], live_args: list[str]
+) -> tuple[set[str], str, Path]:
+    """emulate-rig with `rig_args` against live with `live_args`: the problem keys the page's state
+    showed, live's output and the session folder."""
+    files = write_trials(tmp_path / "held", [30, 45])
+    link, session = tmp_path / "rig", tmp_path / "session"
+    env = _env(model, tmp_path)
+    rig = subprocess.Popen(
+        [*NEEDLECUE, "emulate-rig", *map(str, files), "--link", str(link), "--pause", "2.5", *rig_args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    live = None
+    seen: set[str] = set()
+    try:
+        end = time.monotonic() + 30
+        while not link.exists() and time.monotonic() < end:
+            time.sleep(0.05)
+        live = subprocess.Popen(
+            [
+                *NEEDLECUE,
+                "live",
+                "--port",
+                str(link),
+                "--model-dir",
+                str(model.model_dir),
+                "--unit",
+                UNIT,
+                "--record",
+                str(session),
+                "--http-port",
+                "0",
+                "--reset-wait",
+                "0.5",
+                *live_args,
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        url = _display_url(live)
+        while live.poll() is None and time.monotonic() < end + 30:
+            try:
+                with urllib.request.urlopen(url + "state", timeout=2) as r:
+                    seen |= set(json.loads(r.read()).get("problems") or {})
+            except OSError:
+                pass  # the session ended between two polls
+            time.sleep(0.05)
+        out, _ = live.communicate(timeout=30)
+        assert live.returncode == 0, out
+    finally:
+        for proc in (live, rig):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+    return seen, out, session
+
+
+def test_garbage_a_stall_and_a_pulled_cable_are_shown_and_recorded(
+    live_model: LiveModel, tmp_path: Path
+) -> None:
+    # given: garbage at 1 s, a 0.6 s USB stall at 2 s, the cable pulled at 4 s and plugged in 1 s later
+    rig_args = [
+        "--garbage-at",
+        "1",
+        "--stall-at",
+        "2",
+        "--stall",
+        "0.6",
+        "--pull-at",
+        "4",
+        "--replug-after",
+        "1",
+    ]
+    # when: live runs through it
+    seen, out, session = _run(live_model, tmp_path, rig_args, ["--duration", "14", "--give-up", "5"])
+    # then: the page said each fault, live went on after the replug, and the recording has it all
+    assert {"garbage", "late", "disconnected"} <= seen, (seen, out)
+    with (session / "lines.csv").open() as f:
+        kinds = [row["kind"] for row in csv.DictReader(f)]
+    assert kinds.count("connect") == 2 and kinds.count("disconnect") >= 1  # the pull (and the end)
+    summary = json.loads((session / "session.json").read_text())
+    assert summary["counts"]["garbage_lines"] >= 1 and summary["counts"]["late_samples"] >= 1
+    assert summary["counts"]["samples"] > 300  # samples kept coming after the replug
+    assert any(i["ended"] == "disconnected" or i["ended"] == "end" for i in summary["insertions"])
+
+
+def test_a_wrong_baud_rate_is_named_on_the_page(live_model: LiveModel, tmp_path: Path) -> None:
+    # given: firmware at 9600 baud, the port opened at 115200
+    seen, out, session = _run(live_model, tmp_path, ["--baud", "9600"], ["--duration", "5"])
+    # then: the page said the baud rate looks wrong; no sample was taken from garbage
+    assert "baud" in seen, (seen, out)
+    summary = json.loads((session / "session.json").read_text())
+    assert summary["counts"].get("samples", 0) == 0 and summary["counts"]["garbage_lines"] > 0

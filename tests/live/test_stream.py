@@ -1,0 +1,61 @@
+"""The wire format, the stream's health and the insertions found in the signal, line by line."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.live.health import StreamHealth
+from pipeline.live.insertions import InsertionDetector
+from pipeline.live.recording import escape, unescape
+from pipeline.live.wire import Banner, Sample, format_banner, format_sample, parse_line
+
+
+def test_a_line_and_the_banner_round_trip_and_garbage_says_why() -> None:
+    # given: a sample and the banner as the firmware sends them
+    banner = Banner("est-7", ("fsr1", "fsr2", "fsr3"), 10, 5.0, 30.0)
+    # then: they parse back to the same; garbage is a reason, never an exception
+    assert parse_line(format_sample(Sample(4294967295, (0, 512, 1023))).rstrip(), 3, 1023) == Sample(
+        4294967295, (0, 512, 1023)
+    )
+    assert parse_line(format_banner(banner).rstrip(), 3, 1023) == banner
+    assert parse_line(b"12,1,2", 3, 1023) == "3 fields, expected millis and 3 counts"
+    assert parse_line(b"12,1,2,1024", 3, 1023) == "a count outside 0..1023: [1, 2, 1024]"
+    assert parse_line(b"\xf3\x81,2", 3, 1023) == "bytes that are not ASCII"
+    assert parse_line(b"12,a,2,3", 3, 1023) == "a field that is not an integer: '12,a,2,3'"
+    assert parse_line(b"# a comment", 3, 1023) is None
+    assert unescape(escape(b"\xf3,\\n\x00")) == b"\xf3,\\n\x00"
+
+
+def test_health_names_a_gap_late_samples_garbage_a_wrong_baud_rate_and_silence() -> None:
+    h = StreamHealth(rate_hz=30.0)
+    h.connected(0.0, settle_s=0.0)
+    # when: samples on time, then a gap of 10 frames, then one arriving 0.3 s late
+    for k in range(5):
+        h.sample(k / 30, k / 30, None if k == 0 else 1 / 30)
+    h.sample(15 / 30, 15 / 30, 11 / 30)
+    assert "10 sample(s) lost" in h.problems(0.5)["gap"]
+    h.sample(16 / 30 + 0.3, 16 / 30, 1 / 30)
+    assert "late" in h.problems(1.1)
+    # when: nothing but garbage for a while
+    for k in range(8):
+        h.garbage(3.7 + k * 0.1, "bytes that are not ASCII")
+    problems = h.problems(4.5)
+    assert "baud rate (115200)" in problems["baud"] and "silent" in problems
+    # when: the cable goes
+    h.disconnected(5.0, "read failed")
+    assert list(h.problems(5.1)) == ["disconnected"]
+    assert h.counts["lost_samples"] == 10 and h.counts["disconnects"] == 1
+
+
+def test_an_insertion_starts_and_ends_in_the_signal_and_rest_is_read_again() -> None:
+    # given: 2 s at rest, 3 s of loading, 2 s back at rest, at 30 Hz
+    t = np.arange(0, 7, 1 / 30)
+    load = np.clip(t - 2, 0, None) * (t < 5)
+    volts = 0.5 * (1 + 0.5 * load[:, None] * np.array([1.0, 0.3, -0.2]))
+    det = InsertionDetector(30.0)
+    # when: pushing it sample by sample
+    events = [(round(ti, 2), e) for ti, v in zip(t, volts, strict=True) if (e := det.push(ti, v))]
+    # then: one insertion, from shortly after the loading starts to a second after it is back at rest
+    assert [e for _, e in events] == ["start", "end"]
+    assert 2.0 < events[0][0] < 2.4 and 5.9 < events[1][0] < 6.1
+    assert det.rest is None  # read again before the next insertion
