@@ -578,12 +578,13 @@ class ForceClient:
             return str(e)
         return None
 
-    def reset(self) -> None:
+    def reset(self, poll: bool = True) -> None:
         """Start a new insertion: forget the window's history and the cue state. A client made by
         `from_registry` first polls its alias if `poll_s` has passed (see `refresh`): a new version is
-        swapped in here, never mid-insertion."""
+        swapped in here, never mid-insertion. `poll=False` skips that poll (a caller whose insertion has
+        already begun, and that polled when the last one ended)."""
         follow = self._follow
-        if follow is not None and _monotonic() >= follow.next_poll:
+        if poll and follow is not None and _monotonic() >= follow.next_poll:
             self.refresh()
         self._frames = 0
         self._last_t = math.nan

@@ -16,6 +16,7 @@ SILENT_S = 0.3  # no sample for this long (9 frames) is silence
 RATE_TOL = 0.1  # the measured rate may be this far (relative) off the nominal one
 RATE_WINDOW = 60  # samples the rate is measured over (2 s)
 BAUD_WINDOW_S = 2.0  # a window with only garbage in it: the baud rate is probably wrong
+DRIFT = 0.01  # the board's clock may run this much (relative) slower than the host's
 
 
 @dataclass
@@ -64,9 +65,14 @@ class StreamHealth:
             self.counts["gaps"] += 1
             self.counts["lost_samples"] += lost
             self._flag(now, "gap", f"gap in the stream: {lost} sample(s) lost ({gap_s * 1000:.0f} ms)")
+        # how late a sample is: its host-minus-board offset above the least offset seen. The board's
+        # clock (a ceramic resonator on an Uno: up to 0.5 % off) drifts against the host's, so the
+        # least offset may rise by DRIFT of the time that passed; a stall's burst rises far faster.
         offset = now - board_s
-        if self._offset is None or offset < self._offset or gap_s is None:
-            self._offset = offset if self._offset is None or gap_s is None else min(self._offset, offset)
+        if self._offset is None or gap_s is None:
+            self._offset = offset
+        else:
+            self._offset = min(offset, self._offset + DRIFT * gap_s)
         late = offset - self._offset
         if late > LATE_S:
             self.counts["late_samples"] += 1

@@ -244,7 +244,8 @@ class LiveSession:
         self.insertions.append(ins)
         self._current = ins
         self._phase = "insertion"
-        self.client.reset()  # between insertions: a new champion is swapped in here, never mid-way
+        # the registry was polled when the last insertion ended (`_finish`): no network in the frame path
+        self.client.reset(poll=False)
         if self.recorder is not None:
             self.recorder.begin_trial(ins.trial_id)
         for item in self._preroll:  # the rest before the start: the tracker's rest reading
@@ -274,7 +275,7 @@ class LiveSession:
         ins.end_s, ins.ended = self._t, how
         self._current = None
         self._phase = "idle"
-        self.client.reset()
+        self.client.reset()  # between insertions: a new champion is swapped in here, never mid-way
         if self.recorder is not None:
             self.recorder.end_trial(
                 {

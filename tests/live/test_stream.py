@@ -59,3 +59,15 @@ def test_an_insertion_starts_and_ends_in_the_signal_and_rest_is_read_again() -> 
     assert [e for _, e in events] == ["start", "end"]
     assert 2.0 < events[0][0] < 2.4 and 5.9 < events[1][0] < 6.1
     assert det.rest is None  # read again before the next insertion
+
+
+def test_a_board_clock_that_runs_slow_is_not_taken_for_late_samples() -> None:
+    # given: an Uno whose resonator runs 0.5 % slow, every sample on time for a minute
+    h = StreamHealth(rate_hz=30.0)
+    h.connected(0.0, settle_s=0.0)
+    for k in range(1800):
+        h.sample(k / 30 * 1.005, k / 30, None if k == 0 else 1 / 30)
+    # then: nothing late; a 0.4 s stall afterwards still is
+    assert h.counts["late_samples"] == 0
+    h.sample(1800 / 30 * 1.005 + 0.4, 1800 / 30, 1 / 30)
+    assert h.counts["late_samples"] == 1

@@ -1,0 +1,54 @@
+"""The live chain without processes: lines in, frames, a recording, and the same frames again from it."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline.client import ForceClient, UncalibratedUnit
+from pipeline.live.app import replay_session
+from pipeline.live.emulate import load_trial, schedule
+from pipeline.live.recording import SessionRecorder, read_trials
+from pipeline.live.session import LiveSession, StreamSettings
+from pipeline.live.wire import format_banner, format_sample
+from tests.live.conftest import LiveModel, write_trials
+
+
+def _feed(session: LiveSession, files: list[Path]) -> None:
+    """The emulated rig's lines, stamped on time, straight into the session."""
+    trials = [load_trial(f) for f in files]
+    session.connected(0.0, "test", 0.0)
+    session.line(0.0, format_banner(trials[0].banner).rstrip())
+    for at, sample in schedule(trials, pause_s=2.5):
+        session.line(at + 0.001, format_sample(sample).rstrip())
+
+
+def test_an_uncalibrated_unit_gets_force_without_cues_and_the_recording_replays_the_same(
+    live_model: LiveModel, tmp_path: Path
+) -> None:
+    # given: the champion for a unit that was never calibrated
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        client = ForceClient.from_dir(live_model.model_dir, unit_id="est-never")
+    assert any(issubclass(w.category, UncalibratedUnit) for w in caught)
+    states: list[dict] = []
+    recorder = SessionRecorder(tmp_path / "s", {"sensor": {"unit_id": "est-never"}}, client.channels)
+    session = LiveSession(
+        client, StreamSettings(tuple(client.channels)), recorder=recorder, publish=states.append
+    )
+    # when: two insertions arrive
+    _feed(session, write_trials(tmp_path / "held", [30, 60]))
+    summary = session.close(100.0)
+    # then: force in every insertion frame, never a cue, and the page is told why
+    inside = [s for s in states if s["insertion"] is not None]
+    assert inside and all(s["cue"] == "none" and s["force_n"] is not None for s in inside)
+    assert not inside[-1]["calibrated"] and "calibration" in inside[-1]["uncalibrated_reason"]
+    assert [i["cues"] for i in summary["insertions"]] == [["none"], ["none"]]
+    # and: the banner's 12-bit ADC was taken, and the recording replays to the same insertions
+    assert session.settings.adc_bits == 12
+    assert [t["cues"] for t in read_trials(tmp_path / "s")] == ["none", "none"]
+    assert replay_session(tmp_path / "s", client)["insertions"] == summary["insertions"]
+    fsr = pd.read_csv(tmp_path / "s" / "i001.fsr.csv")
+    assert list(fsr.columns) == ["t_ms", *client.channels, "board_ms"] and fsr["t_ms"].is_monotonic_increasing
