@@ -30,7 +30,7 @@ class LiveOptions:
     record_root: Path = Path("recordings")
     session_dir: Path | None = None  # None: <record_root>/live-<date>-<time>
     http_host: str = "127.0.0.1"
-    http_port: int = 8765  # 0: any free port
+    http_port: int = 8770  # 0: any free port
     reset_wait_s: float = 2.0
     insertions: int | None = None  # stop after this many insertions have ended
     duration_s: float | None = None

@@ -76,7 +76,7 @@ def live(
     record: Annotated[
         Path | None, typer.Option("--record", help="the session folder (default recordings/live-DATE-TIME)")
     ] = None,
-    http_port: Annotated[int, typer.Option(help="the trainee page's port on 127.0.0.1 (0: any free)")] = 8765,
+    http_port: Annotated[int, typer.Option(help="the trainee page's port on 127.0.0.1 (0: any free)")] = 8770,
     reset_wait: Annotated[float, typer.Option(help="seconds to wait out the board's reset on connect")] = 2.0,
     insertions: Annotated[
         int | None, typer.Option(help="stop after this many insertions (default: run until Ctrl-C)")
@@ -90,7 +90,7 @@ def live(
     ] = False,
 ) -> None:
     """Run the champion and the cue tracker live on the estimator's serial stream: the trainee's page
-    (http://127.0.0.1:8765/), a terminal line, and a recording `needlecue replay` plays back.
+    (http://127.0.0.1:8770/), a terminal line, and a recording `needlecue replay` plays back.
 
     Exit 1 on a bad model or unit, 2 if the registry is unreachable and nothing is cached."""
     from pipeline.live.app import LiveOptions, run_live

@@ -120,7 +120,7 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
 class WebDisplay:
     """The page's HTTP server on 127.0.0.1, in a thread of its own."""
 
-    def __init__(self, board: Board, host: str = "127.0.0.1", port: int = 8765) -> None:
+    def __init__(self, board: Board, host: str = "127.0.0.1", port: int = 8770) -> None:
         self.board = board
         self.server = ThreadingHTTPServer((host, port), _handler(board))
         self.server.daemon_threads = True
