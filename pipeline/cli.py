@@ -450,7 +450,7 @@ def _replay_session(
     """`needlecue replay` of a live session's recording: its lines through the same chain again."""
     import yaml
 
-    from pipeline.live.app import replay_session
+    from pipeline.live.app import live_meta, replay_session
     from pipeline.live.recording import read_trials
     from pipeline.registry.store import RegistryUnreachable
 
@@ -458,7 +458,8 @@ def _replay_session(
     recorded_unit = (meta.get("sensor") or {}).get("unit_id")
     unit_id = unit_id or (recorded_unit if recorded_unit != "unknown" else None)
     try:
-        client = load_client(angle, alias, model_dir, unit_id)
+        cues = bool(live_meta(folder).get("cues_uncalibrated"))  # as the live session was told
+        client = load_client(angle, alias, model_dir, unit_id, cues)
         summary = replay_session(folder, client)
     except RegistryUnreachable as e:
         raise _fail(str(e), 2) from e

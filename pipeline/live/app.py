@@ -51,11 +51,18 @@ def settings_for(client: ForceClient, options: LiveOptions) -> tuple[StreamSetti
     )
 
 
-def run_live(client: ForceClient, options: LiveOptions, say: Callable[[str], None] = print) -> dict[str, Any]:
+def run_live(
+    client: ForceClient,
+    options: LiveOptions,
+    say: Callable[[str], None] = print,
+    cues_uncalibrated: bool = False,
+) -> dict[str, Any]:
     """The live session: port -> session -> web page, terminal line and recording, until Ctrl-C,
     `insertions` ended, `duration_s` passed or the port gone for `give_up_s`. Returns its summary."""
     settings, fixed = settings_for(client, options)
     folder = options.session_dir or options.record_root / datetime.now().strftime("live-%Y%m%d-%H%M%S")
+    board = Board(client.standard_profile)
+    web = WebDisplay(board, options.http_host, options.http_port)  # a busy port fails before a recording
     recorder = SessionRecorder(
         folder,
         {
@@ -75,12 +82,14 @@ def run_live(client: ForceClient, options: LiveOptions, say: Callable[[str], Non
                 "preset_angle_deg": client.angle_deg,
                 "calibrated": client.calibrated,
                 "calibration": client.calibration,
+                # what replay needs to read the lines as live did: the settings given, not the banner's
+                "given": {"adc_bits": options.adc_bits, "vref_v": options.vref_v},
+                "cues_uncalibrated": cues_uncalibrated,
             },
         },
         settings.channels,
     )
-    board = Board(client.standard_profile)
-    web = WebDisplay(board, options.http_host, options.http_port).start()
+    web.start()
     term = TerminalView()
 
     def publish(state: dict[str, Any]) -> None:
@@ -120,18 +129,26 @@ def run_live(client: ForceClient, options: LiveOptions, say: Callable[[str], Non
     finally:
         for s, handler in old.items():
             signal.signal(s, handler)
-        summary = session.close(time.time())
-        web.stop()
+        try:
+            summary = session.close(time.time())
+        finally:
+            web.stop()
     summary["stopped"] = why
     summary["recording"] = str(folder)
     return summary
 
 
+def live_meta(folder: Path) -> dict[str, Any]:
+    """The `live` section of a recorded session's batch.yaml ({} if it has none)."""
+    meta = yaml.safe_load((folder / "batch.yaml").read_text(encoding="utf-8")) or {}
+    return meta.get("live") or {} if isinstance(meta, dict) else {}
+
+
 def replay_session(folder: Path, client: ForceClient) -> dict[str, Any]:
     """A recorded session's lines through the same chain as live (no displays, no new recording)."""
-    sensor = (yaml.safe_load((folder / "batch.yaml").read_text(encoding="utf-8")) or {}).get("sensor") or {}
-    options = LiveOptions(port="", adc_bits=sensor.get("adc_bits"), vref_v=sensor.get("vref_v"))
-    settings, fixed = settings_for(client, options)  # the settings the session ended with
+    given = live_meta(folder).get("given") or {}
+    options = LiveOptions(port="", adc_bits=given.get("adc_bits"), vref_v=given.get("vref_v"))
+    settings, fixed = settings_for(client, options)  # as live started; the banner changes them as it did
     session = LiveSession(client, settings, fixed=fixed)
     last = 0.0
     for host_s, kind, text in read_lines(folder):

@@ -115,7 +115,7 @@ def live(
         give_up_s=give_up,
     )
     try:
-        summary = run_live(client, options, say=typer.echo)
+        summary = run_live(client, options, say=typer.echo, cues_uncalibrated=cues_uncalibrated)
     except (FileExistsError, OSError, ValueError) as e:
         raise fail(str(e)) from e
     typer.echo("")

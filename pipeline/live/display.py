@@ -13,6 +13,7 @@ import shutil
 import sys
 import threading
 import time
+from collections import deque
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import IO, Any
@@ -27,9 +28,8 @@ class Board:
         self.profile = profile
         self.state: dict[str, Any] = {}
         self.cond = threading.Condition()
-        self.renders: list[
-            tuple[int, float, float]
-        ] = []  # (seq, DOM updated, painted) epoch s, from ?bench=1
+        # (seq, DOM updated, painted) in epoch seconds, posted by a page opened with ?bench=1
+        self.renders: deque[tuple[int, float, float]] = deque(maxlen=100_000)
         self.closed = False
 
     def publish(self, state: dict[str, Any]) -> None:
@@ -76,16 +76,21 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
                 self._send(b"not found\n", "text/plain", 404)
 
         def do_POST(self) -> None:
+            try:
+                n = min(max(int(self.headers.get("Content-Length") or 0), 0), 1 << 22)
+            except ValueError:
+                n = 0
+            body = self.rfile.read(n)  # always read, so a kept-alive connection stays in step
             if self.path != "/bench":
                 self._send(b"not found\n", "text/plain", 404)
                 return
-            n = int(self.headers.get("Content-Length") or 0)
             try:
-                rows = json.loads(self.rfile.read(min(n, 1 << 22)))
-                board.renders.extend((int(s), float(a) / 1000, float(b) / 1000) for s, a, b in rows)
+                rows = [(int(s), float(a) / 1000, float(b) / 1000) for s, a, b in json.loads(body)]
             except (ValueError, TypeError):
                 self._send(b"bad rows\n", "text/plain", 400)
                 return
+            with board.cond:
+                board.renders.extend(rows)
             self._send(b"ok\n", "text/plain")
 
         def _events(self) -> None:
@@ -111,8 +116,8 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
                         sent = state["seq"]
                         self.wfile.write(b"data: " + json.dumps(state).encode() + b"\n\n")
                     self.wfile.flush()
-            except (BrokenPipeError, ConnectionResetError):
-                return  # the page closed
+            except OSError:
+                return  # the page closed (or its connection broke)
 
     return Handler
 

@@ -29,6 +29,7 @@ import numpy as np
 from pipeline.live.wire import BAUD, RATE_HZ, Banner, Sample, format_banner, format_sample
 
 BOOT_MILLIS = 1500  # an Uno's sketch starts about 1.5 s after the reset: its millis() then
+BOOT_S = 0.2  # the emulated board starts this long after the port opens (a real one: about 1.5 s)
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,7 @@ class Pty:
 
     def open(self) -> Pty:
         self.master, self.slave = pty.openpty()  # a fresh tty is canonical (ICANON): no reader yet
+        os.set_blocking(self.master, False)  # a reader that stops reading must not hang the board
         self.name = os.ttyname(self.slave)
         if self.link is not None:
             with contextlib.suppress(FileNotFoundError):
@@ -149,11 +151,16 @@ class Pty:
     def reader_baud(self) -> int | None:
         return _SPEEDS.get(termios.tcgetattr(self.slave)[5])
 
-    def write(self, data: bytes, baud: int) -> None:
+    def write(self, data: bytes, baud: int) -> int:
+        """Send `data` as the board would; returns the bytes dropped because nobody reads (a USB CDC
+        board drops what the host does not take)."""
         reader = self.reader_baud()
         if reader is not None and reader != baud:
             data = garble(data, self._rng)
-        os.write(self.master, data)
+        try:
+            return len(data) - os.write(self.master, data)
+        except BlockingIOError:
+            return len(data)
 
     def close(self) -> None:
         for fd in (self.master, self.slave):
@@ -182,12 +189,13 @@ def play(
     banner = format_banner(trials[0].banner)
     plan = schedule(trials, pause_s)
     port = Pty(link).open()
-    sent = {"samples": 0, "garbage": 0, "pulls": 0, "stalled": 0}
+    sent = {"samples": 0, "garbage": 0, "pulls": 0, "stalled": 0, "dropped_bytes": 0}
     say(f"emulate-rig: {port.name}" + (f" (link {link})" if link else "") + f", {len(plan)} samples")
     try:
         if not _wait_reader(port, wait_reader_s):
             say(f"emulate-rig: nobody opened {port.name} within {wait_reader_s:g} s")
             return sent
+        time.sleep(BOOT_S / speed)  # the board boots after the reset (and the reader flushes its input)
         port.write(banner, faults.baud)
         t0 = time.monotonic()
         garbage = sorted(faults.garbage_at_s)
@@ -199,6 +207,7 @@ def play(
             _sleep_until(t0 + at / speed)
             if faults.pull_at_s is not None and at >= faults.pull_at_s and sent["pulls"] == 0:
                 sent["pulls"] += 1
+                held = []  # what the stalled USB link held is lost with the cable
                 port.close()
                 say(f"emulate-rig: cable pulled at {at:.1f} s")
                 if faults.replug_after_s is None:
@@ -208,6 +217,7 @@ def play(
                 say(f"emulate-rig: plugged in again: {port.name}")
                 if not _wait_reader(port, wait_reader_s):
                     return sent
+                time.sleep(BOOT_S / speed)
                 port.write(banner, faults.baud)
                 now = (time.monotonic() - t0) * speed
                 while i < len(plan) and plan[i][0] < now:  # what the board did not send while unplugged
@@ -230,9 +240,9 @@ def play(
                 sent["stalled"] += 1
             else:
                 if held:
-                    port.write(b"".join(held), faults.baud)
+                    sent["dropped_bytes"] += port.write(b"".join(held), faults.baud)
                     held = []
-                port.write(line, faults.baud)
+                sent["dropped_bytes"] += port.write(line, faults.baud)
             sent["samples"] += 1
             i += 1
         return sent

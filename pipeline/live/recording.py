@@ -15,6 +15,7 @@ Every file is written line by line and flushed, so a crash or a pulled plug keep
 from __future__ import annotations
 
 import codecs
+import contextlib
 import csv
 import json
 from collections.abc import Iterator, Mapping, Sequence
@@ -38,6 +39,9 @@ def escape(raw: bytes) -> str:
 
 def unescape(text: str) -> bytes:
     return codecs.decode(text, "unicode_escape").encode("latin-1")
+
+
+MAX_RECORDED = 1024  # bytes of one line kept in lines.csv: a longer run of junk is cut (it is garbage anyway)
 
 
 class _Csv:
@@ -64,6 +68,7 @@ class SessionRecorder:
             raise FileExistsError(f"{folder} exists and is not empty: a recording never overwrites one")
         folder.mkdir(parents=True, exist_ok=True)
         self.folder = folder
+        self.failed: str | None = None  # why writing stopped (a full disk, a pulled USB stick), if it did
         self.channels = list(channels)
         self._meta = dict(meta)
         self._write_batch_yaml()
@@ -81,18 +86,32 @@ class SessionRecorder:
             "recorded": date.today().isoformat(),
             **self._meta,
         }
-        (self.folder / "batch.yaml").write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+        tmp = self.folder / "batch.yaml.tmp"  # written whole, then moved: never a half-written batch.yaml
+        tmp.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+        tmp.replace(self.folder / "batch.yaml")
+
+    def _safely(self, write: Any, *args: Any) -> None:
+        """Do one write; on an OSError stop recording and say why (`failed`), instead of stopping live."""
+        if self.failed is not None:
+            return
+        try:
+            write(*args)
+        except OSError as e:
+            self.failed = f"{e.strerror or e} ({self.folder})"
 
     def update_sensor(self, **fields: Any) -> None:
         """The banner told more about the unit than was known at the start: batch.yaml says it."""
         self._meta["sensor"] = {**self._meta.get("sensor", {}), **fields}
-        self._write_batch_yaml()
+        self._safely(self._write_batch_yaml)
 
     def line(self, host_s: float, kind: str, text: str) -> None:
-        self._lines.row([f"{host_s:.6f}", kind, text])
+        self._safely(self._lines.row, [f"{host_s:.6f}", kind, text[:MAX_RECORDED]])
 
     def begin_trial(self, trial_id: str) -> None:
         self.end_trial_files()
+        self._safely(self._open_trial, trial_id)
+
+    def _open_trial(self, trial_id: str) -> None:
         self._fsr = _Csv(self.folder / f"{trial_id}.fsr.csv", ["t_ms", *self.channels, "board_ms"])
         self._cues = _Csv(
             self.folder / f"{trial_id}.cues.csv", ["t_s", "cue", "angle_est_deg", "fx", "fy", "fz", "reason"]
@@ -103,29 +122,32 @@ class SessionRecorder:
             return
         t = max(host_ms, self._last_ms + 0.001)  # rig-log/1: t_ms strictly increases
         self._last_ms = t
-        self._fsr.row([f"{t:.3f}", *counts, f"{board_ms:.0f}"])
+        self._safely(self._fsr.row, [f"{t:.3f}", *counts, f"{board_ms:.0f}"])
 
     def cue(self, t_s: float, cue: str, angle: float | None, force: Sequence[float], reason: str) -> None:
         if self._cues is not None:
             est = "" if angle is None else f"{angle:.1f}"
-            self._cues.row([f"{t_s:.3f}", cue, est, *(f"{f:.5f}" for f in force), reason])
+            self._safely(self._cues.row, [f"{t_s:.3f}", cue, est, *(f"{f:.5f}" for f in force), reason])
 
     def end_trial_files(self) -> None:
         for f in (self._fsr, self._cues):
             if f is not None:
-                f.close()
+                with contextlib.suppress(OSError):
+                    f.close()
         self._fsr = self._cues = None
         self._last_ms = -1.0
 
     def end_trial(self, row: Mapping[str, Any]) -> None:
         self.end_trial_files()
-        self._trials.row([row.get(c, "") for c in TRIAL_COLUMNS])
+        self._safely(self._trials.row, [row.get(c, "") for c in TRIAL_COLUMNS])
 
     def close(self, summary: Mapping[str, Any]) -> None:
         self.end_trial_files()
-        self._lines.close()
-        self._trials.close()
-        (self.folder / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        for f in (self._lines, self._trials):
+            with contextlib.suppress(OSError):
+                f.close()
+        text = json.dumps(summary, indent=2) + "\n"
+        self._safely((self.folder / SUMMARY).write_text, text, "utf-8")
 
 
 def read_lines(folder: Path) -> Iterator[tuple[float, str, str]]:
@@ -136,13 +158,17 @@ def read_lines(folder: Path) -> Iterator[tuple[float, str, str]]:
         header = next(reader, None)
         if header != ["host_s", "kind", "text"]:
             raise ValueError(f"{path}: not a needlecue live recording (header {header})")
-        for lineno, row in enumerate(reader, start=2):
-            if len(row) != 3:
-                raise ValueError(f"{path}:{lineno}: {len(row)} fields, expected host_s, kind, text")
-            try:
-                yield float(row[0]), row[1], row[2]
-            except ValueError as e:
-                raise ValueError(f"{path}:{lineno} column 'host_s': {e}") from e
+        lineno = 1
+        try:
+            for lineno, row in enumerate(reader, start=2):
+                if len(row) != 3:
+                    raise ValueError(f"{path}:{lineno}: {len(row)} fields, expected host_s, kind, text")
+                try:
+                    yield float(row[0]), row[1], row[2]
+                except ValueError as e:
+                    raise ValueError(f"{path}:{lineno} column 'host_s': {e}") from e
+        except csv.Error as e:
+            raise ValueError(f"{path}:{lineno + 1}: not valid CSV: {e}") from e
 
 
 def read_trials(folder: Path) -> list[dict[str, str]]:

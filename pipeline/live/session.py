@@ -104,6 +104,7 @@ class LiveSession:
             maxlen=max(1, round(PREROLL_S * settings.rate_hz))
         )
         self._prev_millis: int | None = None
+        self._suspect: int | None = None  # a board time that jumped, until the next line confirms it
         self._t = 0.0  # board time of the last sample, s, continuous over wraps and restarts
         self._t0_host: float | None = None
         self._last_host: float | None = None
@@ -120,6 +121,7 @@ class LiveSession:
         self.health.connected(host_s, settle_s)
         self._prev_millis = None
         self.detector.reset()
+        self._preroll.clear()  # the needle may have moved while the board was away
         self._phase = "connecting"
         self._emit(host_s)
 
@@ -210,15 +212,32 @@ class LiveSession:
             return self._t, None
         delta = (millis - prev) % MILLIS_WRAP  # a wrap of the 32-bit millis is a small step
         if delta == 0 or delta > RESTART_MS:
-            self.notes["restart"] = "the board's clock went back or jumped: it restarted"
+            self.notes["restart"] = "the board's clock went back: it restarted"
             self.detector.reset()
+            self._preroll.clear()
             self._finish(host_s, "restart")
             self._t += 1.0 / self.settings.rate_hz
             return self._t, None
         self._t += delta / 1000.0
         return self._t, delta / 1000.0
 
+    def _plausible_clock(self, millis: int) -> bool:
+        """False for a line whose board time jumps back or far ahead, unless the board has just booted
+        (small millis) or the next line carries on from it: one garbled digit is garbage, not a restart."""
+        prev, suspect = self._prev_millis, self._suspect
+        self._suspect = None
+        if prev is None or 0 < (millis - prev) % MILLIS_WRAP <= RESTART_MS or millis < RESTART_MS:
+            return True
+        if suspect is not None and 0 < (millis - suspect) % MILLIS_WRAP <= 1000:
+            return True  # two lines agree on the new clock: the board's time really moved
+        self._suspect = millis
+        return False
+
     def _sample(self, host_s: float, sample: Sample) -> None:
+        if not self._plausible_clock(sample.millis):
+            self.health.garbage(host_s, f"board time {sample.millis} ms jumps from {self._prev_millis} ms")
+            self._emit(host_s)
+            return
         t, gap = self._board_time(host_s, sample.millis)
         self._last_host = host_s
         self.health.sample(host_s, t, gap)
@@ -292,6 +311,8 @@ class LiveSession:
 
     def state(self, host_s: float) -> dict[str, Any]:
         """What the displays show now."""
+        if self.recorder is not None and self.recorder.failed:
+            self.notes["recording"] = f"the recording stopped: {self.recorder.failed}"
         frame, c = self._frame, self.client
         cue_state = getattr(frame, "cue", None)
         inside = self._current is not None

@@ -13,6 +13,7 @@ ADC count per channel. Lines starting with `#` are comments; the banner is the o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 WIRE = "needlecue-wire/1"
@@ -20,6 +21,7 @@ BAUD = 115200
 RATE_HZ = 30.0
 MAX_LINE = 256  # bytes: a longer run without a line break is garbage (a wrong baud rate, noise)
 MILLIS_WRAP = 2**32
+MAX_ADC_BITS = 24
 
 
 @dataclass(frozen=True)
@@ -69,7 +71,7 @@ def parse_banner(text: str) -> Banner:
         raise ValueError(f"not a {WIRE} banner: {text.strip()[:60]!r}")
     fields = dict(w.split("=", 1) for w in words[1:] if "=" in w)
     try:
-        return Banner(
+        banner = Banner(
             unit_id=fields.get("unit") or None,
             channels=tuple(fields["channels"].split(",")) if fields.get("channels") else None,
             adc_bits=int(fields["adc_bits"]) if "adc_bits" in fields else None,
@@ -78,6 +80,14 @@ def parse_banner(text: str) -> Banner:
         )
     except ValueError as e:
         raise ValueError(f"banner field unreadable ({e}): {text.strip()[:80]!r}") from e
+    # a garbled or hostile banner must not set a setting that breaks the conversion
+    if banner.adc_bits is not None and not 1 <= banner.adc_bits <= MAX_ADC_BITS:
+        raise ValueError(f"banner adc_bits={banner.adc_bits} outside 1..{MAX_ADC_BITS}")
+    for name in ("vref_v", "rate_hz"):
+        value = getattr(banner, name)
+        if value is not None and not (math.isfinite(value) and 0 < value <= 1e6):
+            raise ValueError(f"banner {name}={value} is not a positive finite number")
+    return banner
 
 
 def parse_line(raw: bytes, n_channels: int, adc_max: int) -> Sample | Banner | str | None:

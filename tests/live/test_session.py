@@ -6,13 +6,14 @@ import warnings
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 from pipeline.client import ForceClient, UncalibratedUnit
 from pipeline.live.app import replay_session
 from pipeline.live.emulate import load_trial, schedule
 from pipeline.live.recording import SessionRecorder, read_trials
 from pipeline.live.session import LiveSession, StreamSettings
-from pipeline.live.wire import format_banner, format_sample
+from pipeline.live.wire import Sample, format_banner, format_sample
 from tests.live.conftest import LiveModel, write_trials
 
 
@@ -52,3 +53,23 @@ def test_an_uncalibrated_unit_gets_force_without_cues_and_the_recording_replays_
     assert replay_session(tmp_path / "s", client)["insertions"] == summary["insertions"]
     fsr = pd.read_csv(tmp_path / "s" / "i001.fsr.csv")
     assert list(fsr.columns) == ["t_ms", *client.channels, "board_ms"] and fsr["t_ms"].is_monotonic_increasing
+
+
+def test_one_garbled_board_time_is_garbage_but_a_restarted_board_is_a_restart(
+    live_model: LiveModel, tmp_path: Path
+) -> None:
+    # given: a session at rest, 2 s of samples from a board that has run for a while
+    with pytest.warns(UncalibratedUnit):
+        client = ForceClient.from_dir(live_model.model_dir, unit_id="est-live")
+    session = LiveSession(client, StreamSettings(tuple(client.channels)))
+    session.connected(0.0, "test", 0.0)
+    for k in range(60):
+        session.line(k / 30, format_sample(Sample(900_000 + k * 33, (400, 300, 350))).rstrip())
+    # when: one line's millis lost a digit, then the board goes on
+    session.line(2.0, b"90198,400,300,350")
+    session.line(2.03, format_sample(Sample(900_000 + 61 * 33, (400, 300, 350))).rstrip())
+    # then: garbage, not a restart; the clock went on
+    assert session.health.counts["garbage_lines"] == 1 and "restart" not in session.notes
+    # when: the board really restarts (its millis start again near zero)
+    session.line(2.06, format_sample(Sample(1500, (400, 300, 350))).rstrip())
+    assert "restart" in session.notes and session.health.counts["samples"] == 62

@@ -71,3 +71,10 @@ def test_a_board_clock_that_runs_slow_is_not_taken_for_late_samples() -> None:
     assert h.counts["late_samples"] == 0
     h.sample(1800 / 30 * 1.005 + 0.4, 1800 / 30, 1 / 30)
     assert h.counts["late_samples"] == 1
+
+
+def test_a_banner_that_would_break_the_conversion_is_garbage() -> None:
+    # given: banners a garbled or hostile line could carry
+    for bad in (b"adc_bits=0", b"adc_bits=1100", b"vref_v=nan", b"vref_v=-5", b"rate_hz=inf"):
+        # then: each is a reason (counted as garbage), never a setting
+        assert isinstance(parse_line(b"#needlecue-wire/1 " + bad, 3, 1023), str), bad
