@@ -6,12 +6,17 @@ the registered champion (run `make repro` first), the page open in Debian's head
 p99 of: line read -> state published (the chain), line read -> DOM updated (the page's cue), and
 line read -> next animation frame (the paint, which waits for the browser's 60 Hz frame).
 
-    python benchmarks/bench_live.py [--angle 30] [--unit est-sim-101] [--trials N]
+    python benchmarks/bench_live.py [--angle 30] [--unit est-sim-101] [--trials N] [--dump FILE.csv]
+
+"written to the page" is when the page's SSE thread handed the state to the socket: what needlecue
+controls. The rest, to the DOM, is Chromium's (here headless, software-rendered, sharing the two cores
+with the emulator and the live process).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -27,12 +32,15 @@ from pipeline.live.display import Board, WebDisplay
 from pipeline.live.port import run_port
 from pipeline.live.session import LiveSession
 
+EXTRA = os.environ.get("BENCH_CHROMIUM_ARGS", "").split()  # more Chromium flags to try
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--angle", type=float, default=30.0)
     ap.add_argument("--unit", default="est-sim-101")
     ap.add_argument("--trials", type=int, default=2)
+    ap.add_argument("--dump", type=Path, help="write every state's timings (ms after its line) to this CSV")
     a = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -75,7 +83,7 @@ def main() -> None:
         kwargs={"reset_wait_s": 0.5, "should_stop": stop.is_set},
     )
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=["--disable-gpu"])
+        browser = p.chromium.launch(executable_path="/usr/bin/chromium", args=["--disable-gpu", *EXTRA])
         page = browser.new_page()
         page.goto(web.url + "?bench=1")
         reader.start()
@@ -87,11 +95,21 @@ def main() -> None:
     web.stop()
     lines = {s: v for s, v in published.items() if v[0] is not None}
     chain = np.array([(pub - read) * 1000 for read, pub in lines.values()])
+    wrote = np.array([(w - lines[s][0]) * 1000 for s, w in board.written if s in lines])
     dom = np.array([(d - lines[s][0]) * 1000 for s, d, _ in board.renders if s in lines])
     paint = np.array([(f - lines[s][0]) * 1000 for s, _, f in board.renders if s in lines])
+    if a.dump:
+        rows = [
+            (s, (pub - lines[s][0]) * 1000, (d - lines[s][0]) * 1000, (f - lines[s][0]) * 1000)
+            for s, d, f in board.renders
+            if s in lines
+            for pub in [lines[s][1]]
+        ]
+        np.savetxt(a.dump, rows, delimiter=",", fmt="%.3f", header="seq,published_ms,dom_ms,paint_ms")
     print(f"bench_live: {len(files)} trial(s), {len(chain)} states, {len(dom)} rendered on the page")
     for name, v in (
         ("line -> state published", chain),
+        ("line -> written to the page", wrote),
         ("line -> cue in the page's DOM", dom),
         ("line -> next painted frame", paint),
     ):

@@ -30,6 +30,7 @@ class Board:
         self.cond = threading.Condition()
         # (seq, DOM updated, painted) in epoch seconds, posted by a page opened with ?bench=1
         self.renders: deque[tuple[int, float, float]] = deque(maxlen=100_000)
+        self.written: deque[tuple[int, float]] = deque(maxlen=100_000)  # (seq, sent to a page) epoch s
         self.closed = False
 
     def publish(self, state: dict[str, Any]) -> None:
@@ -48,6 +49,7 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
 
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"
+        disable_nagle_algorithm = True  # a frame's state is one small write: send it now, not with the next
 
         def log_message(self, format: str, *args: Any) -> None:  # quiet: the terminal is the trainee's
             pass
@@ -115,6 +117,7 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
                     else:
                         sent = state["seq"]
                         self.wfile.write(b"data: " + json.dumps(state).encode() + b"\n\n")
+                        board.written.append((sent, time.time()))
                     self.wfile.flush()
             except OSError:
                 return  # the page closed (or its connection broke)

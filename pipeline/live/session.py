@@ -27,6 +27,7 @@ from pipeline.live.wire import BAUD, MILLIS_WRAP, Banner, Sample, parse_line
 RESTART_MS = 60_000  # the board's clock jumping more than this (or back) means the board restarted
 PREROLL_S = 1.5  # the rest before an insertion's start that the client sees (its rest reading)
 HISTORY = 8  # insertions the display lists
+TICK_S = 0.25  # without samples, the displays get a state this often
 
 Publish = Callable[[dict[str, Any]], None]
 
@@ -113,6 +114,7 @@ class LiveSession:
         self._frame: Any = None
         self._current: Insertion | None = None
         self._last_state: dict[str, Any] = {}
+        self._last_emit = -float("inf")
 
     # --- what the port delivers -------------------------------------------------------------------
 
@@ -151,8 +153,11 @@ class LiveSession:
             self._sample(host_s, got)
 
     def tick(self, host_s: float) -> None:
-        """Nothing arrived for a while: let the displays show silence or a fault."""
-        self._emit(host_s)
+        """Nothing arrived for a while: let the displays show silence or a fault (a state when the
+        problems change, else at most every TICK_S: a frame's own state is what the page waits for)."""
+        problems = {**self.health.problems(host_s), **self.notes}
+        if problems != self._last_state.get("problems") or host_s - self._last_emit >= TICK_S:
+            self._emit(host_s)
 
     def close(self, host_s: float) -> dict[str, Any]:
         """End the session: the insertion under way is closed; the totals."""
@@ -347,6 +352,7 @@ class LiveSession:
         }
 
     def _emit(self, host_s: float) -> None:
+        self._last_emit = host_s
         self._seq += 1
         self._last_state = self.state(host_s)
         self.publish(self._last_state)
