@@ -32,6 +32,7 @@ class Board:
         self.renders: deque[tuple[int, float, float]] = deque(maxlen=100_000)
         self.written: deque[tuple[int, float]] = deque(maxlen=100_000)  # (seq, sent to a page) epoch s
         self.closed = False
+        self.streams = 0  # pages connected to /events
 
     def publish(self, state: dict[str, Any]) -> None:
         with self.cond:
@@ -102,6 +103,8 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
             self.send_header("Connection", "close")
             self.end_headers()
             sent = -1
+            with board.cond:
+                board.streams += 1
             try:
                 while True:
                     last = sent
@@ -109,9 +112,9 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
                         board.cond.wait_for(
                             lambda last=last: board.closed or board.state.get("seq", -1) != last, KEEPALIVE_S
                         )
-                        if board.closed:
-                            return
-                        state = board.state
+                        state, closed = board.state, board.closed
+                    if closed and state.get("seq", -1) == sent:
+                        return  # the session is over and the page has its last state
                     if state.get("seq", -1) == sent:
                         self.wfile.write(b": keepalive\n\n")
                     else:
@@ -121,6 +124,10 @@ def _handler(board: Board) -> type[BaseHTTPRequestHandler]:
                     self.wfile.flush()
             except OSError:
                 return  # the page closed (or its connection broke)
+            finally:
+                with board.cond:
+                    board.streams -= 1
+                    board.cond.notify_all()
 
     return Handler
 
@@ -143,8 +150,12 @@ class WebDisplay:
         self._thread.start()
         return self
 
-    def stop(self) -> None:
-        self.board.close()
+    def stop(self, drain_s: float = 1.0) -> None:
+        """Stop serving; the open pages first get the session's last state (for up to `drain_s`)."""
+        board = self.board
+        board.close()
+        with board.cond:
+            board.cond.wait_for(lambda: board.streams == 0, drain_s)
         self.server.shutdown()
         self.server.server_close()
 
