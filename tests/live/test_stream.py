@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
+from pipeline.live.emulate import load_trial, schedule
 from pipeline.live.health import StreamHealth
 from pipeline.live.insertions import InsertionDetector
 from pipeline.live.recording import escape, unescape
+from pipeline.live.session import StreamSettings
 from pipeline.live.wire import Banner, Sample, format_banner, format_sample, parse_line
 
 
@@ -78,3 +82,23 @@ def test_a_banner_that_would_break_the_conversion_is_garbage() -> None:
     for bad in (b"adc_bits=0", b"adc_bits=1100", b"vref_v=nan", b"vref_v=-5", b"rate_hz=inf"):
         # then: each is a reason (counted as garbage), never a setting
         assert isinstance(parse_line(b"#needlecue-wire/1 " + bad, 3, 1023), str), bad
+
+
+def test_each_simulated_insertion_is_one_insertion_start_to_end(tmp_path: Path) -> None:
+    # given: the built-in rig simulator's trials at two angles, played back to back with rests between
+    from pipeline.config import SimulateParams
+    from pipeline.sim.rig import write_new_batch
+
+    write_new_batch(SimulateParams(), tmp_path, "b", (15.0, 60.0), 2)
+    trials = [load_trial(f) for f in sorted((tmp_path / "b").glob("*.fsr.csv"))]
+    settings = StreamSettings(("fsr1", "fsr2", "fsr3"))
+    det = InsertionDetector(30.0)
+    # when: the detector reads their volts
+    events = []
+    for at, sample in schedule(trials, pause_s=3.0):
+        if (e := det.push(at, settings.volts(sample.counts))) is not None:
+            events.append((e, at))
+    # then: one start and one end per trial, the whole insertion (10 s in, then out) in between
+    assert [e for e, _ in events] == ["start", "end"] * len(trials)
+    lengths = [end - start for (_, start), (_, end) in zip(events[::2], events[1::2], strict=True)]
+    assert all(9.0 < n < 20.0 for n in lengths), lengths
