@@ -40,7 +40,7 @@ def test_an_uncalibrated_unit_gets_force_without_cues_and_the_recording_replays_
         client, StreamSettings(tuple(client.channels)), recorder=recorder, publish=states.append
     )
     # when: two insertions arrive
-    _feed(session, write_trials(tmp_path / "held", [30, 60]))
+    _feed(session, write_trials(tmp_path / "held", [30, 45]))
     summary = session.close(100.0)
     # then: force in every insertion frame, never a cue, and the page is told why
     inside = [s for s in states if s["insertion"] is not None]
