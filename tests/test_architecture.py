@@ -67,3 +67,13 @@ def test_dvc_yaml_lists_exactly_the_code_each_stage_imports() -> None:
     # then: no stage misses a file it runs, and none lists one it does not (`python -m tests.architecture`
     # prints the lists to paste)
     assert {k: v for k, v in wrong.items() if v["missing"] or v["extra"]} == {}
+
+
+def test_the_live_session_imports_no_training_module() -> None:
+    # given: what `needlecue live` loads to run a session (the emulator, a test tool, reads rig logs)
+    loaded = {module_name(p) for p in closure(REPO / PACKAGE / "live" / "app.py")}
+    # then: the client's side only, as on a simulator
+    training = ("pipeline.modelling", "pipeline.metrics", "pipeline.reporting", "pipeline.stages")
+    training += ("pipeline.rig", "pipeline.signals", "pipeline.sim", "pipeline.dataset")
+    shared = {"pipeline.modelling", "pipeline.modelling.features"}
+    assert sorted(m for m in loaded if m.startswith(training) and m not in shared) == []
