@@ -448,17 +448,15 @@ def _replay_session(
     folder: Path, angle: float | None, alias: str, model_dir: Path | None, unit_id: str | None
 ) -> None:
     """`needlecue replay` of a live session's recording: its lines through the same chain again."""
-    import yaml
-
-    from pipeline.live.app import live_meta, replay_session
-    from pipeline.live.recording import read_trials
+    from pipeline.live.app import replay_session
+    from pipeline.live.recording import read_meta, read_trials
     from pipeline.registry.store import RegistryUnreachable
 
-    meta = yaml.safe_load((folder / "batch.yaml").read_text(encoding="utf-8"))
+    meta = read_meta(folder)
     recorded_unit = (meta.get("sensor") or {}).get("unit_id")
     unit_id = unit_id or (recorded_unit if recorded_unit != "unknown" else None)
     try:
-        cues = bool(live_meta(folder).get("cues_uncalibrated"))  # as the live session was told
+        cues = bool((meta.get("live") or {}).get("cues_uncalibrated"))  # as the live session was told
         client = load_client(angle, alias, model_dir, unit_id, cues)
         summary = replay_session(folder, client)
     except RegistryUnreachable as e:

@@ -11,12 +11,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from pipeline.client.force import ForceClient
 from pipeline.live.display import Board, TerminalView, WebDisplay
 from pipeline.live.port import run_port
-from pipeline.live.recording import SessionRecorder, read_lines, unescape
+from pipeline.live.recording import SessionRecorder, read_lines, read_meta, unescape
 from pipeline.live.session import LiveSession, StreamSettings
 from pipeline.live.wire import BAUD, WIRE
 
@@ -138,15 +136,9 @@ def run_live(
     return summary
 
 
-def live_meta(folder: Path) -> dict[str, Any]:
-    """The `live` section of a recorded session's batch.yaml ({} if it has none)."""
-    meta = yaml.safe_load((folder / "batch.yaml").read_text(encoding="utf-8")) or {}
-    return meta.get("live") or {} if isinstance(meta, dict) else {}
-
-
 def replay_session(folder: Path, client: ForceClient) -> dict[str, Any]:
     """A recorded session's lines through the same chain as live (no displays, no new recording)."""
-    given = live_meta(folder).get("given") or {}
+    given = (read_meta(folder).get("live") or {}).get("given") or {}
     options = LiveOptions(port="", adc_bits=given.get("adc_bits"), vref_v=given.get("vref_v"))
     settings, fixed = settings_for(client, options)  # as live started; the banner changes them as it did
     session = LiveSession(client, settings, fixed=fixed)

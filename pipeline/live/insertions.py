@@ -80,11 +80,15 @@ class InsertionDetector:
             self._stop()
             return "timeout"
         self._window.append(v)
-        near = self._relative(v) <= r.steady_end_rel
-        if near and len(self._window) == self._n_steady and self._span(self._window) < r.steady_rel:
+        rel = self._relative(v)
+        if (
+            rel <= r.steady_end_rel
+            and len(self._window) == self._n_steady
+            and self._span(self._window) < r.steady_rel
+        ):
             self._stop()
             return "end"
-        if self._relative(v) <= r.end_rel:
+        if rel <= r.end_rel:
             if self._calm_since is None:
                 self._calm_since = t
             if t - self._calm_since >= r.end_hold_s:

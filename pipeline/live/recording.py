@@ -176,12 +176,15 @@ def read_trials(folder: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def is_session(folder: Path) -> bool:
-    """Whether `folder` is a live session recording (a batch.yaml of purpose live and a lines.csv)."""
-    if not (folder / LINES).is_file() or not (folder / "batch.yaml").is_file():
-        return False
+def read_meta(folder: Path) -> dict[str, Any]:
+    """A recorded session's batch.yaml ({} if it is missing, unreadable or not a mapping)."""
     try:
         meta = yaml.safe_load((folder / "batch.yaml").read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError, UnicodeDecodeError):
-        return False
-    return isinstance(meta, dict) and meta.get("purpose") == PURPOSE
+        return {}
+    return meta if isinstance(meta, dict) else {}
+
+
+def is_session(folder: Path) -> bool:
+    """Whether `folder` is a live session recording (a batch.yaml of purpose live and a lines.csv)."""
+    return (folder / LINES).is_file() and read_meta(folder).get("purpose") == PURPOSE

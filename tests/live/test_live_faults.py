@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import csv
 import json
-import subprocess
 import time
 import urllib.request
 from pathlib import Path
 
 import pytest
 
-from tests.live.conftest import UNIT, LiveModel, write_trials
-from tests.live.test_live_e2e import NEEDLECUE, _display_url, _env
+from tests.live.conftest import LiveModel
+from tests.live.processes import rig_and_live
 
 pytestmark = pytest.mark.xdist_group("live")
 
@@ -23,61 +22,19 @@ def _run(
 ) -> tuple[set[str], str, Path]:
     """emulate-rig with `rig_args` against live with `live_args`: the problem keys the page's state
     showed, live's output and the session folder."""
-    files = write_trials(tmp_path / "held", [30, 45])
-    link, session = tmp_path / "rig", tmp_path / "session"
-    env = _env(model, tmp_path)
-    rig = subprocess.Popen(
-        [*NEEDLECUE, "emulate-rig", *map(str, files), "--link", str(link), "--pause", "2.5", *rig_args],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    live = None
     seen: set[str] = set()
-    try:
-        end = time.monotonic() + 30
-        while not link.exists() and time.monotonic() < end:
-            time.sleep(0.05)
-        live = subprocess.Popen(
-            [
-                *NEEDLECUE,
-                "live",
-                "--port",
-                str(link),
-                "--model-dir",
-                str(model.model_dir),
-                "--unit",
-                UNIT,
-                "--record",
-                str(session),
-                "--http-port",
-                "0",
-                "--reset-wait",
-                "0.5",
-                *live_args,
-            ],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        url = _display_url(live)
-        while live.poll() is None and time.monotonic() < end + 30:
+    with rig_and_live(model, tmp_path, [30, 45], rig_args, live_args) as run:
+        end = time.monotonic() + 60
+        while run.live.poll() is None and time.monotonic() < end:
             try:
-                with urllib.request.urlopen(url + "state", timeout=2) as r:
+                with urllib.request.urlopen(run.url + "state", timeout=2) as r:
                     seen |= set(json.loads(r.read()).get("problems") or {})
             except OSError:
                 pass  # the session ended between two polls
             time.sleep(0.05)
-        out, _ = live.communicate(timeout=30)
-        assert live.returncode == 0, out
-    finally:
-        for proc in (live, rig):
-            if proc is not None and proc.poll() is None:
-                proc.kill()
-                proc.wait(timeout=10)
-    return seen, out, session
+        out, _ = run.live.communicate(timeout=30)
+        assert run.live.returncode == 0, out
+    return seen, out, run.session
 
 
 def test_garbage_a_stall_and_a_pulled_cable_are_shown_and_recorded(

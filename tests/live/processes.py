@@ -1,0 +1,83 @@
+"""The live tests' real processes: `needlecue emulate-rig` on a pseudo-terminal and `needlecue live`
+reading it, with the unit's calibration, a session folder and the page on a free port."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from tests.live.conftest import UNIT, LiveModel, write_trials
+
+NEEDLECUE = [sys.executable, "-m", "pipeline.cli"]
+
+
+@dataclass(frozen=True)
+class Running:
+    live: subprocess.Popen[str]
+    url: str  # the trainee page
+    session: Path  # the recording's folder
+    env: dict[str, str]  # the environment both run in (the model's store, a cache of their own)
+
+
+def env_for(model: LiveModel, tmp_path: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(MLFLOW_TRACKING_URI=model.uri, MLFLOW_REGISTRY_URI=model.uri)
+    env["NEEDLECUE_MODEL_CACHE"] = str(tmp_path / "cache")
+    return env
+
+
+def display_url(proc: subprocess.Popen[str], limit_s: float = 60) -> str:
+    end = time.monotonic() + limit_s
+    assert proc.stdout is not None
+    said = []
+    while time.monotonic() < end:
+        line = proc.stdout.readline()
+        said.append(line)
+        if line.startswith("display: "):
+            return line.split()[1]
+        if not line and proc.poll() is not None:
+            break
+    raise AssertionError(f"needlecue live printed no display URL (exit {proc.poll()}): {''.join(said)}")
+
+
+@contextlib.contextmanager
+def rig_and_live(
+    model: LiveModel, tmp_path: Path, angles: list[float], rig_args: list[str], live_args: list[str]
+) -> Iterator[Running]:
+    """The rig playing one synthetic trial per angle (2.5 s rests), live on its link; both are killed
+    on the way out if still running."""
+    files = write_trials(tmp_path / "held", angles)
+    link, session = tmp_path / "rig", tmp_path / "session"
+    env = env_for(model, tmp_path)
+    rig = subprocess.Popen(
+        [*NEEDLECUE, "emulate-rig", *map(str, files), "--link", str(link), "--pause", "2.5", *rig_args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    live = None
+    try:
+        deadline = time.monotonic() + 30
+        while not link.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        live = subprocess.Popen(
+            [*NEEDLECUE, "live", "--port", str(link), "--model-dir", str(model.model_dir), "--unit", UNIT,
+             "--record", str(session), "--http-port", "0", "--reset-wait", "0.5", *live_args],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )  # fmt: skip
+        yield Running(live, display_url(live), session, env)
+    finally:
+        for proc in (live, rig):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
