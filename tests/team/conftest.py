@@ -11,6 +11,14 @@ import pytest
 from pipeline.team.stack import Stack, free_base_port
 
 
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Under `--dist loadgroup` xdist marks each grouped test's id with its group; without the mark the
+    group is ignored and each worker would start a stack and a project of its own (pytest 9.2 with
+    xdist 3.8: pytest-xdist issue #1386). Fail before anything starts instead."""
+    if getattr(item.config.option, "loadgroup", False) and not item.nodeid.endswith("@team"):
+        pytest.fail(f"{item.nodeid}: xdist did not keep the team tests on one worker (pytest-xdist #1386)")
+
+
 @pytest.fixture(scope="session")
 def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     stack = Stack(tmp_path_factory.mktemp("team") / "stack")
