@@ -8,6 +8,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
+
+from tests.projects import build_tiny_project
 
 LAB_BENCH_A = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
 
@@ -38,3 +41,20 @@ def mlflow_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.M
         mlflow = sys.modules["mlflow"]
         mlflow.set_tracking_uri(None)
         mlflow.set_registry_uri(None)
+
+
+@pytest.fixture(scope="session")
+def tiny_built(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
+    """The small simulated project reproduced through every stage but register, built once per test
+    session and shared by the xdist workers (the first builds it, the others wait); never write into
+    it: take a copy with `tests.projects.copy_project`."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base if worker_id == "master" else base.parent  # xdist: the folder every worker's temp is in
+    root = shared / "tiny-built"
+    with FileLock(shared / "tiny-built.lock"):
+        if not (shared / "tiny-built.done").exists():
+            if root.exists():
+                shutil.rmtree(root)  # a build a failed worker left half done
+            build_tiny_project(root)
+            (shared / "tiny-built.done").touch()
+    return root

@@ -66,3 +66,24 @@ def make_tiny_project(root: Path) -> tuple[Path, dict]:
         params[model].update(update)
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     return root, params
+
+
+def build_tiny_project(root: Path) -> Path:
+    """make_tiny_project reproduced through every stage but register (which needs a test's own MLflow
+    store): what several end-to-end tests start from. Copy it with `copy_project`."""
+    make_tiny_project(root)
+    run(root, "dvc", "repro", *built_stages(root))
+    return root
+
+
+def built_stages(root: Path) -> list[str]:
+    """The stages `build_tiny_project` runs: all but register."""
+    return [s for s in run(root, "dvc", "stage", "list", "--name-only").split() if s != "register"]
+
+
+def copy_project(built: Path, root: Path) -> tuple[Path, dict]:
+    """A copy of a reproduced project (its DVC cache included, its DVC state not: that is per folder)
+    at `root`; `dvc repro` there runs only what the copy lacks. Returns the folder and its params."""
+    state = lambda folder, _names: ["tmp"] if folder.endswith(".dvc") else []  # noqa: E731
+    shutil.copytree(built, root, symlinks=True, ignore=state)
+    return root, yaml.safe_load((root / "params.yaml").read_text())

@@ -16,7 +16,7 @@ from mlflow import MlflowClient
 from pipeline import retrain
 from pipeline.config import IngestParams
 from tests.helpers import tree_hash
-from tests.projects import LAB_BATCH, make_tiny_project, run
+from tests.projects import LAB_BATCH, copy_project, run
 
 
 def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> None:
@@ -153,9 +153,9 @@ def new_cast(root: Path, batch_id: str, angle: int) -> None:
 
 
 @pytest.mark.slow
-def test_retrain_follows_a_new_batch_and_nothing_else(tmp_path: Path) -> None:
+def test_retrain_follows_a_new_batch_and_nothing_else(tiny_built: Path, tmp_path: Path) -> None:
     # Given a small project trained and registered end to end
-    root, _params = make_tiny_project(tmp_path / "proj")
+    root, _params = copy_project(tiny_built, tmp_path / "proj")
     run(root, "dvc", "repro")
     client = MlflowClient()
     champion_15 = client.get_model_version_by_alias("needle-force-15", "champion")

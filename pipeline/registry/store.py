@@ -48,6 +48,10 @@ with its input transform. Tags: `unit_id`, `batches`, `angles_used`, `angles_mis
 `calibration/calibration.json`, registered as `needle-unit-<unit_id>`, alias `current`."""
 # Fail fast on an unreachable HTTP store instead of MLflow's default minutes of retries.
 _HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
+# A writer waits longer for each answer (unless told otherwise): a server busy with many clients can
+# take over 10 s for one request (seen in CI, just after a restart), and a register given up half way
+# has to be run again. An unreachable server still fails at once: no retries.
+_WRITE_TIMEOUT_S = "60"
 
 
 # A registered-model name nobody registers: asked for, a real MLflow store says it does not exist.
@@ -157,6 +161,8 @@ def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = F
     """
     for key, value in _HTTP_DEFAULTS.items():
         os.environ.setdefault(key, value)
+    if write and os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == _HTTP_DEFAULTS["MLFLOW_HTTP_REQUEST_TIMEOUT"]:
+        os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] = _WRITE_TIMEOUT_S
     import mlflow
     from mlflow import MlflowClient
 

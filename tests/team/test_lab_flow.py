@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from pipeline.client.cache import poll_alias
 from pipeline.client.webhook import AliasListener, signature
 from pipeline.registry import store
 from pipeline.team import access
-from tests.projects import make_tiny_project, run
+from tests.projects import built_stages, copy_project, run
 
 # the real servers, on one xdist worker (their tests share one stack), in file order
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
@@ -55,14 +54,15 @@ def _aliases(team) -> dict[str, dict[str, str]]:
 
 
 @pytest.fixture(scope="module")
-def lab(team, tmp_path_factory) -> Path:
-    """A small git + DVC project whose default remote is the stack's S3 store, reproduced as the lab."""
-    root, _ = make_tiny_project(tmp_path_factory.mktemp("lab") / "project")
-    shutil.rmtree(root / ".dvc")
+def lab(team, tiny_built, tmp_path_factory) -> Path:
+    """A small git + DVC project whose default remote is the stack's S3 store, reproduced as the lab
+    (from the shared build: only register runs, into the server)."""
+    root, _ = copy_project(tiny_built, tmp_path_factory.mktemp("lab") / "project")
     env = _env(team, "lab")
     run(root, "git", "init", "-q", env=env)
-    run(root, "dvc", "init", "-q", env=env)
-    run(root, "dvc", "config", "core.analytics", "false", env=env)
+    run(root, "dvc", "config", "core.no_scm", "false", env=env)
+    # (re)writes each output's .gitignore entry, so no data goes into git
+    run(root, "dvc", "commit", "-f", "-q", *built_stages(root), env=env)
     run(root, "dvc", "remote", "add", "-d", "team", "s3://dvc/needlecue", env=env)
     run(root, "dvc", "remote", "modify", "team", "endpointurl", team.s3_endpoint, env=env)
     run(root, "git", "add", "-A", env=env)
