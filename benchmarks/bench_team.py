@@ -8,8 +8,9 @@ MLflow with basic auth) on free loopback ports in a temp folder, then:
    times each into fresh stores, alternating, and prints the median seconds per tracked model of each and
    their ratio;
 2. has SIMULATORS threads, each with its own cache and the simulator's read-only credentials, fetch
-   `needle-force-30@champion` at once, ROUNDS times, and prints p50 and p99 of each round and the
-   median of each over the rounds; every fetch must succeed.
+   `needle-force-30@champion` at once, ROUNDS times for each of two ways (the files the client runs,
+   as `fetch` does, and the whole logged model, as it did before), alternating, and prints p50 and
+   p99 of each round and the median of each over the rounds; every fetch must succeed.
 All figures come from this one run. The stack is stopped and deleted at the end.
 """
 
@@ -83,26 +84,33 @@ def main() -> None:
 
 
 def fetch_load(stack: Stack, tmp_path: Path) -> None:
-    from pipeline.client import fetch
+    """ROUNDS rounds of SIMULATORS fetches at once, alternating what a fetch downloads: the files the
+    client runs (MLmodel and model.onnx, the default) and, for comparison, the whole logged model."""
+    from pipeline.client import cache, fetch
 
     os.environ.update(stack.role_env("simulator"))
-    p50s, p99s = [], []
+    ways = {"client's files": cache.MODEL_FILES, "whole model": None}
+    p50s: dict[str, list[float]] = {way: [] for way in ways}
+    p99s: dict[str, list[float]] = {way: [] for way in ways}
     for r in range(ROUNDS):
+        for way, files in ways.items():
+            cache.MODEL_FILES = files  # what fetch() passes as `only`
 
-        def one(i: int, r: int = r) -> float:
-            t0 = time.perf_counter()
-            fetch(30, cache_dir=tmp_path / f"cache-{r}-{i}", tracking_uri=stack.tracking_uri)
-            return time.perf_counter() - t0
+            def one(i: int, r: int = r, way: str = way) -> float:
+                t0 = time.perf_counter()
+                fetch(30, cache_dir=tmp_path / f"cache-{r}-{way}-{i}", tracking_uri=stack.tracking_uri)
+                return time.perf_counter() - t0
 
-        with ThreadPoolExecutor(max_workers=SIMULATORS) as pool:
-            times = sorted(pool.map(one, range(SIMULATORS)))
-        p50s.append(statistics.median(times))
-        p99s.append(times[int(0.99 * (len(times) - 1))])
-        print(
-            f"fetch round {r + 1}: {SIMULATORS} at once, 0 errors: p50 {p50s[-1]:.2f} s, p99 {p99s[-1]:.2f} s"
-        )
-    p50, p99 = statistics.median(p50s), statistics.median(p99s)
-    print(f"fetch under load, median of {ROUNDS} rounds: p50 {p50:.2f} s, p99 {p99:.2f} s")
+            with ThreadPoolExecutor(max_workers=SIMULATORS) as pool:
+                times = sorted(pool.map(one, range(SIMULATORS)))
+            p50s[way].append(statistics.median(times))
+            p99s[way].append(times[int(0.99 * (len(times) - 1))])
+            print(f"fetch round {r + 1}, {way}: {SIMULATORS} at once, 0 errors: "
+                  f"p50 {p50s[way][-1]:.2f} s, p99 {p99s[way][-1]:.2f} s")  # fmt: skip
+    cache.MODEL_FILES = ways["client's files"]
+    for way in ways:
+        p50, p99 = statistics.median(p50s[way]), statistics.median(p99s[way])
+        print(f"fetch under load, {way}, median of {ROUNDS} rounds: p50 {p50:.2f} s, p99 {p99:.2f} s")
 
 
 if __name__ == "__main__":

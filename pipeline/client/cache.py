@@ -38,6 +38,8 @@ log = logging.getLogger("pipeline.client")
 DEFAULT_CACHE = Path("~/.cache/needlecue/models").expanduser()
 CACHE_ENV = "NEEDLECUE_MODEL_CACHE"
 VERSION_FILE = "version.json"
+# What a simulator runs of a force model: its description and its ONNX (not the environment files)
+MODEL_FILES = ("MLmodel", "model.onnx")
 # A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
 # gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
 _POLL_HTTP_ENV = {"MLFLOW_HTTP_REQUEST_TIMEOUT": "2", "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
@@ -135,6 +137,7 @@ def fetch(
         MODEL_HINT,
         _model_info,
         _model_problem(name, angle_deg),
+        only=MODEL_FILES,
     )
 
 
@@ -187,11 +190,13 @@ def _fetch_version(
     problem: Verify,
     *,
     offline_needs_file: bool = False,
+    only: tuple[str, ...] | None = None,
 ) -> Path:
     """`fetch` and `fetch_unit`: `<cache_dir>/<name>/<alias>/`, downloaded (and described) unless the
     cached copy is that very version with `file` intact (its sha256 under `sha_key` in version.json);
     the cached copy when the registry cannot be used (a unit's only if its `file` is there), once
-    `problem(folder, version.json)` finds nothing wrong with it."""
+    `problem(folder, version.json)` finds nothing wrong with it. `only`: download just these files of
+    the version (default: all of it)."""
     uri = f"models:/{name}@{alias}"
     target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
     registry_uri = tracking_uri or store.tracking_uri()
@@ -212,7 +217,7 @@ def _fetch_version(
     ):
         return target  # already that version, intact: no download
     try:
-        return _download(mv, alias, target, registry_uri, describe)
+        return _download(mv, alias, target, registry_uri, describe, only)
     except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
         return _offline_copy(target, cached, uri, e, problem)
 
@@ -345,9 +350,17 @@ def _unit_info(unit_id: str) -> Describe:
     return info
 
 
-def _download(mv: Any, alias: str, target: Path, registry_uri: str, describe: Describe = _model_info) -> Path:
-    """Download a model version into a temp sibling of `target`, check it and describe it with
-    `describe(folder, mv)` (a broken version raises ValueError), then swap it in (never a partial copy)."""
+def _download(
+    mv: Any,
+    alias: str,
+    target: Path,
+    registry_uri: str,
+    describe: Describe = _model_info,
+    only: tuple[str, ...] | None = None,
+) -> Path:
+    """Download a model version (or just the files `only` names) into a temp sibling of `target`, check
+    it and describe it with `describe(folder, mv)` (a broken version raises ValueError), then swap it in
+    (never a partial copy)."""
     import mlflow
     from mlflow.exceptions import MlflowException
 
@@ -358,11 +371,14 @@ def _download(mv: Any, alias: str, target: Path, registry_uri: str, describe: De
         with _quiet_downloads():
             # by version, not alias: the alias may move between resolving it and downloading
             try:
-                mlflow.artifacts.download_artifacts(
-                    artifact_uri=f"models:/{mv.name}/{mv.version}",
-                    dst_path=str(tmp),
-                    tracking_uri=registry_uri,
-                )
+                if only is None:
+                    mlflow.artifacts.download_artifacts(
+                        artifact_uri=f"models:/{mv.name}/{mv.version}",
+                        dst_path=str(tmp),
+                        tracking_uri=registry_uri,
+                    )
+                else:
+                    _download_files(mv, only, tmp, registry_uri)
             except MlflowException as e:
                 raise store.RegistryUnreachable(
                     f"downloading {mv.name} version {mv.version} from {registry_uri} failed: {e}"
@@ -383,6 +399,29 @@ def _download(mv: Any, alias: str, target: Path, registry_uri: str, describe: De
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return target
+
+
+def _download_files(mv: Any, files: tuple[str, ...], folder: Path, registry_uri: str) -> None:
+    """Download `files` of a model version into `folder`, each by itself: a logged model holds more
+    than a client runs (environment files, input examples), and through a tracking server every file
+    costs requests (about 22 for the whole of a force model, 10 for MLmodel and model.onnx)."""
+    import mlflow
+    from mlflow import MlflowClient
+    from mlflow.exceptions import MlflowException
+
+    root = MlflowClient(registry_uri, registry_uri).get_model_version_download_uri(mv.name, mv.version)
+    for file in files:
+        try:
+            mlflow.artifacts.download_artifacts(
+                artifact_uri=f"{root.rstrip('/')}/{file}", dst_path=str(folder), tracking_uri=registry_uri
+            )
+        except MlflowException as e:
+            if e.error_code != "RESOURCE_DOES_NOT_EXIST":
+                raise
+            # a version without the file is broken, not unreachable: describe() says which is missing
+        except OSError as e:
+            if not isinstance(e, FileNotFoundError):
+                raise
 
 
 def _swap_in(new: Path, target: Path) -> None:

@@ -51,6 +51,25 @@ def test_fetch_downloads_once_and_falls_back_to_the_copy_when_offline(
     assert caplog.text.count("offline") == 2 and str(folder) in caplog.text
 
 
+def test_fetch_takes_only_what_a_simulator_runs_and_refuses_a_version_without_it(
+    mlflow_store: str, tmp_path: Path
+) -> None:
+    # given: a champion of this test's own store, fetched into an empty cache
+    register(mlflow_store, tmp_path, fit("ls", TINY["ls"], cue_trials(30, 3)).checkpoint)
+    folder = fc.fetch(30, cache_dir=tmp_path / "cache", tracking_uri=mlflow_store)
+    # then: the folder holds the model's description, its ONNX and what the cache knows of it, not the
+    # logged model's environment files and examples (each file costs requests through a server)
+    assert sorted(p.name for p in folder.iterdir()) == ["MLmodel", "model.onnx", "version.json"]
+    # when: the registered version has lost its ONNX (a broken upload, say)
+    from mlflow import MlflowClient
+
+    location = MlflowClient(mlflow_store).get_model_version_download_uri("needle-force-30", "1")
+    Path(location.removeprefix("file://"), "model.onnx").unlink()
+    # then: fetching it into a new cache is an error naming the file, not "offline"
+    with pytest.raises(ValueError, match=r"needle-force-30 version 1 .* has no model\.onnx"):
+        fc.fetch(30, cache_dir=tmp_path / "other", tracking_uri=mlflow_store)
+
+
 def test_fetch_offline_without_a_copy_names_the_model_and_the_cache(tmp_path: Path) -> None:
     # given: an unreachable registry and an empty cache
     cache = tmp_path / "cache"
