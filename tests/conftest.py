@@ -58,9 +58,3 @@ def tiny_built(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path
             build_tiny_project(root)
             (shared / "tiny-built.done").touch()
     return root
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The team stack's tests first: they run one after another on one xdist worker (about 8 minutes),
-    so they start at once and the other worker takes everything else meanwhile."""
-    items.sort(key=lambda item: item.get_closest_marker("team") is None)  # stable: file order otherwise
