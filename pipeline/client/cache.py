@@ -141,12 +141,30 @@ def fetch(
     )
 
 
-def poll_alias(name: str, alias: str, tracking_uri: str) -> Any:
-    """The ModelVersion `name@alias` points to now, asked in one quick request (short timeout, no
-    retries over HTTP). `RegistryUnreachable` or `ModelNotFound` as for `fetch`."""
+def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
+    """The ModelVersion `name@alias` points to now, asked quickly (short timeout, no retries over HTTP).
+    `RegistryUnreachable` or `ModelNotFound` as for `fetch`.
+
+    A server is asked in one request, without `store.connect`'s checks (three more requests per poll,
+    for every simulator): the client that polls fetched from it already, and whatever the answer names
+    is fetched, with those checks, before it runs. Only an answer that is not a version takes the full
+    way, which says what is wrong (no such model or alias, not MLflow, unreachable)."""
+    from mlflow import MlflowClient
+    from mlflow.exceptions import MlflowException
+
     hint = UNIT_HINT if name.startswith("needle-unit-") else MODEL_HINT
+    uri = tracking_uri or store.tracking_uri()
     with _env(_POLL_HTTP_ENV):
-        return _resolve(store.connect(tracking_uri, must_exist=True), name, alias, tracking_uri, hint)
+        if uri.startswith(("http://", "https://")):
+            try:
+                mv = MlflowClient(tracking_uri=uri, registry_uri=uri).get_model_version_by_alias(name, alias)
+            except MlflowException:
+                mv = None  # no such model or alias (403 with workspaces on), or an error: told apart below
+            except Exception as e:  # refused, timed out, dropped: as `_resolve` says it
+                raise store.RegistryUnreachable(f"registry at {uri}: {type(e).__name__}: {e}") from e
+            if mv is not None and mv.version and mv.source:
+                return mv
+        return _resolve(store.connect(uri, must_exist=True), name, alias, uri, hint)
 
 
 def fetch_unit(

@@ -40,6 +40,10 @@ BUCKETS = ("mlflow", "dvc")
 ROLES = ("admin", "lab", "simulator")
 SERVERS = ("postgres", "s3", "mlflow")  # in start order; stopped in reverse
 START_TIMEOUT_S = 120.0
+# uvicorn kills a worker that leaves its health ping unanswered for 5 s (its default), and a worker busy
+# on a loaded machine can: the kill drops every request it holds, a register's upload among them (seen
+# with the pipeline and the tests sharing 2 cores). A hung worker is still replaced, after a minute.
+WORKER_HEALTHCHECK_S = 60
 
 
 class StackError(RuntimeError):
@@ -409,6 +413,7 @@ class Stack:
             # workspaces on: without them every signed-in user may create experiments and models
             "--enable-workspaces",
             "--host", self.host, "--port", str(self.ports.mlflow), "--workers", str(s["workers"]),
+            "--uvicorn-opts", f"--timeout-worker-healthcheck {WORKER_HEALTHCHECK_S}",
         ]  # fmt: skip
         self._spawn("mlflow", cmd, self.mlflow_env(), cwd=self.dir)
         self._wait("mlflow", self._mlflow_ready)

@@ -104,6 +104,8 @@ def test_a_read_only_store_is_read_but_refuses_a_rollback_before_the_alias_moves
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # given: a store whose champion v2 replaced v1, opened read-only (SQLite's mode=ro)
+    # (MLflow makes a folder named after that URI's path, "file:/tmp/...", in the cwd: keep it in tmp_path)
+    monkeypatch.chdir(tmp_path)
     db = tmp_path / "mlflow.db"
     _store_with_two_versions(tmp_path, f"sqlite:///{db}")
     read_only = f"sqlite:///file:{db}?mode=ro&uri=true"

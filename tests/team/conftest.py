@@ -4,11 +4,12 @@ folder, on free ports, in a temp folder; stopped and deleted at the end. All run
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
 
 import pytest
 
-from pipeline.team.stack import Stack, free_base_port
+from pipeline.team.stack import SERVERS, Stack, free_base_port
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
@@ -27,6 +28,13 @@ def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         stack.start(progress=lambda _m: None)
         yield stack
     finally:
+        stack.stop()
+        # the servers' logs outlive the stack, in the session's temp folder (pytest keeps the last three)
+        kept = tmp_path_factory.getbasetemp() / "team-logs"
+        kept.mkdir(exist_ok=True)
+        for log in (stack.log(server) for server in SERVERS):
+            if log.is_file():  # a stack that failed to start may lack some
+                shutil.copy2(log, kept)
         stack.stop(purge=True)
 
 

@@ -24,7 +24,7 @@ import requests
 import yaml
 
 from pipeline.client import ForceClient, fetch
-from pipeline.client.cache import poll_alias
+from pipeline.client.cache import ModelNotFound, poll_alias
 from pipeline.client.webhook import AliasListener, signature
 from pipeline.registry import store
 from pipeline.team import access
@@ -107,6 +107,28 @@ def test_a_simulator_fetches_the_champion_and_cannot_move_an_alias(team, lab, as
         lab, sys.executable, "-m", "pipeline.cli", "rollback", "15", "--to", "1", env=_env(team, "lab")
     )
     assert "needle-force-15@champion: version 1 -> 1" in said
+
+
+def test_a_simulators_poll_is_one_request_and_an_unknown_model_is_not_found(team, lab, as_role, monkeypatch):
+    # Given a simulator's credentials, the champion's version, and every HTTP request sent from now counted
+    as_role("simulator")
+    champion = _aliases(team)["needle-force-15"]["champion"]
+    sent: list[str] = []
+    send = requests.Session.request
+
+    def counted(self, method, url, *args, **kwargs):
+        sent.append(f"{method} {url.split('?')[0]}")
+        return send(self, method, url, *args, **kwargs)
+
+    monkeypatch.setattr(requests.Session, "request", counted)
+    # When it polls where the champion points
+    mv = poll_alias("needle-force-15", store.CHAMPION, team.tracking_uri)
+    # Then the server was asked once, and named the champion
+    assert str(mv.version) == champion
+    assert len(sent) == 1 and sent[0].endswith("/registered-models/alias"), sent
+    # When it polls a model nobody registered (the server answers 403, workspaces on), then: not found
+    with pytest.raises(ModelNotFound, match="no version of 'needle-force-90'"):
+        poll_alias("needle-force-90", store.CHAMPION, team.tracking_uri)
 
 
 def _os_env() -> dict[str, str]:
