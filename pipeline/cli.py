@@ -289,7 +289,7 @@ def calibrate(
     unit, rows, aside = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
     try:
         client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
-        champions = units.champion_models(client)
+        champions = units.champion_models(client, log=say)
         if not champions:
             raise _fail(f"the registry at {client.tracking_uri} has no needle-force-<angle>@champion")
         models = units.champion_predictors(client, champions, say)

@@ -58,10 +58,17 @@ def sha256_of(data: bytes) -> str:
 # --------------------------------------------------------------------------- the champions
 
 
-def champion_models(client: MlflowClient, angles: Iterable[str] | None = None) -> dict[str, dict[str, Any]]:
+def champion_models(
+    client: MlflowClient, angles: Iterable[str] | None = None, log: Log | None = None
+) -> dict[str, dict[str, Any]]:
     """{angle: {"name", "version", "run_id", "kind", "format", "checkpoint_sha256"}} of every
-    `needle-force-<angle>@champion` (only `angles` if given), read from its MLmodel metadata."""
+    `needle-force-<angle>@champion` (only `angles` if given), read from its MLmodel metadata. A champion
+    whose MLmodel is missing or not YAML is left out, said to `log`: one broken angle does not stop the
+    others (any other failure of the registry is raised)."""
     import mlflow
+    import yaml
+    from mlflow.exceptions import MlflowException
+    from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST, ErrorCode
 
     wanted = None if angles is None else {angle_name(a) for a in angles}
     names: list[str] = []
@@ -86,7 +93,14 @@ def champion_models(client: MlflowClient, angles: Iterable[str] | None = None) -
         mv = alias_version(client, name, CHAMPION)
         if mv is None:
             continue
-        meta = mlflow.models.get_model_info(f"models:/{name}/{mv.version}").metadata or {}
+        try:
+            meta = mlflow.models.get_model_info(f"models:/{name}/{mv.version}").metadata or {}
+        except (MlflowException, yaml.YAMLError) as e:
+            if isinstance(e, MlflowException) and e.error_code != ErrorCode.Name(RESOURCE_DOES_NOT_EXIST):
+                raise
+            if log is not None:
+                log(f"{name} v{mv.version} (@{CHAMPION}): its MLmodel cannot be read ({e}): left out")
+            continue
         block = meta.get("needlecue") or {}
         out[angle] = {
             "name": name,
@@ -277,7 +291,7 @@ def register_units(
     other models than a champion's) is reported, never an error."""
     units: dict[str, Any] = {}
     stale: dict[str, Any] = {}
-    champions = champion_models(client, angles) if documents else {}
+    champions = champion_models(client, angles, log) if documents else {}
     for doc, data in documents:
         unit_id = str(doc["unit_id"])
         units[unit_id] = register_unit(client, doc, data, log)

@@ -143,6 +143,28 @@ def test_a_calibration_made_with_other_models_than_the_champions_is_stale_not_an
     assert record["stale_units"] == {UNIT: {"angles": ["30"], "advice": "run needlecue calibrate"}}
 
 
+def test_a_champion_whose_mlmodel_is_missing_is_left_out_and_the_others_are_read(
+    champion: Predictor, mlflow_store: str
+) -> None:
+    # given: beside the LS champion at 30°, a champion at 5° whose version has no MLmodel (a version
+    # registered from a run that logged nothing, as another tool might)
+    client = store.connect(write=True)
+    run = client.create_run(store.experiment_id(client, store.EXPERIMENT))
+    store.create_registered_model(client, "needle-force-5", "no model behind it")
+    broken = client.create_model_version("needle-force-5", f"runs:/{run.info.run_id}/model", run.info.run_id)
+    client.set_registered_model_alias("needle-force-5", store.CHAMPION, broken.version)
+    said: list[str] = []
+    # when: the champions are read, and their checkpoints loaded, as `needlecue calibrate` does
+    champions = units.champion_models(client, log=said.append)
+    models = units.champion_predictors(client, champions, said.append)
+    # then: 30° is read and loaded, 5° is left out, saying which version and why
+    assert list(champions) == ["30"] and list(models["ls"]) == ["30"]
+    assert len(said) == 1 and said[0].startswith(
+        f"needle-force-5 v{broken.version} (@champion): its MLmodel cannot be read (Failed to download"
+    )
+    assert said[0].endswith("): left out")
+
+
 def test_the_register_stage_registers_the_units_beside_the_champions(tmp_path: Path) -> None:
     # given: an LS model of 30° trained and predicted as the pipeline does, a unit calibrated through
     # it, and a second unit calibrated through a model that was never registered

@@ -1,7 +1,8 @@
 """A lab on the team stack, as the README's Team setup has it: `dvc repro` registers into the server, a
-simulator fetches its champion and is refused moving an alias, `dvc push` / a fresh clone's pull bring
-back the exact data behind a version, the server killed mid-register changes no alias, 50 simulators
-fetch at once, PostgreSQL restarts under a fetch storm, and a webhook makes a client swap at once.
+simulator fetches its champion and is refused moving an alias, the lab (not a simulator) calibrates a
+new unit, `dvc push` / a fresh clone's pull bring back the exact data behind a version, the server
+killed mid-register changes no alias, 50 simulators fetch at once, PostgreSQL restarts under a fetch
+storm, and a webhook makes a client swap at once.
 
 The tests share one small project and run in file order (one xdist group)."""
 
@@ -107,6 +108,33 @@ def test_a_simulator_fetches_the_champion_and_cannot_move_an_alias(team, lab, as
         lab, sys.executable, "-m", "pipeline.cli", "rollback", "15", "--to", "1", env=_env(team, "lab")
     )
     assert "needle-force-15@champion: version 1 -> 1" in said
+
+
+def test_the_lab_calibrates_a_new_unit_on_the_server_and_a_simulator_may_not(team, lab, as_role, tmp_path):
+    # Given a short calibration batch recorded by a new unit at 15° (outside the project's raw folder)
+    cli, params = (sys.executable, "-m", "pipeline.cli"), str(lab / "params.yaml")
+    batch = tmp_path / "raw" / "cal-201"
+    run(
+        lab, *cli, "simulate-batch", str(batch.parent), batch.name, "--purpose", "calibration",
+        "--unit", "est-sim-201", "--angles", "15", "--trials", "1", "--params", params,
+    )  # fmt: skip
+    # When a simulator tries to calibrate it, then the server refuses before anything is registered
+    refused = subprocess.run(
+        [*cli, "calibrate", str(batch), "--params", params],
+        cwd=lab, env={**_os_env(), **_env(team, "simulator")}, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert "read-only credentials" in refused.stderr
+    assert "needle-unit-est-sim-201" not in _aliases(team)
+    # When the lab calibrates it, then version 1 is the unit's current calibration on the server
+    said = run(lab, *cli, "calibrate", str(batch), "--unit-id", "est-sim-201", "--params", params,
+               env=_env(team, "lab"))  # fmt: skip
+    assert "registered: needle-unit-est-sim-201 version 1 (@current)" in said
+    assert _aliases(team)["needle-unit-est-sim-201"] == {"current": "1"}
+    # And a simulator's client of that unit runs the champion with it
+    as_role("simulator")
+    client = ForceClient.from_registry(15, unit_id="est-sim-201", cache_dir=tmp_path / "cache", poll_s=None)
+    assert client.calibrated and client.calibration["version"] == "1"
 
 
 def test_a_simulators_poll_is_one_request_and_an_unknown_model_is_not_found(team, lab, as_role, monkeypatch):
