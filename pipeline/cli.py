@@ -291,7 +291,8 @@ def calibrate(
         client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
         champions = units.champion_models(client, log=say)
         if not champions:
-            raise _fail(f"the registry at {client.tracking_uri} has no needle-force-<angle>@champion")
+            where = client.tracking_uri
+            raise _fail(f"the registry at {where} has no readable needle-force-<angle>@champion")
         models = units.champion_predictors(client, champions, say)
     except store.RegistryUnreachable as e:
         raise _fail(str(e), 2) from e

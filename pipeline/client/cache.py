@@ -147,8 +147,9 @@ def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
 
     A server is asked in one request, without `store.connect`'s checks (three more requests per poll,
     for every simulator): the client that polls fetched from it already, and whatever the answer names
-    is fetched, with those checks, before it runs. Only an answer that is not a version takes the full
-    way, which says what is wrong (no such model or alias, not MLflow, unreachable)."""
+    is fetched, with those checks, before it runs. No answer, or a server error (5xx), is unreachable
+    at once: more requests would only load a busy server. A 4xx, or an answer that is not a version,
+    takes the full way, which says what is wrong (no such model or alias, credentials, not MLflow)."""
     from mlflow import MlflowClient
     from mlflow.exceptions import MlflowException
 
@@ -158,9 +159,12 @@ def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
         if uri.startswith(("http://", "https://")):
             try:
                 mv = MlflowClient(tracking_uri=uri, registry_uri=uri).get_model_version_by_alias(name, alias)
-            except MlflowException:
-                mv = None  # no such model or alias (403 with workspaces on), or an error: told apart below
-            except Exception as e:  # refused, timed out, dropped: as `_resolve` says it
+            except MlflowException as e:
+                # MLflow reports a timeout or a refused connection as an internal error (500) too
+                if e.get_http_status_code() >= 500:
+                    raise store.RegistryUnreachable(f"registry at {uri}: {e.message}") from e
+                mv = None  # no such model or alias (403 with workspaces on), a login, not MLflow: below
+            except Exception as e:  # anything MLflow did not wrap
                 raise store.RegistryUnreachable(f"registry at {uri}: {type(e).__name__}: {e}") from e
             if mv is not None and mv.version and mv.source:
                 return mv

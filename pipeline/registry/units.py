@@ -63,13 +63,8 @@ def champion_models(
 ) -> dict[str, dict[str, Any]]:
     """{angle: {"name", "version", "run_id", "kind", "format", "checkpoint_sha256"}} of every
     `needle-force-<angle>@champion` (only `angles` if given), read from its MLmodel metadata. A champion
-    whose MLmodel is missing or not YAML is left out, said to `log`: one broken angle does not stop the
-    others (any other failure of the registry is raised)."""
-    import mlflow
-    import yaml
-    from mlflow.exceptions import MlflowException
-    from mlflow.protos.databricks_pb2 import RESOURCE_DOES_NOT_EXIST, ErrorCode
-
+    without an MLmodel, or with one that is not an MLmodel, is left out and said to `log`: one broken
+    version does not stop the other angles. A registry that fails to answer is raised, as ever."""
     wanted = None if angles is None else {angle_name(a) for a in angles}
     names: list[str] = []
     token = None
@@ -93,13 +88,10 @@ def champion_models(
         mv = alias_version(client, name, CHAMPION)
         if mv is None:
             continue
-        try:
-            meta = mlflow.models.get_model_info(f"models:/{name}/{mv.version}").metadata or {}
-        except (MlflowException, yaml.YAMLError) as e:
-            if isinstance(e, MlflowException) and e.error_code != ErrorCode.Name(RESOURCE_DOES_NOT_EXIST):
-                raise
+        meta = _mlmodel_metadata(client, name, str(mv.version))
+        if isinstance(meta, str):
             if log is not None:
-                log(f"{name} v{mv.version} (@{CHAMPION}): its MLmodel cannot be read ({e}): left out")
+                log(f"{name} v{mv.version} (@{CHAMPION}): {meta}: left out")
             continue
         block = meta.get("needlecue") or {}
         out[angle] = {
@@ -111,6 +103,30 @@ def champion_models(
             "checkpoint_sha256": block.get("checkpoint_sha256"),
         }
     return {a: out[a] for a in sorted_angles(out)}
+
+
+def _mlmodel_metadata(client: MlflowClient, name: str, version: str) -> dict[str, Any] | str:
+    """The `metadata` mapping of a version's MLmodel, or why there is none (the version has no MLmodel,
+    or it is not YAML or not an MLmodel). The version's files are listed first: MLflow's own download
+    reports a failed transfer of some sources as a missing file, and an outage must not look like that."""
+    import mlflow
+    import yaml
+
+    root = client.get_model_version_download_uri(name, version).rstrip("/")
+    listed = mlflow.artifacts.list_artifacts(artifact_uri=root, tracking_uri=client.tracking_uri)
+    if not any(f.path.rsplit("/", 1)[-1] == "MLmodel" and not f.is_dir for f in listed):
+        return f"no MLmodel among its files ({root})"
+    with tempfile.TemporaryDirectory() as tmp:
+        path = mlflow.artifacts.download_artifacts(
+            artifact_uri=f"{root}/MLmodel", dst_path=tmp, tracking_uri=client.tracking_uri
+        )
+        try:
+            spec = yaml.safe_load(Path(path).read_text())
+        except (yaml.YAMLError, UnicodeDecodeError) as e:
+            return f"its MLmodel is not YAML ({e})"
+    if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
+        return "its MLmodel is not an MLmodel (a mapping with a metadata mapping)"
+    return spec.get("metadata") or {}
 
 
 def uncovered_angles(doc: Mapping[str, Any], champions: Mapping[str, Mapping[str, Any]]) -> list[str]:

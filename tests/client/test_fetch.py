@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import client as fc
+from pipeline.client.cache import poll_alias
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.export import to_onnx
 from pipeline.modelling.fit import fit
@@ -185,3 +186,34 @@ def test_a_malformed_mlmodel_is_a_clear_error(registered: Registered, tmp_path: 
     # when / then: a ValueError naming the file, not a traceback from deep in a parser
     with pytest.raises(ValueError, match="MLmodel: not valid YAML"):
         fc.ForceClient(broken)
+
+
+@pytest.mark.parametrize(
+    "not_mlflow",
+    [(500, b"<html>oops</html>"), (503, b"<html>down</html>")],
+    ids=["500", "503"],
+    indirect=True,
+)
+def test_a_poll_that_meets_a_server_error_is_unreachable_after_one_request(not_mlflow) -> None:
+    # given: a server answering every request with a server error (a proxy before a stopped MLflow, say)
+    uri, seen = not_mlflow
+    # when: a simulator's client polls where the champion points
+    with pytest.raises(store.RegistryUnreachable, match=f"registry at {uri}"):
+        poll_alias("needle-force-30", store.CHAMPION, uri)
+    # then: it asked once: no retry and no checks after it, on a server already in trouble
+    assert seen == ["GET /api/2.0/mlflow/registered-models/alias"]
+
+
+@pytest.mark.parametrize(
+    "not_mlflow",
+    [(404, b'{"error_code": "RESOURCE_DOES_NOT_EXIST", "message": "Not found"}')],
+    ids=["404 JSON no such thing"],
+    indirect=True,
+)
+def test_a_poll_answered_4xx_takes_the_checks_that_say_what_is_wrong(not_mlflow) -> None:
+    # given: a web server that answers every request "no such thing", as no MLflow server does
+    uri, seen = not_mlflow
+    # when: a client polls it, then: it is named as not MLflow, found by the store's checks after the poll
+    with pytest.raises(store.NotMlflow, match="answers, but not as an MLflow tracking server"):
+        poll_alias("needle-force-30", store.CHAMPION, uri)
+    assert seen[0] == "GET /api/2.0/mlflow/registered-models/alias" and len(seen) > 1

@@ -3,11 +3,8 @@ told apart from a working store, and from each other."""
 
 from __future__ import annotations
 
-import http.server
 import re
 import sqlite3
-import threading
-from collections.abc import Iterator
 from contextlib import closing
 from pathlib import Path
 
@@ -18,47 +15,6 @@ from typer.testing import CliRunner
 from pipeline.cli import app
 from pipeline.registry import store, versions
 from pipeline.registry.store import CHAMPION, TAG, model_name
-
-
-class _Answers(http.server.BaseHTTPRequestHandler):
-    """Answers every request with the same status and body, as a misconfigured proxy or web app might."""
-
-    status = 200
-    body = b"{}"
-    seen: list[str]
-
-    def _answer(self) -> None:
-        self.seen.append(f"{self.command} {self.path.split('?')[0]}")
-        length = int(self.headers.get("Content-Length") or 0)
-        self.rfile.read(length)
-        self.send_response(self.status)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(self.body)))
-        self.end_headers()
-        self.wfile.write(self.body)
-
-    do_GET = do_POST = do_PATCH = do_DELETE = _answer
-
-    def log_message(self, *args: object) -> None:  # quiet
-        pass
-
-
-@pytest.fixture
-def not_mlflow(request: pytest.FixtureRequest) -> Iterator[tuple[str, list[str]]]:
-    """http://127.0.0.1:<port> of a server answering `request.param` (status, body; default 200 and
-    `{}`) to everything, and the requests it saw."""
-    seen: list[str] = []
-    status, body = getattr(request, "param", (200, b"{}"))
-    handler = type("H", (_Answers,), {"status": status, "body": body, "seen": seen})
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}", seen
-    finally:
-        server.shutdown()
-        server.server_close()
-
 
 PAGE = b"<html><body>Welcome</body></html>"
 NO_SUCH = b'{"error_code": "RESOURCE_DOES_NOT_EXIST", "message": "Not found"}'

@@ -143,26 +143,46 @@ def test_a_calibration_made_with_other_models_than_the_champions_is_stale_not_an
     assert record["stale_units"] == {UNIT: {"angles": ["30"], "advice": "run needlecue calibrate"}}
 
 
-def test_a_champion_whose_mlmodel_is_missing_is_left_out_and_the_others_are_read(
-    champion: Predictor, mlflow_store: str
+def test_a_champion_without_a_readable_mlmodel_is_left_out_and_the_others_are_read(
+    champion: Predictor, tmp_path: Path, mlflow_store: str
 ) -> None:
-    # given: beside the LS champion at 30°, a champion at 5° whose version has no MLmodel (a version
-    # registered from a run that logged nothing, as another tool might)
+    # given: beside the LS champion at 30°, a champion at 5° registered from a run that logged nothing
+    # (as another tool might), and one at 45° whose MLmodel was lost from its logged model
     client = store.connect(write=True)
     run = client.create_run(store.experiment_id(client, store.EXPERIMENT))
     store.create_registered_model(client, "needle-force-5", "no model behind it")
-    broken = client.create_model_version("needle-force-5", f"runs:/{run.info.run_id}/model", run.info.run_id)
-    client.set_registered_model_alias("needle-force-5", store.CHAMPION, broken.version)
+    empty = client.create_model_version("needle-force-5", f"runs:/{run.info.run_id}/model", run.info.run_id)
+    client.set_registered_model_alias("needle-force-5", store.CHAMPION, empty.version)
+    register(mlflow_store, tmp_path, fit("ls", TINY["ls"], cue_trials(45, 2)).checkpoint, angle=45)
+    location = client.get_model_version_download_uri("needle-force-45", "1")
+    Path(location.removeprefix("file://"), "MLmodel").unlink()
     said: list[str] = []
     # when: the champions are read, and their checkpoints loaded, as `needlecue calibrate` does
     champions = units.champion_models(client, log=said.append)
     models = units.champion_predictors(client, champions, said.append)
-    # then: 30° is read and loaded, 5° is left out, saying which version and why
+    # then: 30° is read and loaded; 5° and 45° are left out, each saying which version and why
     assert list(champions) == ["30"] and list(models["ls"]) == ["30"]
-    assert len(said) == 1 and said[0].startswith(
-        f"needle-force-5 v{broken.version} (@champion): its MLmodel cannot be read (Failed to download"
-    )
-    assert said[0].endswith("): left out")
+    assert {line.split(": no MLmodel among its files")[0] for line in said} == {
+        "needle-force-45 v1 (@champion)",
+        f"needle-force-5 v{empty.version} (@champion)",
+    }
+    assert all(line.endswith(": left out") for line in said)
+
+
+def test_a_registry_that_fails_while_the_champions_are_read_is_an_error_not_a_left_out_angle(
+    champion: Predictor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: the artifact store failing (a server error) when a champion's files are listed
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    def fails(**_kwargs: object) -> None:
+        raise MlflowException("API request failed with error code 503")
+
+    monkeypatch.setattr(mlflow.artifacts, "list_artifacts", fails)
+    # when / then: the failure is raised, not taken for a champion without a model
+    with pytest.raises(MlflowException, match="503"):
+        units.champion_models(store.connect(), log=lambda _m: None)
 
 
 def test_the_register_stage_registers_the_units_beside_the_champions(tmp_path: Path) -> None:

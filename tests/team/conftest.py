@@ -28,14 +28,16 @@ def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         stack.start(progress=lambda _m: None)
         yield stack
     finally:
-        stack.stop()
-        # the servers' logs outlive the stack, in the session's temp folder (pytest keeps the last three)
-        kept = tmp_path_factory.getbasetemp() / "team-logs"
-        kept.mkdir(exist_ok=True)
-        for log in (stack.log(server) for server in SERVERS):
-            if log.is_file():  # a stack that failed to start may lack some
-                shutil.copy2(log, kept)
-        stack.stop(purge=True)
+        try:
+            stack.stop()
+            # the servers' logs outlive the stack, in the session's temp folder (pytest keeps the last 3)
+            kept = tmp_path_factory.getbasetemp() / "team-logs"
+            kept.mkdir(exist_ok=True)
+            for log in (stack.log(server) for server in SERVERS):
+                if log.is_file():  # a stack that failed to start may lack some
+                    shutil.copy2(log, kept)
+        finally:
+            stack.stop(purge=True)
 
 
 @pytest.fixture

@@ -22,9 +22,15 @@ STALL_S = 8  # longer than uvicorn's default worker health check (5 s)
 
 def _workers(team) -> set[int]:
     """The pids of the uvicorn worker processes serving the team's MLflow."""
-    server = psutil.Process(team.status()["mlflow"]["pid"])
-    # multiprocessing's spawned children (uvicorn's resource tracker is started another way)
-    return {p.pid for p in server.children(recursive=True) if "spawn_main" in " ".join(p.cmdline())}
+    pid = team.status()["mlflow"]["pid"]
+    assert pid is not None, "the team's MLflow server is not running"
+    workers = set()
+    for child in psutil.Process(pid).children(recursive=True):
+        with contextlib.suppress(psutil.NoSuchProcess, psutil.AccessDenied):  # gone while listed
+            # multiprocessing's spawned children (uvicorn's resource tracker is started another way)
+            if "spawn_main" in " ".join(child.cmdline()):
+                workers.add(child.pid)
+    return workers
 
 
 def _resume(workers: set[int]) -> None:
@@ -41,9 +47,9 @@ def test_a_worker_that_stalls_longer_than_uvicorns_health_check_is_not_replaced(
     assert workers, "no uvicorn workers found under the MLflow server"
     # When every worker stalls for 8 s (stopped, as a process given no CPU is) while a request waits.
     # (A new connection: one kept alive is closed by uvicorn's own 5-s idle timeout as a worker resumes.)
-    for pid in workers:
-        os.kill(pid, signal.SIGSTOP)
     try:
+        for pid in workers:
+            os.kill(pid, signal.SIGSTOP)
         with ThreadPoolExecutor(max_workers=1) as pool:
             answer = pool.submit(requests.get, team.tracking_uri + SEARCH, auth=auth, timeout=60)
             time.sleep(STALL_S)
