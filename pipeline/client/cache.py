@@ -25,8 +25,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import read_unit
 from pipeline.registry import store
@@ -77,12 +75,9 @@ def read_metadata(model_dir: Path) -> dict[str, Any]:
     if not mlmodel.is_file():
         raise FileNotFoundError(f"{model_dir} is not a fetched model folder: it has no MLmodel file")
     try:
-        spec = yaml.safe_load(mlmodel.read_text()) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise ValueError(f"{mlmodel}: not valid YAML: {e}") from e
-    if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
-        raise ValueError(f"{mlmodel}: not an MLmodel file (a mapping with a metadata mapping)")
-    meta = (spec.get("metadata") or {}).get("needlecue")
+        meta = store.mlmodel_metadata(mlmodel).get("needlecue")
+    except ValueError as e:
+        raise ValueError(f"{mlmodel}: {e}") from e
     if not isinstance(meta, dict) or meta.get("format") not in DEPLOY_FORMATS:
         found = meta.get("format") if isinstance(meta, dict) else None
         raise ValueError(

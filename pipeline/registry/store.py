@@ -72,6 +72,20 @@ class ReadOnlyStore(RegistryUnreachable):
     """The store answers reads but refuses writes (a read-only database, or read-only credentials)."""
 
 
+def mlmodel_metadata(mlmodel: Path) -> dict[str, Any]:
+    """The `metadata` mapping of an MLmodel file, read as plain YAML (no mlflow import, no pickle).
+    ValueError, without the path (the caller names the file), if it is not YAML or not an MLmodel."""
+    import yaml
+
+    try:
+        spec = yaml.safe_load(mlmodel.read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise ValueError(f"not valid YAML: {e}") from e
+    if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
+        raise ValueError("not an MLmodel file (a mapping with a metadata mapping)")
+    return spec.get("metadata") or {}
+
+
 def model_name(angle_deg: float) -> str:
     """`needle-force-30` for 30°: the registered model of one insertion angle."""
     if float(angle_deg) != int(angle_deg):

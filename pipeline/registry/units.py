@@ -29,6 +29,7 @@ from pipeline.registry.store import (
     alias_version,
     create_registered_model,
     experiment_id,
+    mlmodel_metadata,
     unit_model_name,
     versions,
 )
@@ -110,7 +111,6 @@ def _mlmodel_metadata(client: MlflowClient, name: str, version: str) -> dict[str
     or it is not YAML or not an MLmodel). The version's files are listed first: MLflow's own download
     reports a failed transfer of some sources as a missing file, and an outage must not look like that."""
     import mlflow
-    import yaml
 
     root = client.get_model_version_download_uri(name, version).rstrip("/")
     listed = mlflow.artifacts.list_artifacts(artifact_uri=root, tracking_uri=client.tracking_uri)
@@ -121,12 +121,9 @@ def _mlmodel_metadata(client: MlflowClient, name: str, version: str) -> dict[str
             artifact_uri=f"{root}/MLmodel", dst_path=tmp, tracking_uri=client.tracking_uri
         )
         try:
-            spec = yaml.safe_load(Path(path).read_text())
-        except (yaml.YAMLError, UnicodeDecodeError) as e:
-            return f"its MLmodel is not YAML ({e})"
-    if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
-        return "its MLmodel is not an MLmodel (a mapping with a metadata mapping)"
-    return spec.get("metadata") or {}
+            return mlmodel_metadata(Path(path))
+        except ValueError as e:
+            return f"its MLmodel: {e}"
 
 
 def uncovered_angles(doc: Mapping[str, Any], champions: Mapping[str, Mapping[str, Any]]) -> list[str]:
