@@ -74,6 +74,9 @@ class SimulateParams(Section):
     ref_rate_hz: float = Field(100.0, gt=0)
     units: tuple[str, ...] = ("est-sim-001", "est-sim-002", "est-sim-003")  # training units
     new_units: tuple[str, ...] = ("est-sim-101",)  # never in training: held-out and calibration only
+    # which estimator design the units are (pipeline/sim/rigs.py: a family other labs could have built)
+    rig: str = "default"
+    declare_front_end: bool = Field(True, description="write the rig's circuit into batch.yaml")
     effects: EffectScales = EffectScales()
 
     @model_validator(mode="after")
@@ -119,7 +122,10 @@ class ResampleParams(Section):
     rate_hz: float = Field(30.0, gt=0)
     max_offset_s: float = Field(0.5, gt=0, description="search window for the clock offset, +/-")
     min_quality: float = Field(
-        0.7, ge=0, le=1, description="alignment quality (R²) below which a trial is set aside"
+        0.7,
+        ge=0,
+        le=1,
+        description="alignment quality (R²) below which a trial is judged against its batch's others",
     )
     offset_step_s: float = Field(0.002, gt=0)
     max_gap_s: float = Field(0.25, gt=0, description="grid points inside longer gaps are dropped")

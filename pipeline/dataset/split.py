@@ -321,6 +321,12 @@ def run(
         manifest["angles"][a.angle] = entry
         manifest["set_aside"] += a.set_aside
         log(_angle_table(a.angle, entry, len(a.set_aside)))
+        if not entry["n_trials"]["external"]:
+            log(
+                f"split: warning: angle {a.angle} has no external trials (no usable trial of a batch "
+                f"matching split.external_batches {list(p.external_batches)}): its models are scored on "
+                "the test split, trials of the training batches, not on data never seen in training"
+            )
     manifest["calibration"] = {}
     for c in calibration:
         if c.trials:  # the angle's schema, so that the calibration rows read like its split files

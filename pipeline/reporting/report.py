@@ -104,6 +104,18 @@ def datasets(metrics: Mapping[str, Any]) -> list[str]:
             for a, d in ((a, datasets[a]) for a in sorted_angles(datasets))
         ),
     )
+    without = [a for a in sorted_angles(datasets) if datasets[a]["source"] != "external"]
+    if without:
+        out += [
+            "",
+            f"**No external set at {', '.join(f'{a}°' for a in without)}.** No usable trial of a held-out "
+            "batch (`split.external_batches`) reached "
+            + ("this angle" if len(without) == 1 else "these angles")
+            + ": every figure below for "
+            + ("it" if len(without) == 1 else "them")
+            + " is on the test split, trials of the training batches' casts, and says nothing about "
+            "data never seen in training. `reports/ledger` says where each trial went.",
+        ]
     return out
 
 

@@ -11,16 +11,22 @@ from pipeline.metrics.scores import mean_known, mean_over_axes
 from pipeline.reporting.style import fmt, table
 from pipeline.vocab import AXES, kind_label
 
-# Targets of issue 12 (a new unit after one short calibration), checked on the defaults.
+# Targets for a new unit after one short calibration (issue 12), measured on the data at hand.
 NEW_UNIT_RATIO = 1.2  # champion NRMSE on the calibrated new unit / on the training units
 CUE_BALANCED = 0.95  # balanced accuracy of the cues on the calibrated new unit, within cue_within_s
-SAME_UNIT_BASELINE_PCT = 3.2  # champion NRMSE on the external sets before units were introduced
-SAME_UNIT_TOLERANCE = 0.10
+UNCALIBRATED_RATIO = 1.5  # champion NRMSE on the new unit without its calibration / on the training units
+MISSING = "missing"
 
 GROUP_LABELS = {
     "same_unit": "same unit",
     "new_uncalibrated": "new unit, uncalibrated",
     "new_calibrated": "new unit, calibrated",
+}
+# why a group's figure can be missing: which external trials it needs
+NEEDS = {
+    "same_unit": "no external trial of a training unit",
+    "new_uncalibrated": "no external trial of a new unit with a calibration",
+    "new_calibrated": "no external trial of a new unit with a calibration",
 }
 
 
@@ -28,34 +34,64 @@ def _mark(ok: bool | None) -> str:
     return "" if ok is None else (" ✓" if ok else " ✗")
 
 
+def _value(x: float | None, spec: str, unit: str, why: str) -> str:
+    """A figure with its unit, or what is missing and why: never a bare unit."""
+    return f"{MISSING} ({why})" if x is None else f"{format(x, spec)}{unit}"
+
+
 def force_table(transfer: Mapping[str, Any]) -> list[str]:
     rows = []
     for kind, r in transfer.items():
         label = "**champion**" if kind == "champion" else kind_label(kind)
-        rows.append([label, *(fmt(r.get(g), ".2f") for g in GROUP_LABELS), fmt(r.get("ratio"), ".2f")])
+        cells = [fmt(r.get(g), ".2f") or "–" for g in GROUP_LABELS]
+        rows.append([label, *cells, fmt(r.get("ratio"), ".2f") or "–"])
     header = ["model", *(f"{g} (%)" for g in GROUP_LABELS.values()), "new calibrated / same"]
     return table(header, rows)
 
 
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b == 0 else a / b
+
+
 def targets(transfer: Mapping[str, Any], cue_groups: Mapping[str, Any]) -> list[str]:
+    """The targets' lines, every figure from this run's metrics; a figure the data cannot give reads
+    as missing, with the trials it would need."""
     champ = transfer.get("champion") or {}
-    ratio, same = champ.get("ratio"), champ.get("same_unit")
-    limit = SAME_UNIT_BASELINE_PCT * (1 + SAME_UNIT_TOLERANCE)
-    best = best_cue(cue_groups.get("new_calibrated") or {})
-    ratio_ok = None if ratio is None else ratio <= NEW_UNIT_RATIO
-    same_ok = None if same is None else same <= limit
+    same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
+    ratio = _ratio(cal, same)
+    raw_ratio = _ratio(uncal, same)
+    kinds = {
+        k: r.get("same_unit")
+        for k, r in transfer.items()
+        if k != "champion" and r.get("same_unit") is not None
+    }
+    best_kind = min(kinds, key=lambda k: kinds[k]) if kinds else None
+    why_ratio = NEEDS["same_unit"] if same is None else NEEDS["new_calibrated"]
     lines = [
-        f"- New unit after calibration, champion NRMSE at most {NEW_UNIT_RATIO:g}× the same-unit "
-        f"figure: {fmt(ratio, '.2f')}×{_mark(ratio_ok)}",
-        f"- Same-unit champion NRMSE within {SAME_UNIT_TOLERANCE:.0%} of the {SAME_UNIT_BASELINE_PCT:g} % "
-        f"before units (at most {limit:.2f} %): {fmt(same, '.2f')} %{_mark(same_ok)}",
+        "- Same unit (the training units' external trials): champion NRMSE "
+        + _value(same, ".2f", " %", NEEDS["same_unit"])
+        + (
+            f"; the best single kind, {kind_label(best_kind)}, {kinds[best_kind]:.2f} %"
+            if best_kind is not None
+            else ""
+        ),
+        f"- New unit after calibration, champion NRMSE at most {NEW_UNIT_RATIO:g}× the same-unit figure: "
+        + _value(ratio, ".2f", "×", why_ratio)
+        + _mark(None if ratio is None else ratio <= NEW_UNIT_RATIO),
+        f"- New unit without its calibration, champion NRMSE (reported; at most {UNCALIBRATED_RATIO:g}× "
+        "where the front end is declared): " + _value(raw_ratio, ".2f", "× the same-unit figure", why_ratio),
     ]
-    if best is not None:
+    best = best_cue(cue_groups.get("new_calibrated") or {})
+    cue_line = (
+        "- Cues on the calibrated new unit, balanced accuracy within the window at least "
+        f"{CUE_BALANCED:.0%}: "
+    )
+    if best is None:
+        lines.append(cue_line + f"{MISSING} (no cue scored on a calibrated new unit's external trials)")
+    else:
         kind, method, value = best
         lines.append(
-            f"- Cues on the calibrated new unit, balanced accuracy within the window at least "
-            f"{CUE_BALANCED:.0%}: best {value:.1%} ({kind_label(kind)}, {method})"
-            f"{_mark(value >= CUE_BALANCED)}"
+            cue_line + f"best {value:.1%} ({kind_label(kind)}, {method}){_mark(value >= CUE_BALANCED)}"
         )
     return lines
 

@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from pipeline.rig.csvfile import encoding_hint
 from pipeline.rig.format import BATCH_FILE, ID_PATTERN, BatchMeta, is_valid_id
+from pipeline.rig.frontend import CIRCUITS
 from pipeline.rig.problems import ProblemLog
 from pipeline.vocab import NON_CHANNELS
 
@@ -85,6 +86,14 @@ def _duplicate_key(node: yaml.Node | None) -> tuple[str, int] | None:
     return None
 
 
+def _without_tags(loc: tuple[Any, ...]) -> tuple[Any, ...]:
+    """A pydantic error location without the tag a tagged union puts after its field
+    (`sensor.front_end.divider.fixed_kohm` -> `sensor.front_end.fixed_kohm`): the key as written."""
+    return tuple(
+        part for i, part in enumerate(loc) if not (i and loc[i - 1] == "front_end" and part in CIRCUITS)
+    )
+
+
 def read_meta(batch_dir: Path, probs: ProblemLog) -> BatchMeta | None:
     """batch.yaml parsed and validated; None (with Problems) if the batch must be set aside."""
     path = batch_dir / BATCH_FILE
@@ -129,8 +138,11 @@ def read_meta(batch_dir: Path, probs: ProblemLog) -> BatchMeta | None:
     try:
         meta = BatchMeta.model_validate(data)
     except ValidationError as e:
+        # one Problem per line (a problem log keeps one per place): a misspelt key inside a mapping
+        # written on one line is both "not permitted" and its right spelling "required"
+        by_line: dict[int | None, list[str]] = {}
         for err in e.errors():
-            loc = tuple(err["loc"])
+            loc = _without_tags(tuple(err["loc"]))
             key = ".".join(str(p) for p in loc) or "(top level)"
             got = err.get("input")
             shown = (
@@ -138,7 +150,9 @@ def read_meta(batch_dir: Path, probs: ProblemLog) -> BatchMeta | None:
                 if err["type"] != "missing" and isinstance(got, str | int | float | bool)
                 else ""
             )
-            probs.add(file, f"key {key}: {err['msg']}{shown}", line=_yaml_line(node, loc))
+            by_line.setdefault(_yaml_line(node, loc), []).append(f"key {key}: {err['msg']}{shown}")
+        for line, reasons in by_line.items():
+            probs.add(file, "; ".join(reasons), line=line)
         return None
     ok = True
     if meta.batch_id != batch_dir.name:

@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from pipeline.rig.frontend import FrontEnd
 from pipeline.vocab import ID_PATTERN
 
 FORMAT = "rig-log/1"
@@ -84,6 +85,8 @@ class SensorMeta(_Meta):
     units: Literal["counts", "volts"]
     adc_bits: int | None = Field(None, ge=1, le=32)
     vref_v: float | None = Field(None, gt=0)
+    # the circuit between each FSR and its channel (pipeline.rig.frontend); absent: not declared
+    front_end: FrontEnd | None = None
 
     @model_validator(mode="after")
     def _counts_need_adc(self) -> SensorMeta:
@@ -101,6 +104,9 @@ class ReferenceMeta(_Meta):
     model: str | None = None
     units: Literal["N", "mN"]
     frame: str | None = "tissue"
+    # `shared`: both streams were stamped by one clock (t_s and t_ms / 1000 name the same instant),
+    # so no offset is estimated; `separate` (the default): the reference runs on its own clock
+    clock: Literal["separate", "shared"] = "separate"
 
 
 class RobotMeta(_Meta):

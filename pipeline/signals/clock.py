@@ -66,8 +66,13 @@ def estimate_offset(
     max_offset_s: float,
     step_s: float,
     lowpass_order: int = 4,
+    *,
+    shared_clock: bool = False,
 ) -> OffsetEstimate:
     """Clock offset that best explains the reference forces by the estimator channels.
+
+    With `shared_clock` (batch.yaml `reference.clock: shared`: both streams were stamped by one
+    clock) no offset is searched: the offset is 0 and `quality` is the score at lag 0.
 
     For every candidate lag L in [-max_offset_s, +max_offset_s] (step `step_s`) the
     reference is read at the estimator's own sample times (ref stamped t - L) and the
@@ -88,7 +93,7 @@ def estimate_offset(
     t_ref_s = np.asarray(t_ref_s, dtype=np.float64)
     volts = np.asarray(volts, dtype=np.float64).reshape(t_fsr_s.size, -1)
     force_n = np.asarray(force_n, dtype=np.float64).reshape(t_ref_s.size, -1)
-    n_half = max(1, round(max_offset_s / step_s))
+    n_half = 0 if shared_clock else max(1, round(max_offset_s / step_s))
 
     fs_ref = median_rate(t_ref_s)
     fs_fsr = median_rate(t_fsr_s)
@@ -110,7 +115,8 @@ def estimate_offset(
     if n_use < n_min:
         raise SetAside(
             f"streams overlap too little to estimate the clock offset "
-            f"({n_use} estimator samples within ±{max_offset_s:g} s of the reference; need {n_min})"
+            f"({n_use} estimator samples within ±{0 if shared_clock else max_offset_s:g} s of the "
+            f"reference; need {n_min})"
         )
     # Differences over ~DIFF_SPAN_S rather than one sample: on smooth stretches a one-sample
     # step is mostly sensor noise; on sharp events the longer span costs little.
@@ -137,7 +143,7 @@ def estimate_offset(
 
     j = int(np.argmax(s_near))
     offset, peak = float(near[j] * step_s), float(s_near[j])
-    on_edge = abs(int(near[j])) == n_half
+    on_edge = not shared_clock and abs(int(near[j])) == n_half
     if 0 < j < near.size - 1:
         y0, y1, y2 = s_near[j - 1], s_near[j], s_near[j + 1]
         curvature = y0 - 2 * y1 + y2

@@ -27,6 +27,7 @@ import pyarrow as pa
 
 from pipeline.config import ResampleParams
 from pipeline.dataset.tables import table_schema, write_table
+from pipeline.signals import pairing
 from pipeline.signals.clock import OffsetEstimate, estimate_offset
 from pipeline.signals.filters import SetAside, gap_mask, median_rate, resample_stream
 from pipeline.signals.phases import label_phases, phase_durations
@@ -46,6 +47,7 @@ OFFSET_CSV_COLUMNS = (
     "n_ref",
     "n_grid",
     "n_dropped_gap",
+    "peer_quality",  # below min_quality only: the best quality another trial's reference gave
     "status",
 )
 
@@ -69,30 +71,67 @@ class ResampledTrial:
     n_dropped_gap: int
 
 
+@dataclass(frozen=True)
+class Streams:
+    """One trial's two streams, in s, V and N, each strictly increasing in time."""
+
+    t_fsr_s: np.ndarray
+    volts: np.ndarray  # (n, channels)
+    t_ref_s: np.ndarray
+    force_n: np.ndarray  # (m, 3)
+
+
+def align(fsr: Streams, ref: Streams, p: ResampleParams, *, shared_clock: bool = False) -> OffsetEstimate:
+    """The clock offset between `fsr`'s estimator stream and `ref`'s reference stream (usually one
+    trial's; another trial's when checking a pairing). Raises SetAside when they cannot be aligned;
+    the quality is judged by the caller."""
+    if fsr.t_fsr_s.size < 2 or ref.t_ref_s.size < 2:
+        raise SetAside("a stream has fewer than two samples")
+    if not (np.all(np.isfinite(fsr.volts)) and np.all(np.isfinite(ref.force_n))):
+        raise SetAside("missing (NaN) or infinite values in a stream")
+    est = estimate_offset(
+        fsr.t_fsr_s,
+        fsr.volts,
+        ref.t_ref_s,
+        ref.force_n,
+        p.max_offset_s,
+        p.offset_step_s,
+        p.lowpass_order,
+        shared_clock=shared_clock,
+    )
+    if est.on_edge:
+        raise SetAside(
+            f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
+            f"(quality {est.quality:.2f}): the true offset is probably outside it"
+        )
+    return est
+
+
 def resample_trial(
     t_fsr_s: np.ndarray,
     volts: np.ndarray,
     t_ref_s: np.ndarray,
     force_n: np.ndarray,
     p: ResampleParams,
+    *,
+    shared_clock: bool = False,
 ) -> ResampledTrial:
-    """Align, resample and label one trial (inputs already in s, V and N). Raises SetAside."""
-    if t_fsr_s.size < 2 or t_ref_s.size < 2:
-        raise SetAside("a stream has fewer than two samples")
-    if not (np.all(np.isfinite(volts)) and np.all(np.isfinite(force_n))):
-        raise SetAside("missing (NaN) or infinite values in a stream")
-    est = estimate_offset(t_fsr_s, volts, t_ref_s, force_n, p.max_offset_s, p.offset_step_s, p.lowpass_order)
-    if est.on_edge:
-        raise SetAside(
-            f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
-            f"(quality {est.quality:.2f}): the true offset is probably outside it"
-        )
+    """Align, resample and label one trial on its own (inputs already in s, V and N): with no other
+    trial to compare with, a quality below `min_quality` sets it aside. Raises SetAside."""
+    streams = Streams(t_fsr_s, volts, t_ref_s, force_n)
+    est = align(streams, streams, p, shared_clock=shared_clock)
     if est.quality < p.min_quality:  # the streams do not record the same insertion, or not in this window
         raise SetAside(
             f"clock alignment quality {est.quality:.2f} below resample.min_quality = {p.min_quality:g}: "
             "do the two files record the same insertion (reference files swapped?), within "
             f"±{p.max_offset_s:g} s of each other?"
         )
+    return on_grid(streams, est, p)
+
+
+def on_grid(streams: Streams, est: OffsetEstimate, p: ResampleParams) -> ResampledTrial:
+    """One aligned trial put on the common grid and labelled. Raises SetAside."""
+    t_fsr_s, volts, t_ref_s, force_n = streams.t_fsr_s, streams.volts, streams.t_ref_s, streams.force_n
     t_ref_host = t_ref_s + est.offset_s
     lo, hi = max(t_fsr_s[0], t_ref_host[0]), min(t_fsr_s[-1], t_ref_host[-1])
     # The grid is anchored to the estimator's own uniform grid, so that at equal rates its
@@ -135,11 +174,13 @@ class BatchInfo:
     adc_bits: int | None
     vref_v: float | None
     ref_units: str
+    shared_clock: bool = False  # batch.yaml reference.clock: shared
 
     @classmethod
     def from_json(cls, meta: dict[str, Any]) -> BatchInfo:
         s, r = meta["sensor"], meta["reference"]
         return cls(
+            shared_clock=r.get("clock") == "shared",
             batch_id=str(meta["batch_id"]),
             unit_id=str(s["unit_id"]),
             purpose=str(meta.get("purpose") or "training"),
@@ -190,7 +231,11 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
     columns: dict[str, list[np.ndarray]] = {name: [] for name in table_schema(info.channels).names}
     rows: list[dict[str, Any]] = []
     trials = trials.assign(trial_id=trials["trial_id"].astype(str)).sort_values("trial_id", kind="stable")
-    for trial in trials.to_dict("records"):
+    # First every trial's own alignment, then a low quality judged against the batch's other
+    # references (pipeline.signals.pairing), then the grid: rows and table in trial order.
+    records = trials.to_dict("records")
+    usable: dict[str, tuple[Streams, OffsetEstimate]] = {}
+    for trial in records:
         tid = str(trial["trial_id"])
         truth = _truth(trial.get(TRUTH_COLUMN))
         row: dict[str, Any] = {
@@ -205,6 +250,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
             "n_ref": 0,
             "n_grid": 0,
             "n_dropped_gap": 0,
+            "peer_quality": "",
             "status": "ok",
         }
         rows.append(row)
@@ -223,13 +269,30 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
                 rf["t_s"].to_numpy(np.float64),
                 to_newtons(rf[list(AXES)].to_numpy(np.float64), info.ref_units),
             )
-            res = resample_trial(t_fsr, volts, t_ref, force, p)
+            streams = Streams(t_fsr, volts, t_ref, force)
+            usable[tid] = streams, align(streams, streams, p, shared_clock=info.shared_clock)
+        except SetAside as e:
+            row["status"] = f"set aside: {e}"
+        except KeyError as e:
+            row["status"] = f"set aside: missing column {e}"
+    verdicts = _judge_pairings(
+        usable, {str(t["trial_id"]): angle_name(t["angle_deg"]) for t in records}, info, p
+    )
+    for trial, row in zip(records, rows, strict=True):
+        tid = str(trial["trial_id"])
+        if tid not in usable:
+            continue
+        streams, est = usable[tid]
+        if (verdict := verdicts.get(tid)) is not None:
+            row["peer_quality"] = _num(verdict.best_peer, ".4f")
+        try:
+            if verdict is not None and verdict.reason is not None:
+                raise SetAside(verdict.reason)
+            res = on_grid(streams, est, p)
         except SetAside as e:
             row["status"] = f"set aside: {e}"
             continue
-        except KeyError as e:
-            row["status"] = f"set aside: missing column {e}"
-            continue
+        truth = _truth(trial.get(TRUTH_COLUMN))
         row["offset_s"] = _num(res.offset.offset_s)
         row["quality"] = _num(res.offset.quality, ".4f")
         if truth is not None:
@@ -252,6 +315,29 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
         pa.array(np.concatenate(columns[f.name]) if columns[f.name] else [], type=f.type) for f in schema
     ]
     return info, pa.Table.from_arrays(arrays, schema=schema), rows
+
+
+def _judge_pairings(
+    usable: dict[str, tuple[Streams, OffsetEstimate]],
+    angles: dict[str, str],
+    info: BatchInfo,
+    p: ResampleParams,
+) -> dict[str, pairing.Verdict]:
+    """Per trial below `min_quality`, the batch's verdict on its pairing (pipeline.signals.pairing):
+    its estimator stream aligned with the references of up to MAX_PEERS other usable trials."""
+    out: dict[str, pairing.Verdict] = {}
+    usable_angles = {t: angles[t] for t in usable}
+    for tid, (streams, est) in usable.items():
+        if est.quality >= p.min_quality:
+            continue
+        peers: dict[str, float] = {}
+        for other in pairing.peers_of(tid, usable_angles):
+            try:
+                peers[other] = align(streams, usable[other][0], p, shared_clock=info.shared_clock).quality
+            except SetAside:  # too little overlap or an edge: that reference explains nothing here
+                peers[other] = 0.0
+        out[tid] = pairing.judge(est.quality, peers, p.min_quality)
+    return out
 
 
 def _truth(value: Any) -> float | None:

@@ -21,13 +21,14 @@ comment says it is an assumption of ours. Effects are scaled by `EffectScales`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
 from scipy.signal import lfilter
 
 from pipeline.config import EffectScales
+from pipeline.rig.frontend import Circuit, Divider, Transimpedance, volts_of
 
 G = 9.81  # m/s^2
 
@@ -184,6 +185,9 @@ def force_on_tissue(profile: ForceProfile, frame: np.ndarray, tissue: Tissue) ->
 
 
 # --------------------------------------------------------------------------- estimator
+NOMINAL_FRONT_END = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0)  # frozen: a safe default
+
+
 @dataclass(frozen=True)
 class Estimator:
     """One physical estimator unit: tripod, FSRs, silicone and read-out circuit."""
@@ -201,16 +205,20 @@ class Estimator:
     actuation_n: float = 0.15  # paper: 10 g gives no change, 20 g a sudden spike
     actuation_width_n: float = 0.01
     rs_kohm_n: float = 17.0  # R = 2*R_S/F + R_i (published calibration under silicone)
+    law_exponent: float = 1.0  # G ∝ F^n: 1 = the published calibration; other FSRs follow n < 1
     ri_kohm: float = 1.62  # series term with a thin silicone layer
     r_open_kohm: float = 10_000.0  # unloaded FSR: over 10 MOhm (datasheet)
     hysteresis: float = 0.10  # (R_F+ - R_F-)/R_F+ about +10 % (datasheet)
     hysteresis_scale_n: float = 0.05  # assumption: load change over which the loop closes
     drift_per_decade: float = 0.04  # "under 5 % per decade of time under constant load"
-    r_m_kohm: float = 10.0  # divider: V_out = V+ / (1 + R_FSR / R_M)
-    v_plus: float = 5.0
+    # read-out: V_out = V+ / (1 + R_FSR / R_M), R_M = 10 kOhm, V+ = 5 V (pipeline.rig.frontend)
+    front_end: Circuit = NOMINAL_FRONT_END
+    rail_v: float = 5.0  # an op-amp's output cannot leave 0..rail
     noise_v: float = 0.0015  # assumption: electrical noise, about a third of an ADC count
     adc_bits: int = 10  # Arduino Uno
     vref_v: float = 5.0
+    # how units of this design differ (draw_estimator): part-to-part gain, one standard deviation
+    gain_sd: float = 0.06
 
     @property
     def directions(self) -> np.ndarray:
@@ -218,26 +226,29 @@ class Estimator:
         return np.stack([np.cos(a), np.sin(a)], axis=1)
 
 
-def draw_estimator(rng: np.random.Generator, effects: EffectScales) -> Estimator:
-    """One estimator unit: how it differs from the nominal unit (`docs/physics.md`, section 4).
+def draw_estimator(
+    rng: np.random.Generator, effects: EffectScales, base: Estimator = Estimator()
+) -> Estimator:
+    """One estimator unit of design `base` (a rig of `pipeline.sim.rigs`): how it differs from the
+    nominal unit (`docs/physics.md`, section 4).
 
     Per FSR (`part_variation`): placement (azimuth, N(0, 3 deg), assumption), transfer gain (1 +
-    N(0, 6 %), FSR datasheet: +/-6 % part to part) and cast-in preload (0.49 N x (1 + N(0, 10 %)),
-    assumption). Per unit: the connector's alignment rotates the whole tripod (N(0, 5 deg) added to
-    all three azimuths, `alignment`, assumption), and the unit's own drift per decade, U(0.025,
-    0.05) (datasheet: under 5 % per decade; used when `unit_drift` > 0, else the nominal 0.04).
-    The draws come in that order, all of them whatever the switches, so a switch never changes
-    the other draws. With the three switches at 0 every unit is the nominal one.
+    N(0, `gain_sd`), FSR datasheet: +/-6 % part to part) and cast-in preload (nominal x (1 + N(0,
+    10 %)), assumption). Per unit: the connector's alignment rotates the whole tripod (N(0, 5 deg)
+    added to all three azimuths, `alignment`, assumption), and the unit's own drift per decade,
+    U(0.025, 0.05) (datasheet: under 5 % per decade; used when `unit_drift` > 0, else the design's
+    nominal). The draws come in that order, all of them whatever the switches, so a switch never
+    changes the other draws. With the three switches at 0 every unit is the nominal one.
     """
     s = effects.part_variation
-    base = Estimator()
     azimuths = np.asarray(base.azimuths_deg) + s * rng.normal(0, 3.0, 3)
-    gains = 1.0 + s * rng.normal(0, 0.06, 3)
-    preloads = 0.49 * (1.0 + s * rng.normal(0, 0.10, 3))
+    gains = 1.0 + s * rng.normal(0, base.gain_sd, 3)
+    preloads = np.asarray(base.preloads_n) * (1.0 + s * rng.normal(0, 0.10, 3))
     # Appended after the three draws above, so that they stay what they were.
     rotation = effects.alignment * rng.normal(0, 5.0)  # assumption: connector keyed within a few deg
     drift = float(rng.uniform(0.025, 0.05))
-    return Estimator(
+    return replace(
+        base,
         azimuths_deg=tuple(float(a) for a in azimuths + rotation),
         gains=tuple(float(g) for g in gains),
         preloads_n=tuple(float(f) for f in preloads),
@@ -280,7 +291,7 @@ def fsr_volts(
     gain: np.ndarray,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """Divider output (V) of each FSR for its load (N) at the sample times, (n, n_fsr).
+    """Front-end output (V) of each FSR for its load (N) at the sample times, (n, n_fsr).
 
     `t_loaded` is the time (s) since the trial's extra load began (drift is logarithmic
     in it); `gain` is this trial's repeatability factor per FSR.
@@ -291,12 +302,18 @@ def fsr_volts(
     drift = 1.0 + effects.drift * est.drift_per_decade * np.log10(1.0 + np.clip(t_loaded, 0, None))
     load = np.clip(np.asarray(est.preloads_n) + extra * drift[:, None], 0.0, None)
 
-    conductance = load / (2 * est.rs_kohm_n)  # 1/kOhm, grows in proportion to force
+    # 1/kOhm, grows in proportion to force (law_exponent 1), or as a power of it (n < 1: another FSR)
+    if est.law_exponent == 1.0:
+        conductance = load / (2 * est.rs_kohm_n)
+    else:
+        conductance = load**est.law_exponent / (2 * est.rs_kohm_n)
     if effects.fsr_threshold:
         conductance = conductance / (1.0 + np.exp(-(load - est.actuation_n) / est.actuation_width_n))
     conductance = conductance * _hysteresis(load, est, effects.hysteresis) * gain
     r = 1.0 / (conductance + 1.0 / est.r_open_kohm) + est.ri_kohm
-    v = est.v_plus / (1.0 + r / est.r_m_kohm)
+    v = volts_of(r, est.front_end)
+    if isinstance(est.front_end, Transimpedance):  # an op-amp saturates at its rails
+        v = np.clip(v, 0.0, est.rail_v)
     return v + effects.electrical_noise * rng.normal(0.0, est.noise_v, v.shape)
 
 

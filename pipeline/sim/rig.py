@@ -48,7 +48,7 @@ from pipeline.rig.format import (
     is_valid_id,
     ref_file,
 )
-from pipeline.sim import physics
+from pipeline.sim import physics, rigs
 from pipeline.vocab import CALIBRATION, angle_name
 
 MANIFEST = "simulate.json"
@@ -159,8 +159,9 @@ def draw_motion(rng: np.random.Generator) -> physics.Motion:
 
 
 def draw_unit(p: SimulateParams, unit_id: str) -> physics.Estimator:
-    """The estimator unit `unit_id`: drawn from its id alone, the same in every batch it records."""
-    return physics.draw_estimator(_rng(p, zlib.crc32(unit_id.encode())), p.effects)
+    """The estimator unit `unit_id` of the design `simulate.rig`: drawn from its id alone, the same
+    in every batch it records."""
+    return physics.draw_estimator(_rng(p, zlib.crc32(unit_id.encode())), p.effects, rigs.rig(p.rig))
 
 
 def cast_scale(p: SimulateParams, cast: int) -> float:
@@ -201,23 +202,28 @@ def simulate_batch(p: SimulateParams, plan: BatchPlan) -> Iterator[tuple[dict, p
 
 
 def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
-    """batch.yaml of one simulated batch (unknown keys such as `simulator` are kept by ingest)."""
+    """batch.yaml of one simulated batch (unknown keys such as `simulator` are kept by ingest); the
+    rig's read-out circuit as `sensor.front_end` when `simulate.declare_front_end`."""
+    design = rigs.rig(p.rig)
+    sensor: dict[str, object] = {
+        "unit_id": plan.unit_id,
+        "channels": list(CHANNELS),
+        "units": "counts" if p.effects.adc else "volts",
+        "adc_bits": design.adc_bits,
+        "vref_v": design.vref_v,
+    }
+    if p.declare_front_end:
+        sensor["front_end"] = design.front_end.model_dump(mode="json")
     return {
         "format": FORMAT,
         "batch_id": plan.batch_id,
         "purpose": plan.purpose,
         "recorded": (date(2026, 11, 2) + timedelta(days=plan.number)).isoformat(),
         "tissue": {"material": "Ecoflex 00-30", "notes": f"simulated cast {plan.cast} (needlecue simulate)"},
-        "sensor": {
-            "unit_id": plan.unit_id,
-            "channels": list(CHANNELS),
-            "units": "counts" if p.effects.adc else "volts",
-            "adc_bits": physics.Estimator.adc_bits,
-            "vref_v": physics.Estimator.vref_v,
-        },
+        "sensor": sensor,
         "reference": {"model": "ATI Nano17 (simulated)", "units": "N", "frame": "tissue"},
         "robot": {"insertion_speed_mm_s": 1.0, "insertion_time_s": 10.0, "retraction_speed_mm_s": 2.0},
-        "simulator": {"seed": p.seed, "role": plan.role},
+        "simulator": {"seed": p.seed, "role": plan.role, "rig": p.rig},
     }
 
 
@@ -261,6 +267,7 @@ def prepare_out_dir(out_dir: Path) -> None:
 
 def run(p: SimulateParams, out_dir: Path, *, log: Log = _stderr) -> list[str]:
     """Write all planned batches (or none when disabled) and the manifest; return batch ids."""
+    rigs.rig(p.rig)  # an unknown rig fails before anything is cleared
     plans = plan_batches(p) if p.enabled else []  # a bad layout fails before anything is cleared
     prepare_out_dir(out_dir)
     written = []

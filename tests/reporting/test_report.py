@@ -60,3 +60,14 @@ def test_report_says_no_when_error_does_not_grow_with_the_gap():
     assert finding(m, "FNN error grows").verdict == "disagree"
     assert "- no: FNN: 100.00% (0°) → 10.00% (15°) → 10.00% (30°): does not grow with the gap." in report
     assert "cannot compare" in report  # no LS, no LSTM: those claims cannot be checked
+
+
+def test_an_angle_without_an_external_set_is_said_in_words():
+    # Given metrics where 30° was scored on its test split (its held-out trials all set aside)
+    m = in_memory_metrics(network_error(0.20, 0.05, 0.06))
+    m["datasets"]["30"]["source"] = "test"
+    # When the report is rendered, then it says so in a sentence, not only in the table's column
+    assert "**No external set at 30°.**" in render(m)
+    # and says nothing of the kind when every angle has one
+    m["datasets"]["30"]["source"] = "external"
+    assert "No external set" not in render(m)

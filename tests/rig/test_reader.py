@@ -368,6 +368,15 @@ def _tdms_two_groups(ref: Path) -> None:
         w.write_segment([ChannelObject("copy", c.name, c[:]) for c in group.channels()])
 
 
+def _declare_front_end(batch: Path, flow: str) -> None:
+    """batch.yaml with `sensor.front_end: <flow>` on line 10, after the `supply_v` metadata line."""
+    replace_in(
+        batch / "batch.yaml",
+        "kept as metadata\n",
+        f"kept as metadata\n  front_end: {flow}\n",
+    )
+
+
 BAD = [
     # batch.yaml: the whole batch is set aside
     Bad(
@@ -409,6 +418,38 @@ BAD = [
         "batch.yaml",
         "key format",
         line=1,
+        batch=True,
+    ),
+    Bad(
+        "sensor.front_end with a misspelt key",
+        lambda b: _declare_front_end(b, "{circuit: divider, supply_v: 5.0, fixed_ohm: 10.0}"),
+        "batch.yaml",
+        "key sensor.front_end.fixed_ohm: Extra inputs are not permitted",
+        line=10,
+        batch=True,
+    ),
+    Bad(
+        "sensor.front_end of an unknown circuit",
+        lambda b: _declare_front_end(b, "{circuit: wheatstone}"),
+        "batch.yaml",
+        "key sensor.front_end: Input tag 'wheatstone'",
+        line=10,
+        batch=True,
+    ),
+    Bad(
+        "sensor.front_end with the FSR nowhere",
+        lambda b: _declare_front_end(b, "{circuit: divider, supply_v: 5.0, fixed_kohm: 10.0, fsr_at: top}"),
+        "batch.yaml",
+        "key sensor.front_end.fsr_at: Input should be 'supply' or 'ground'",
+        line=10,
+        batch=True,
+    ),
+    Bad(
+        "reference.clock neither separate nor shared",
+        lambda b: replace_in(b / "batch.yaml", "  frame: tissue\n", "  frame: tissue\n  clock: host\n"),
+        "batch.yaml",
+        "key reference.clock: Input should be 'separate' or 'shared'",
+        line=14,
         batch=True,
     ),
     Bad(

@@ -150,8 +150,9 @@ def write_ingested(
     angle: float = 30.0,
     with_truth: bool = True,
     purpose: str | None = None,
+    clock: str | None = None,
 ) -> Path:
-    """An ingested batch folder as the ingest stage writes it (`purpose` None: no such key)."""
+    """An ingested batch folder as the ingest stage writes it (`purpose`, `clock` None: no such key)."""
     folder = root / batch_id
     folder.mkdir(parents=True)
     meta = {
@@ -169,6 +170,8 @@ def write_ingested(
     }
     if purpose is not None:
         meta["purpose"] = purpose
+    if clock is not None:
+        meta["reference"]["clock"] = clock
     (folder / "batch.json").write_text(json.dumps(meta))
     rows = {
         "trial_id": list(trials),
@@ -197,3 +200,46 @@ def write_ingested(
     pd.concat(fsr).to_parquet(folder / "fsr.parquet")
     pd.concat(ref).to_parquet(folder / "ref.parquet")
     return folder
+
+
+def fabricate_tactile(
+    seed: int, offset_s: float, *, duration_s: float = 20.0, rate_hz: float = 100.0
+) -> Fabricated:
+    """A trial of another kind of rig: a 4-channel tactile sensor at `rate_hz` beside the F/T sensor,
+    pressed by hand a few times (smooth presses of random depth and timing, not an insertion). Its
+    channels saturate (1 - exp(-load / 0.2 N)), half of each load change arrives through a 2 s creep,
+    it lags by a backlash of 0.15 N, and it is noisy (60 mV): with the right files, the alignment's R² is
+    far below the simulator's."""
+    rng = np.random.default_rng(seed)
+    dt = 0.001
+    t = np.arange(-1.0, duration_s + 1.0, dt)
+    push = np.zeros_like(t)
+    for start in np.sort(rng.uniform(1.0, duration_s - 4.0, 4)):
+        width = rng.uniform(1.0, 2.5)
+        inside = (t >= start) & (t < start + width)
+        push[inside] += rng.uniform(0.5, 2.0) * np.sin(np.pi * (t[inside] - start) / width) ** 2
+    shear = 0.3 * np.sin(2 * np.pi * t / rng.uniform(5.0, 9.0) + rng.uniform(0, 2 * np.pi)) * push
+    force = np.stack([shear, 0.5 * shear, -push], axis=1)  # on the tissue, tissue frame
+
+    az = np.radians(45.0 + 90.0 * np.arange(4))
+    load = push[:, None] / 4 + 0.8 * (shear[:, None] * np.cos(az) + 0.5 * shear[:, None] * np.sin(az))
+    a = np.exp(-dt / 2.0)
+    lagged = lfilter([1 - a], [1, -a], load - load[0], axis=0) + load[0]
+    load = np.clip(0.5 * load + 0.5 * lagged, 0.0, None)
+    # hysteresis (backlash, the silicone's friction): a channel's load lags the true one by up to
+    # 0.15 N, following it only once it has moved that far in the new direction
+    held = np.empty_like(load)
+    h = load[0].copy()
+    for i, row in enumerate(load):
+        h = np.clip(h, row - 0.15, row)
+        held[i] = h
+    volts = 4.5 * (1.0 - np.exp(-held / 0.2))
+
+    t_sample = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    v = np.stack([np.interp(t_sample, t, volts[:, k]) for k in range(4)], axis=1)
+    v += rng.normal(0.0, 0.06, v.shape)
+    counts = np.clip(np.round(v / 5.0 * 1023), 0, 1023)
+    t_s = np.arange(0.0, duration_s, 1.0 / REF_HZ)
+    ref = np.stack([np.interp(t_s + offset_s, t, force[:, k]) for k in range(3)], axis=1)
+    ref += rng.normal(0.0, 0.01, ref.shape)
+    return Fabricated(np.round(t_sample * 1e3, 3), counts, t_s, ref, offset_s, (0.0, 0.0, 0.0, 0.0))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import EffectScales
+from pipeline.rig.frontend import resistance_of
 from pipeline.sim import physics
 
 OFF = EffectScales(
@@ -57,7 +58,7 @@ def test_fsr_has_a_threshold_and_saturates():
     just_above = np.searchsorted(load[:, 0], EST.actuation_n + 5 * EST.actuation_width_n)
     assert v[just_above] > 0.2
     # And it rises monotonically towards, but never past, the ceiling set by R_i
-    ceiling = EST.v_plus / (1 + EST.ri_kohm / EST.r_m_kohm)
+    ceiling = EST.front_end.supply_v / (1 + EST.ri_kohm / EST.front_end.fixed_kohm)
     assert np.all(np.diff(v) >= -1e-12)
     assert v[-1] < ceiling
     assert v[-1] > 0.9 * ceiling
@@ -114,8 +115,7 @@ def test_hysteresis_reads_higher_while_unloading():
     # Then at the same load (1.2 N) the unloading branch reads higher, by about the datasheet's 10 %
     i_up = np.argmin(np.abs(up - 1.2))
     i_down = len(load) - 1 - i_up
-    r_up = EST.r_m_kohm * (EST.v_plus / v[i_up] - 1) - EST.ri_kohm
-    r_down = EST.r_m_kohm * (EST.v_plus / v[i_down] - 1) - EST.ri_kohm
+    r_up, r_down = resistance_of(v[[i_up, i_down]], EST.front_end) - EST.ri_kohm
     assert v[i_down] > v[i_up]
     assert 0.07 < (r_up - r_down) / r_up < 0.13
     # And without hysteresis both branches agree

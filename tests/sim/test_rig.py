@@ -134,7 +134,7 @@ def test_batch_yaml_and_manifest_name_the_unit_and_purpose(tmp_path):
     metas = {b: yaml.safe_load((tmp_path / "sim" / b / "batch.yaml").read_text()) for b in ids}
     calib = metas["sim-calib-u-new"]
     assert calib["purpose"] == "calibration" and calib["sensor"]["unit_id"] == "u-new"
-    assert calib["simulator"] == {"seed": LAYOUT.seed, "role": "calibration"}
+    assert calib["simulator"] == {"seed": LAYOUT.seed, "role": "calibration", "rig": "default"}
     assert metas["sim-heldout-45deg-u-new"]["simulator"]["role"] == "new-unit"
     assert metas["sim-heldout-45deg"]["simulator"]["role"] == "held-out"
     assert metas["sim-heldout-45deg"]["sensor"]["unit_id"] == "u-b"
