@@ -173,16 +173,18 @@ def _fail(message: str, code: int = 1) -> typer.Exit:
 
 def _batch_rows(
     batch_dir: Path, unit_id: str | None, params: Path, purpose: str | None = None
-) -> tuple[str, Any, list[str]]:
+) -> tuple[str, Any, list[str], Any]:
     """Check one rig-log/1 batch like `needlecue check` (its problems printed), ingest and resample it
-    in a temp folder: (its unit, its resampled rows, the trials set aside). typer.Exit(1) if nothing is
-    usable or another unit than `unit_id` recorded it; a warning if its purpose is not `purpose`."""
+    in a temp folder: (its unit, its resampled rows, the trials set aside, the circuit it declares or
+    None). typer.Exit(1) if nothing is usable or another unit than `unit_id` recorded it; a warning if
+    its purpose is not `purpose`."""
     import tempfile
 
     import pandas as pd
 
     from pipeline.config import IngestParams, ResampleParams
     from pipeline.rig.expectations import Validator
+    from pipeline.rig.frontend import is_declared
     from pipeline.rig.ingest import fingerprint, write_batch
     from pipeline.rig.reader import parse_batch
     from pipeline.signals import resample
@@ -219,7 +221,8 @@ def _batch_rows(
         for line in aside:
             typer.echo(f"set aside {line}")
         raise _fail(f"{batch_dir}: no trial could be aligned and resampled")
-    return unit, rows, aside
+    front_end = parsed.meta.sensor.front_end
+    return unit, rows, aside, (front_end if is_declared(front_end) else None)
 
 
 def _quiet(_message: str) -> None:
@@ -286,7 +289,7 @@ def calibrate(
         raise _fail(f"not a folder: {batch_dir}", 2)
     from pipeline.vocab import CALIBRATION
 
-    unit, rows, aside = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
+    unit, rows, aside, front_end = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
     try:
         client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
         champions = units.champion_models(client, log=say)
@@ -308,7 +311,7 @@ def calibrate(
                 )
                 del by_angle[angle]
     p = _section(CalibrateParams, "calibrate", params)
-    doc = calibrate_unit(unit, rows, models, list(champions), p, say)
+    doc = calibrate_unit(unit, rows, models, list(champions), p, say, front_end=front_end)
     _print_calibration(doc, champions, aside)
     if not doc["transforms"]:
         raise _fail("nothing calibrated: no usable calibration trial at an angle with a champion")
@@ -388,7 +391,7 @@ def replay(
             raise fail(f"{batch_dir}: not a rig-log/1 batch folder (no {BATCH_FILE})")
         if suffix:
             trial_id = trial_id or f"{batch_dir.name}/{trial.name.removesuffix(suffix)}"
-        batch_unit, frame, _aside = _batch_rows(batch_dir, None, Path("params.yaml"))
+        batch_unit, frame, _aside, _circuit = _batch_rows(batch_dir, None, Path("params.yaml"))
         unit_id = unit_id or batch_unit
     elif trial.suffix == ".parquet":
         try:

@@ -154,26 +154,14 @@ class EvaluateParams(Section):
     gaps_deg: tuple[float, ...] = Field((15, 30), min_length=1)
 
 
-class DividerParams(Section):
-    """The estimator's voltage divider (docs/physics.md): how a reading turns into the FSR's conductance
-    (`pipeline.modelling.features.conductance_us`). The same four numbers as `InputParams`, which keeps
-    its own flat copy because checkpoints store its keys in that order."""
-
-    v_plus: float = Field(5.0, gt=0, description="divider supply, V")
-    r_m_kohm: float = Field(10.0, gt=0, description="divider resistor")
-    r_series_kohm: float = Field(1.62, ge=0, description="FSR series term under the silicone")
-    r_open_kohm: float = Field(10_000.0, gt=0, description="an unloaded FSR")
-
-
 class InputParams(Section):
     """`<model>.inputs`: what a model reads (pipeline/modelling/features.py): volts as read, or the
-    FSR conductance from inverting the divider, either relative to the trial's rest reading."""
+    FSR conductance behind them, either relative to the trial's rest reading; `auto` chooses among
+    them by validation on the data (pipeline/modelling/choice.py), a kind pins one. The circuit that
+    turns volts into conductance is not a param: it is the estimator's, declared with its batches
+    (batch.yaml `sensor.front_end`)."""
 
-    kind: Literal["volts", "rest_volts", "conductance", "rest_conductance"] = "volts"
-    v_plus: float = Field(5.0, gt=0, description="divider supply, V")
-    r_m_kohm: float = Field(10.0, gt=0, description="divider resistor")
-    r_series_kohm: float = Field(1.62, ge=0, description="FSR series term under the silicone")
-    r_open_kohm: float = Field(10_000.0, gt=0, description="an unloaded FSR")
+    kind: Literal["auto", "volts", "rest_volts", "conductance", "rest_conductance"] = "auto"
     rest_s: float = Field(0.5, gt=0, description="seconds at a trial's start that define its rest reading")
 
 
@@ -249,8 +237,6 @@ class CuesParams(Section):
     force_check: bool = True
     force_margin: float = Field(1.5, gt=0)
     cue_within_s: float = Field(3.0, gt=0, description="a cue is right if right, and staying so, by then")
-    # the loading direction is that of the FSRs' conductance change through this divider
-    divider: DividerParams = DividerParams()
 
     @model_validator(mode="after")
     def _check(self) -> CuesParams:

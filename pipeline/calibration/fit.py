@@ -23,6 +23,7 @@ from pipeline.modelling.features import InputTransform
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
 from pipeline.modelling.predict import Predictor
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES
 
 MIN_FORCE_STD = 1e-3  # N: a flat reference force would otherwise weigh without bound
@@ -38,10 +39,11 @@ class AngleData:
     windows: np.ndarray | None  # (n, window) row positions of each row's LSTM window, or None
 
     @classmethod
-    def of(cls, predictor: Predictor, frame: pd.DataFrame) -> AngleData:
+    def of(cls, predictor: Predictor, frame: pd.DataFrame, front_end: Circuit | None = None) -> AngleData:
+        """The rows as the model reads them, through the unit's own circuit if it declares one."""
         codes, t = trial_codes(frame), times_of(frame)
         order, start = sequence_order(codes, t)
-        x = features_of(frame, list(predictor.channels), predictor.inputs)[order]
+        x = features_of(frame, list(predictor.channels), predictor.inputs.through(front_end))[order]
         y = frame[list(AXES)].to_numpy(np.float64)[order]
         windows = window_index(start, predictor.window) if predictor.kind == "lstm" else None
         return cls(predictor, x, y, windows)

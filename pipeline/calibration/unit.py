@@ -25,6 +25,7 @@ from pipeline.config import CalibrateParams, CuesParams
 from pipeline.cues.units import evidence_of, trial_features
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.predict import Predictor
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, jsonable, sorted_angles
 
 Log = Callable[[str], None]
@@ -63,11 +64,13 @@ def calibrate_unit(
     p: CalibrateParams,
     log: Log | None = None,
     cues: CuesParams | None = None,
+    front_end: Circuit | None = None,
 ) -> dict[str, Any]:
     """The calibration document of `unit_id` from its calibration `rows` (processed frame, any angles)
     through `models` ({kind: {angle: Predictor}}), for a pipeline trained at `trained_angles`; with
     `cues`, also what its calibration insertions tell the cue packs' angle estimator (its evidence,
-    `pipeline.cues.units`)."""
+    `pipeline.cues.units`). `front_end` is the circuit the unit's batches declare: its rows are read
+    through it, and the document carries it for the simulator's client."""
     log = log or (lambda _m: None)
     set_aside = _trial_problems(rows, p)
     bad = {(s["batch_id"], s["trial_id"]) for s in set_aside}
@@ -98,17 +101,18 @@ def calibrate_unit(
         "set_aside": sorted(set_aside, key=lambda s: (s["batch_id"], s["trial_id"])),
         "transforms": {},
         "params": p.model_dump(mode="json"),
+        "front_end": None if front_end is None else front_end.model_dump(mode="json"),
     }
     if cues is not None:
         channels = next((list(m.channels) for ms in models.values() for m in ms.values()), None)
         frames = {float(a): f for a, f in by_angle.items()}
-        trials = trial_features(frames, channels, cues) if channels else []
+        trials = trial_features(frames, channels, cues, {unit_id: front_end}) if channels else []
         doc["cues"] = {"evidence": evidence_of(trials, len(channels or ())).get(unit_id, {})}
     for kind, predictors in models.items():
         fit_angles = [a for a in angles if a in predictors]
         if not fit_angles:
             continue
-        data = [AngleData.of(predictors[a], by_angle[a]) for a in fit_angles]
+        data = [AngleData.of(predictors[a], by_angle[a], front_end) for a in fit_angles]
         transform, report = fit_transform(data, p)
         doc["transforms"][kind] = {
             **transform.to_dict(),

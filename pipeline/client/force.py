@@ -45,6 +45,7 @@ from pipeline.client.cache import (
 )
 from pipeline.modelling.features import InputTransform, StreamFeatures, spec_of
 from pipeline.registry import store
+from pipeline.rig.frontend import declared
 from pipeline.vocab import DEPLOY_FORMAT, angle_name, file_sha256
 
 if TYPE_CHECKING:
@@ -343,6 +344,11 @@ class ForceClient:
         self._unit_decided = True
         self._transform = transform
         self.calibrated = transform is not None
+        # a calibrated unit that declared its circuit is read through it (else the model's)
+        circuit = declared((doc or {}).get("front_end")) if self.calibrated else None
+        self._features = StreamFeatures(self.inputs.through(circuit), self._n)
+        if self._tracker is not None:
+            self._tracker.use_front_end(circuit)
         self.calibration = dict(info or {}) if self.calibrated else None
         self.uncalibrated_reason = None if self.calibrated else (reason or "unknown")
         self._cues_on = self._tracker is not None and (self.calibrated or self._cues_uncalibrated)

@@ -24,7 +24,10 @@ from pipeline.config import CuesParams
 from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, class_means, cue_for_deviation, discriminant
 from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
 from pipeline.cues.units import average_unit, evidence_of, trial_features
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, angle_name, channels_of
+
+Circuits = Mapping[str, Circuit | None]  # {unit_id: its declared circuit (processed front_ends.json)}
 
 Log = Callable[[str], None]
 Predicted = Mapping[str, Mapping[float, np.ndarray]]  # {kind: {angle: forces on its training frame}}
@@ -145,7 +148,10 @@ def _fit_temperature(logits: np.ndarray, y: np.ndarray) -> float:
 
 
 def fit_angle_estimator(
-    train_by_angle: Mapping[float, pd.DataFrame], params: CuesParams, log: Log | None = None
+    train_by_angle: Mapping[float, pd.DataFrame],
+    params: CuesParams,
+    log: Log | None = None,
+    circuits: Circuits | None = None,
 ) -> dict[str, Any]:
     """The angle estimator on every angle's training trials: per evidence stage, a linear discriminant
     read through each unit's class means (`pipeline.cues.units`); its temperature by leave-one-batch-out
@@ -166,7 +172,7 @@ def fit_angle_estimator(
                 f"{channels_of(train_by_angle[a])}, {angle_name(angles[0])}° has {channels}"
             )
     n_ch = len(channels)
-    trials = trial_features(train_by_angle, channels, params)
+    trials = trial_features(train_by_angle, channels, params, circuits)
     label = {a: k for k, a in enumerate(angles)}
     y_all = np.array([label[t.angle] for t in trials], dtype=np.int64)
     g_all = np.array([t.batch for t in trials])
@@ -227,7 +233,8 @@ def fit_angle_estimator(
         "method": "linear discriminant per evidence stage (shared shrunk covariance, uniform priors), "
         "class means per estimator unit (pipeline.cues.units), softmax(scores / temperature)",
         "features": "log rest volts per channel, then the unit direction of the conductance change since "
-        "rest (params.divider) when the norm of log(v / rest) first reaches each evidence level",
+        "rest (through each unit's declared front end; of the volts where none is declared) when the "
+        "norm of log(v / rest) first reaches each evidence level",
         "classes_deg": angles,
         "levels": [float(x) for x in params.evidence_levels[: len(out_stages) - 1]],
         "stages": out_stages,
@@ -240,13 +247,16 @@ def fit_angle_estimator(
 
 
 def try_fit_angle_estimator(
-    train_by_angle: Mapping[float, pd.DataFrame], params: CuesParams, log: Log | None = None
+    train_by_angle: Mapping[float, pd.DataFrame],
+    params: CuesParams,
+    log: Log | None = None,
+    circuits: Circuits | None = None,
 ) -> tuple[dict[str, Any] | None, str | None]:
     """(`fit_angle_estimator` result, None), or (None, why it cannot be fitted) with a warning logged:
     the cues then fall back to the paper's profile method."""
     log = log or (lambda _m: None)
     try:
-        return fit_angle_estimator(train_by_angle, params, log), None
+        return fit_angle_estimator(train_by_angle, params, log, circuits), None
     except (ValueError, np.linalg.LinAlgError) as e:
         reason = str(e).removeprefix("cannot fit the angle estimator: ")
     log(f"warning: no angle estimator ({reason}): the cues fall back to the paper's profile method")
@@ -351,6 +361,7 @@ def build_cue_pack(
     angle_estimator: Mapping[str, Any] | None = None,
     *,
     estimator_unavailable: str | None = None,
+    circuits: Circuits | None = None,
 ) -> dict[str, Any]:
     """The cue pack of one preset angle, from training splits only (see the module docstring).
 
@@ -360,6 +371,7 @@ def build_cue_pack(
     None calibrates them on the reference force alone (an ideal model).
     `angle_estimator`: a `fit_angle_estimator` result to reuse (it is the same for every preset);
     `estimator_unavailable`: why there is none (then none is fitted). Without either, it is fitted here.
+    `circuits`: {unit_id: its declared circuit}; the pack records the one its training units share.
 
     What cannot be built from the data (the angle estimator: one angle only, too few trials, no rest
     reading; the standard profile: no trial with a contact) is left null, and `unavailable` says why
@@ -377,7 +389,7 @@ def build_cue_pack(
         if channels_of(f) != channels:
             raise ValueError(f"angle {a:g}° has channels {channels_of(f)}, the preset has {channels}")
     angles = sorted(train_by_angle)
-    trials = {a: trials_of(train_by_angle[a], channels, a) for a in angles}
+    trials = {a: trials_of(train_by_angle[a], channels, a, circuits) for a in angles}
     rate = trials_rate_hz(trials[preset])
     unavailable: dict[str, str] = {}
 
@@ -453,7 +465,7 @@ def build_cue_pack(
     elif estimator_unavailable is not None:
         estimator = None
     else:
-        estimator, estimator_unavailable = try_fit_angle_estimator(train_by_angle, params, log)
+        estimator, estimator_unavailable = try_fit_angle_estimator(train_by_angle, params, log, circuits)
     if estimator is None:
         unavailable["angle_estimator"] = estimator_unavailable or "not fitted"
     pack = {
@@ -475,10 +487,25 @@ def build_cue_pack(
             "batches": sorted({tr.batch for a in angles for tr in trials[a]}),
         },
         "params": params.model_dump(mode="json"),
+        # the circuit the training units share (their loading directions are in its conductance)
+        "front_end": _shared_circuit(trials, angles),
     }
     if unavailable:
         pack["unavailable"] = dict(sorted(unavailable.items()))
     return pack
+
+
+def _shared_circuit(
+    trials: Mapping[float, Sequence[Trial]], angles: Sequence[float]
+) -> dict[str, Any] | None:
+    """The circuit every training trial's unit declares, as stored (None if any declares none or
+    they differ: then the directions of a unit without its own are read in volts)."""
+    found = {
+        json.dumps(tr.front_end.model_dump(mode="json"), sort_keys=True) if tr.front_end else ""
+        for a in angles
+        for tr in trials[a]
+    }
+    return json.loads(found.pop()) if len(found) == 1 and "" not in found else None
 
 
 def build_packs(
@@ -486,10 +513,12 @@ def build_packs(
     predicted_for: Callable[[float], Predicted],
     params: CuesParams,
     log: Log,
+    circuits: Circuits | None = None,
 ) -> dict[float, dict[str, Any]]:
     """The cue pack of every angle with training rows; `predicted_for(preset)` gives that preset's
-    models' predictions on every angle's training frame ({kind: {angle: forces}})."""
-    estimator, no_estimator = try_fit_angle_estimator(train_by_angle, params, log)
+    models' predictions on every angle's training frame ({kind: {angle: forces}}); `circuits` is
+    {unit_id: its declared circuit}."""
+    estimator, no_estimator = try_fit_angle_estimator(train_by_angle, params, log, circuits)
     packs: dict[float, dict[str, Any]] = {}
     for preset in train_by_angle:
         started = time.perf_counter()
@@ -501,6 +530,7 @@ def build_packs(
             log=log,
             angle_estimator=estimator,
             estimator_unavailable=no_estimator,
+            circuits=circuits,
         )
         log(f"pack for {angle_name(preset)}° built ({time.perf_counter() - started:.1f} s)")
     return packs

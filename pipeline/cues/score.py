@@ -29,6 +29,7 @@ from pipeline.cues.tracker import (
     unit_evidence,
 )
 from pipeline.cues.trials import Trial, trials_of
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
 from pipeline.workers import WORKERS, ordered_map
 
@@ -181,6 +182,7 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
                 job.preset,
                 model_kind=job.kind if job.kind in kinds else None,
                 unit_evidence=unit_evidence(job.pack, tr.unit, job.units.get(tr.unit or "")),
+                front_end=tr.front_end,
             )
             n = tr.ins_end + 1
             codes = {m: np.zeros(n, dtype=np.int64) for m in METHODS}
@@ -226,8 +228,10 @@ def evaluate_cues(
     *,
     log: Log,
     units: Mapping[str, UnitEvidence] | None = None,
+    circuits: Mapping[str, Circuit | None] | None = None,
 ) -> dict[str, Any]:
-    """Cue quality on the external trials of every angle, for every preset angle with a pack.
+    """Cue quality on the external trials of every angle, for every preset angle with a pack; each
+    trial read through its unit's declared circuit in `circuits` (else the pack's).
 
     `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
     angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
@@ -248,7 +252,7 @@ def evaluate_cues(
         missing = [c for c in channels if c not in f.columns]
         if missing:
             raise ValueError(f"the {angle_name(a)}° external set lacks channel(s) {missing}")
-        keep = [tr for tr in trials_of(f, channels, a) if tr.ins_start >= 0]
+        keep = [tr for tr in trials_of(f, channels, a, circuits) if tr.ins_start >= 0]
         if len(keep) < f.groupby(list(TRIAL_KEY)).ngroups:
             log(f"warning: {angle_name(a)}°: trials without an insertion phase skipped")
         trials[a] = keep
@@ -407,6 +411,7 @@ def evaluate_unit_groups(
     uncalibrated_split: str,
     roles: Mapping[str, str],
     calibrated: Mapping[str, bool],
+    circuits: Mapping[str, Circuit | None] | None = None,
 ) -> dict[str, Any]:
     """The cues scored per unit group: the training units' external trials (`same_unit`), and the
     external trials of new units that have a calibration, without it (`new_uncalibrated`: the angle
@@ -431,7 +436,7 @@ def evaluate_unit_groups(
             return None if full is None else full[masks[a]]
 
         known = {} if group == "new_uncalibrated" else units
-        ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None, units=known)
+        ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None, units=known, circuits=circuits)
         members = sorted({str(u) for f in frames.values() for u in f["unit_id"].unique()})
         results = {
             kind: {m: {k: r.get(k) for k in GROUP_KEYS} for m, r in methods.items()}

@@ -13,7 +13,7 @@ methods every frame from a *cue pack* (`pipeline.cues.fit.build_cue_pack`):
   every unit differs), plus the profile's "force in range" check.
 
 Both are debounced (a new cue must hold `debounce_s` before it is shown) with hysteresis. Numpy, the
-params model and the divider's inversion only: the simulator's client imports this module and
+params model and the front end's inversion only: the simulator's client imports this module and
 nothing of the training code.
 """
 
@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import CuesParams, DividerParams
-from pipeline.modelling.features import conductance_us
+from pipeline.config import CuesParams
+from pipeline.rig.frontend import Circuit, Divider, conductance_us, declared
 from pipeline.vocab import format_problem
 
 FORMAT = "needlecue-cues/3"  # 3: loading directions in conductance (2: in log volts)
@@ -129,7 +129,7 @@ class Evidence:
     __slots__ = (
         "contact_i",
         "contact_t",
-        "divider",
+        "front_end",
         "levels",
         "min_rest_s",
         "n_ch",
@@ -150,10 +150,10 @@ class Evidence:
         thr: float,
         n_confirm: int,
         min_rest_s: float,
-        divider: DividerParams,
+        front_end: Circuit | None,
     ):
         self.n_ch, self.levels, self.thr = n_ch, tuple(levels), thr
-        self.n_confirm, self.min_rest_s, self.divider = n_confirm, min_rest_s, divider
+        self.n_confirm, self.min_rest_s, self.front_end = n_confirm, min_rest_s, front_end
         self.reset()
 
     def reset(self) -> None:
@@ -242,8 +242,14 @@ class Evidence:
             return False
         # ... and the direction is the conductance's: above actuation an FSR's conductance grows in
         # proportion to its share of the load, whatever its cast-in preload, which the log ratio to
-        # rest carries (docs/units.md, "How the cue estimator reads a unit").
-        dg = conductance_us(np.asarray(v), self.divider) - conductance_us(np.asarray(self.rest), self.divider)
+        # rest carries (docs/units.md, "How the cue estimator reads a unit"). Without a declared
+        # circuit there is no conductance: the volts' own change gives the direction.
+        if self.front_end is None:
+            dg = np.asarray(v) - np.asarray(self.rest)
+        else:
+            dg = conductance_us(np.asarray(v), self.front_end) - conductance_us(
+                np.asarray(self.rest), self.front_end
+            )
         size = float(np.sqrt(np.sum(dg * dg))) or 1.0
         direction = (dg / size).tolist()
         while len(self.snaps) < len(self.levels) and norm >= self.levels[len(self.snaps)]:
@@ -286,6 +292,23 @@ def pack_format_problem(pack: Any) -> str | None:
     return format_problem(found, FORMAT, "cue pack", "`dvc repro` builds and registers a new one")
 
 
+def pack_front_end(pack: Mapping[str, Any]) -> Circuit | None:
+    """The circuit a pack's training units declared (its loading directions are in their FSRs'
+    conductance), or None (in volts). A pack from before circuits were data names its divider in
+    its params."""
+    if "front_end" in pack:
+        return declared(pack["front_end"])
+    old = (pack.get("params") or {}).get("divider")
+    if old is None:
+        return None
+    return Divider(
+        circuit="divider",
+        supply_v=old.get("v_plus", 5.0),
+        fixed_kohm=old.get("r_m_kohm", 10.0),
+        series_kohm=old.get("r_series_kohm", 0.0),
+    )
+
+
 def check_pack(pack: Mapping[str, Any]) -> None:
     problem = pack_format_problem(pack)
     if problem:
@@ -326,6 +349,7 @@ class CueTracker:
         model_kind: str | None = None,
         method: str = "combined",
         unit_evidence: UnitEvidence | None = None,
+        front_end: Circuit | None = None,
     ) -> None:
         check_pack(pack)
         if abs(float(pack["preset_angle_deg"]) - float(preset_angle_deg)) > 1e-6:
@@ -337,7 +361,7 @@ class CueTracker:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.method = method
         self.preset = float(preset_angle_deg)
-        p = CuesParams.model_validate(pack["params"])
+        p = CuesParams.model_validate({k: v for k, v in pack["params"].items() if k != "divider"})
         self.params = p
         missing = pack.get("unavailable") or {}
         est = pack["angle_estimator"]
@@ -390,12 +414,23 @@ class CueTracker:
         limit = th.get("force_limit_n")
         self._force_limit2 = float(limit) ** 2 if p.force_check and limit is not None else math.inf
         self._ev = Evidence(
-            len(pack["channels"]), levels, p.contact_threshold, p.contact_samples, p.min_rest_s, p.divider
+            len(pack["channels"]),
+            levels,
+            p.contact_threshold,
+            p.contact_samples,
+            p.min_rest_s,
+            front_end or pack_front_end(pack),
         )
         self._min_stage = min(p.min_stage, len(levels))
         self._deb = _Debounce(p.debounce_s)
         self._deb_paper = _Debounce(p.debounce_s)
+        self._pack_front_end = pack_front_end(pack)
         self.reset()
+
+    def use_front_end(self, front_end: Circuit | None) -> None:
+        """Read the loading direction through the unit's own circuit (None: the pack's training
+        units'); takes effect at the next insertion (`reset`)."""
+        self._ev.front_end = front_end or self._pack_front_end
 
     def reset(self) -> None:
         self._ev.reset()

@@ -3,7 +3,7 @@ the evidence the tracker would gather from a whole trial."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +11,7 @@ import pandas as pd
 
 from pipeline.config import CuesParams
 from pipeline.cues.tracker import Evidence
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, TRIAL_KEY, rate_hz
 
 
@@ -25,9 +26,17 @@ class Trial:
     ins_end: int
     rows: np.ndarray  # row positions in the source frame, time order
     unit: str | None = None  # the estimator unit that recorded it (None: the frame does not say)
+    front_end: Circuit | None = None  # the circuit its unit declares (None: none declared)
 
 
-def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> list[Trial]:
+def trials_of(
+    frame: pd.DataFrame,
+    channels: Sequence[str],
+    angle: float,
+    circuits: Mapping[str, Circuit | None] | None = None,
+) -> list[Trial]:
+    """A processed frame's trials in (batch, trial) order, each with its unit's circuit from
+    `circuits` ({unit_id: circuit}, processed `front_ends.json`)."""
     out = []
     if frame.empty:
         return out
@@ -49,7 +58,8 @@ def trials_of(frame: pd.DataFrame, channels: Sequence[str], angle: float) -> lis
         batch = str(key[0]) if isinstance(key, tuple) else str(key)
         force = f_all[idx] if f_all is not None else np.full((len(idx), 3), np.nan)
         unit = str(unit_all[idx[0]]) if unit_all is not None and len(idx) else None
-        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit))
+        circuit = (circuits or {}).get(unit) if unit is not None else None
+        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit, circuit))
     return out
 
 
@@ -70,7 +80,7 @@ def run_evidence(trial: Trial, params: CuesParams) -> Evidence:
         params.contact_threshold,
         params.contact_samples,
         params.min_rest_s,
-        params.divider,
+        trial.front_end,
     )
     for i, (ti, vi) in enumerate(zip(trial.t.tolist(), trial.volts.tolist(), strict=True)):
         ev.push(ti, vi, None, i)

@@ -23,6 +23,7 @@ import pandas as pd
 
 from pipeline.config import CuesParams
 from pipeline.cues.trials import run_evidence, trials_of
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name
 
 ITERATIONS = 50  # alternating means converge in a few for the designs seen here; fixed for determinism
@@ -45,12 +46,16 @@ class TrialFeatures:
 
 
 def trial_features(
-    frames_by_angle: Mapping[float, pd.DataFrame], channels: Sequence[str], params: CuesParams
+    frames_by_angle: Mapping[float, pd.DataFrame],
+    channels: Sequence[str],
+    params: CuesParams,
+    circuits: Mapping[str, Circuit | None] | None = None,
 ) -> list[TrialFeatures]:
-    """The evidence of every trial with a rest reading, in angle then trial order."""
+    """The evidence of every trial with a rest reading, in angle then trial order, each read through
+    its unit's circuit in `circuits`."""
     out = []
     for angle in sorted(frames_by_angle, key=float):
-        for tr in trials_of(frames_by_angle[angle], channels, float(angle)):
+        for tr in trials_of(frames_by_angle[angle], channels, float(angle), circuits):
             ev = run_evidence(tr, params)
             f = ev.features()
             if f is not None:

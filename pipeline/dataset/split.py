@@ -45,7 +45,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.config import SplitParams
+from pipeline.dataset.splits import FRONT_ENDS
 from pipeline.dataset.tables import columns_for, table_schema, write_table
+from pipeline.rig.frontend import declared
 from pipeline.vocab import AXES, CALIBRATION, SPLITS, angle_name, sorted_angles
 
 MANIFEST = "manifest.json"
@@ -70,6 +72,7 @@ class Trial:
     table: pa.Table
     unit_id: str = ""  # the estimator unit that recorded the batch
     purpose: str = "training"  # the batch's purpose: training | calibration
+    front_end: dict[str, Any] | None = None  # the batch's batch.yaml sensor.front_end, as declared
 
     @property
     def key(self) -> TrialKey:
@@ -93,13 +96,15 @@ def load_trials(in_dir: Path) -> tuple[list[Trial], float | None]:
             raise ValueError(f"{data_path}: columns {missing} missing (channels from {meta_path.name})")
         table = table.select(columns_for(channels))
         purpose = str(meta.get("purpose") or "training")
-        trials += _split_by_trial(str(meta["batch_id"]), channels, table, purpose)
+        trials += _split_by_trial(str(meta["batch_id"]), channels, table, purpose, meta.get("front_end"))
     if len(rates) > 1:
         raise ValueError(f"resampled batches disagree on the grid rate: {sorted(rates)} Hz")
     return sorted(trials, key=lambda t: t.key), (rates.pop() if rates else None)
 
 
-def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table, purpose: str) -> list[Trial]:
+def _split_by_trial(
+    batch_id: str, channels: tuple[str, ...], table: pa.Table, purpose: str, front_end: dict[str, Any] | None
+) -> list[Trial]:
     ids = np.asarray(table.column("trial_id").to_pylist(), dtype=object)
     if ids.size == 0:
         return []
@@ -111,7 +116,7 @@ def _split_by_trial(batch_id: str, channels: tuple[str, ...], table: pa.Table, p
         part = table.take(pa.array(rows))
         angle = angle_name(part.column("angle_deg")[0].as_py())
         unit = str(part.column("unit_id")[0].as_py())
-        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part, unit, purpose))
+        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part, unit, purpose, front_end))
     return out
 
 
@@ -299,6 +304,7 @@ def run(
     manifest. With `trained` (the angles models are trained at), ValueError before writing anything if
     one of them has no training trial (`untrainable`)."""
     trials, rate_hz = load_trials(in_dir)
+    circuits = unit_front_ends(trials)  # ValueError before anything is written if a unit's disagree
     trials, repeats = drop_repeats(trials)
     angles = plan([t for t in trials if t.purpose != CALIBRATION], p)
     if trained is not None and (why := untrainable(angles, trained)):
@@ -319,6 +325,7 @@ def run(
             entry["n_samples"][name] = table.num_rows
             entry["n_trials"][name] = len(a.splits[name])
         manifest["angles"][a.angle] = entry
+        _write_front_ends(out_dir / a.angle, [t for ts in a.splits.values() for t in ts], circuits)
         manifest["set_aside"] += a.set_aside
         log(_angle_table(a.angle, entry, len(a.set_aside)))
         if not entry["n_trials"]["external"]:
@@ -338,7 +345,12 @@ def run(
         manifest["set_aside"] += c.set_aside
         units = sorted({t.unit_id for t in c.trials})
         log(f"split: calibration, angle {c.angle}: {len(c.trials)} trials (units {', '.join(units) or '-'})")
+    calibrating = [t for c in calibration for t in c.trials]
+    if calibrating:
+        _write_front_ends(out_dir / CALIBRATION, calibrating, circuits)
     manifest["units"] = _units(trials, angles)
+    for unit, entry in manifest["units"].items():
+        entry["front_end"] = circuits.get(unit)
     _remove_stale(out_dir, {a.angle for a in angles}, set(manifest["calibration"]))
     (out_dir / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     for s in manifest["set_aside"]:
@@ -367,10 +379,43 @@ def _units(trials: list[Trial], angles: list[AngleSplit]) -> dict[str, dict[str,
     }
 
 
+def unit_front_ends(trials: list[Trial]) -> dict[str, dict[str, Any] | None]:
+    """{unit_id: the circuit its batches declare (batch.yaml sensor.front_end), or None}: a batch that
+    declares none (or `circuit: none`) takes its unit's from the unit's other batches. ValueError,
+    naming the batches, if two batches of one unit declare different circuits."""
+    seen: dict[str, dict[str, tuple[str, ...]]] = {}
+    for t in trials:
+        circuit = declared(t.front_end)
+        if circuit is not None:
+            key = json.dumps(circuit.model_dump(mode="json"), sort_keys=True)
+            seen.setdefault(t.unit_id, {}).setdefault(key, ())
+            if t.batch_id not in seen[t.unit_id][key]:
+                seen[t.unit_id][key] += (t.batch_id,)
+    out: dict[str, dict[str, Any] | None] = {t.unit_id: None for t in trials}
+    for unit, by_circuit in seen.items():
+        if len(by_circuit) > 1:
+            listed = "; ".join(f"{', '.join(b)}: {c}" for c, b in sorted(by_circuit.items()))
+            raise ValueError(
+                f"unit {unit!r}: its batches declare different front ends ({listed}); one unit has one "
+                "circuit (batch.yaml sensor.front_end): give a rebuilt unit a new sensor.unit_id"
+            )
+        out[unit] = json.loads(next(iter(by_circuit)))
+    return dict(sorted(out.items()))
+
+
+def _write_front_ends(folder: Path, trials: list[Trial], circuits: dict[str, dict[str, Any] | None]) -> None:
+    """FRONT_ENDS in `folder`: the circuit of every unit with trials there (null: none declared)."""
+    units = sorted({t.unit_id for t in trials})
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / FRONT_ENDS).write_text(
+        json.dumps({u: circuits.get(u) for u in units}, indent=2, sort_keys=True) + "\n"
+    )
+
+
 def _remove_stale(out_dir: Path, angles: set[str], calibration: set[str]) -> None:
     """Drop angle folders and calibration files of an earlier run that this run does not write
     (only our own files)."""
-    ours = {f"{name}.parquet" for name in SPLITS}
+    ours = {f"{name}.parquet" for name in SPLITS} | {FRONT_ENDS}
     for d in sorted(out_dir.iterdir()):
         if d.name == CALIBRATION:
             continue
@@ -383,5 +428,7 @@ def _remove_stale(out_dir: Path, angles: set[str], calibration: set[str]) -> Non
         for f in sorted(folder.glob("*.parquet")):
             if f.is_file() and f.stem not in calibration:
                 f.unlink()
+        if not calibration:
+            (folder / FRONT_ENDS).unlink(missing_ok=True)
         if not any(folder.iterdir()):
             folder.rmdir()

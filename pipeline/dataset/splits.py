@@ -4,11 +4,15 @@ stage uses, each file read at most once."""
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
 import pandas as pd
 
-from pipeline.vocab import SPLITS, sorted_angles
+from pipeline.rig.frontend import Circuit, declared
+from pipeline.vocab import CALIBRATION, SPLITS, sorted_angles
+
+FRONT_ENDS = "front_ends.json"  # in each angle folder (and calibration/): {unit_id: its circuit or null}
 
 
 def _is_angle(name: str) -> bool:
@@ -48,6 +52,14 @@ class SplitFiles:
             self._frames[angle, split] = pd.read_parquet(path)
         return self._frames[angle, split]
 
+    def front_ends(self) -> dict[str, Circuit | None]:
+        """{unit_id: its declared circuit, or None} of every unit in every angle folder and in the
+        calibration folder (the split stage's `front_ends.json` files)."""
+        out: dict[str, Circuit | None] = {}
+        for folder in [*(self.data_dir / a for a in self.angles()), self.data_dir / CALIBRATION]:
+            out.update(front_ends(folder))
+        return dict(sorted(out.items()))
+
     def by_angle(self, split: str) -> dict[float, pd.DataFrame]:
         """{angle: frame} of one split, over the angle folders that have it, in angle order."""
         return {float(a): self.frame(a, split) for a in self.angles() if self.path(a, split).is_file()}
@@ -60,3 +72,32 @@ def unit_roles(data_dir: Path) -> dict[str, str]:
         return {}
     units = json.loads(path.read_text()).get("units") or {}
     return {str(u): str(entry.get("role", "new")) for u, entry in units.items()}
+
+
+def front_ends(folder: Path) -> dict[str, Circuit | None]:
+    """{unit_id: the circuit it declares, or None} of the units with trials in one processed folder
+    (an angle's, or calibration/); {} for a folder written before front ends were data."""
+    path = Path(folder) / FRONT_ENDS
+    if not path.is_file():
+        return {}
+    try:
+        return {str(u): declared(c) for u, c in json.loads(path.read_text()).items()}
+    except (ValueError, AttributeError) as e:
+        raise ValueError(f"{path}: not a map of unit ids to front ends: {e}") from e
+
+
+def common_front_end(circuits: dict[str, Circuit | None], units: Iterable[str]) -> Circuit | None:
+    """The one circuit `units` all declare, or None if any declares none; ValueError naming them if
+    they declare different ones (the conductance inputs of one model need one circuit)."""
+    found = {u: circuits.get(u) for u in sorted(set(units))}
+    if not found or any(c is None for c in found.values()):
+        return None
+    distinct = {
+        json.dumps(c.model_dump(mode="json"), sort_keys=True) for c in found.values() if c is not None
+    }
+    if len(distinct) > 1:
+        raise ValueError(
+            f"the units {', '.join(found)} declare different front ends: one model's conductance inputs "
+            "read one circuit; use inputs kind volts or rest_volts, or train on units of one design"
+        )
+    return next(iter(found.values()))

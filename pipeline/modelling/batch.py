@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -16,7 +17,8 @@ from pipeline.dataset.splits import SplitFiles
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.predict import Predictor, load_predictor
-from pipeline.modelling.predictions import UNCALIBRATED, prediction_table, write_predictions
+from pipeline.modelling.predictions import UNCALIBRATED, prediction_table, write_inputs, write_predictions
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
 from pipeline.workers import WORKERS, ordered_map
 
@@ -25,12 +27,17 @@ UnitTransforms = Mapping[str, InputTransform]  # {unit_id: its calibration for o
 
 
 def predict_frame(
-    predictor: Predictor, frame: pd.DataFrame, what: str, transform: InputTransform | None = None
+    predictor: Predictor,
+    frame: pd.DataFrame,
+    what: str,
+    transform: InputTransform | None = None,
+    front_end: Circuit | None = None,
 ) -> np.ndarray:
-    """Forces (n, 3) for a processed frame; the forces are dropped first, so that no model can read
-    the answer, by mistake or otherwise."""
+    """Forces (n, 3) for a processed frame (read through `front_end`, the rows' unit's circuit, if
+    given); the forces are dropped first, so that no model can read the answer, by mistake or
+    otherwise."""
     inputs = frame.drop(columns=[a for a in AXES if a in frame])
-    out = np.asarray(predictor.predict(inputs, transform), dtype=np.float64)
+    out = np.asarray(predictor.predict(inputs, transform, front_end), dtype=np.float64)
     if out.shape != (len(frame), len(AXES)):
         raise ValueError(f"{what}: predict returned shape {out.shape}, expected {(len(frame), len(AXES))}")
     return out
@@ -42,11 +49,14 @@ def predict_model(
     label: str,
     log: Log,
     units: UnitTransforms | None = None,
+    circuits: Mapping[str, Circuit | None] | None = None,
 ) -> list[pa.Table]:
     """One model's prediction blocks on every (angle, split) frame that has rows and its channels;
     external rows of the `units` with a calibration for this model go through it (and the same rows
-    without it form the `UNCALIBRATED` block)."""
+    without it form the `UNCALIBRATED` block). The rows of a unit that declares its own circuit
+    (`circuits`, {unit_id: circuit}) are read through it."""
     parts: list[pa.Table] = []
+    own = _own_circuits(predictor, circuits or {})
     for (angle, split), frame in frames.items():
         if frame.empty:
             continue
@@ -56,6 +66,10 @@ def predict_model(
             continue
         what = f"{label} on {angle}° {split}"
         force = predict_frame(predictor, frame, what)
+        for unit, circuit in own.items() if "unit_id" in frame.columns else ():
+            mask = (frame["unit_id"] == unit).to_numpy()
+            if mask.any():
+                force[mask] = predict_frame(predictor, frame[mask], f"{what}, unit {unit}", None, circuit)
         parts.append(prediction_table(angle, split, force))
         if split == "external" and units and "unit_id" in frame.columns:
             calibrated = force.copy()
@@ -63,11 +77,21 @@ def predict_model(
                 mask = (frame["unit_id"] == unit).to_numpy()
                 if mask.any():
                     rows = frame[mask]
-                    calibrated[mask] = predict_frame(predictor, rows, f"{what}, unit {unit}", transform)
+                    calibrated[mask] = predict_frame(
+                        predictor, rows, f"{what}, unit {unit}", transform, own.get(unit)
+                    )
             if not np.array_equal(calibrated, force):
                 parts[-1] = prediction_table(angle, split, calibrated)
                 parts.append(prediction_table(angle, UNCALIBRATED, force))
     return parts
+
+
+def _own_circuits(predictor: Predictor, circuits: Mapping[str, Circuit | None]) -> dict[str, Circuit]:
+    """The units whose declared circuit differs from the one the model was trained through (only
+    for inputs that read a circuit); a unit that declares none is read as the training units."""
+    if not predictor.inputs.needs_circuit:
+        return {}
+    return {u: c for u, c in sorted(circuits.items()) if c is not None and c != predictor.inputs.front_end}
 
 
 _FRAMES: dict[tuple[str, str], pd.DataFrame] = {}  # a worker's copy of the split frames
@@ -78,14 +102,22 @@ def _set_frames(frames: dict[tuple[str, str], pd.DataFrame]) -> None:
     _FRAMES.update(frames)
 
 
-def _predict_one(job: tuple[str, str, Path, Path, UnitTransforms]) -> tuple[int, float, list[str]]:
-    """One model's predictions on every split, written to its file: (rows, seconds, warnings)."""
-    kind, angle, model_dir, target, units = job
+def _predict_one(
+    job: tuple[str, str, Path, Path, UnitTransforms, Mapping[str, Circuit | None]],
+) -> tuple[int, float, list[str], dict[str, Any]]:
+    """One model's predictions on every split, written to its file: (rows, seconds, warnings, what it
+    reads)."""
+    kind, angle, model_dir, target, units, circuits = job
     started = time.perf_counter()
     warnings: list[str] = []
-    blocks = predict_model(load_predictor(model_dir), _FRAMES, f"{kind}/{angle}", warnings.append, units)
+    predictor = load_predictor(model_dir)
+    blocks = predict_model(predictor, _FRAMES, f"{kind}/{angle}", warnings.append, units, circuits)
     rows = write_predictions(blocks, target)
-    return rows, time.perf_counter() - started, warnings
+    reads = {
+        "inputs": predictor.inputs.model_dump(mode="json"),
+        "inputs_choice": predictor.checkpoint.get("inputs_choice"),
+    }
+    return rows, time.perf_counter() - started, warnings, reads
 
 
 def predict_all(
@@ -104,6 +136,7 @@ def predict_all(
     (kind, angle) pairs predicted. `units` gives, per (kind, angle) model, the unit calibrations that
     apply to it."""
     files = SplitFiles(data_dir)
+    circuits = files.front_ends()
     frames = {
         (angle, split): files.frame(angle, split)
         for angle in files.angles()
@@ -119,11 +152,16 @@ def predict_all(
             if not (model_dir / CHECKPOINT_FILE).is_file():
                 log(f"warning: no {model_dir / CHECKPOINT_FILE}, {kind} at {angle}° skipped")
                 continue
-            jobs.append((kind, angle, model_dir, target, dict((units or {}).get((kind, angle), {}))))
-    for (kind, angle, *_), (rows, seconds, warnings) in zip(
+            jobs.append(
+                (kind, angle, model_dir, target, dict((units or {}).get((kind, angle), {})), circuits)
+            )
+    inputs: dict[str, dict[str, Any]] = {}
+    for (kind, angle, *_), (rows, seconds, warnings, reads) in zip(
         jobs, ordered_map(_predict_one, jobs, workers, _set_frames, (frames,)), strict=True
     ):
         for warning in warnings:
             log(warning)
-        log(f"{kind}/{angle}: {rows} rows predicted ({seconds:.1f} s)")
+        inputs.setdefault(kind, {})[angle] = reads
+        log(f"{kind}/{angle}: {rows} rows predicted ({seconds:.1f} s), inputs {reads['inputs']['kind']}")
+    write_inputs(inputs, Path(out_dir))
     return [(kind, angle) for kind, angle, *_ in jobs]

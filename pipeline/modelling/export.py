@@ -150,7 +150,7 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
         "targets": list(checkpoint["targets"]),
         "rate_hz": _json_float(checkpoint["rate_hz"]),
         "window": int(checkpoint["config"].get("window", 1)),
-        "inputs": spec_of(checkpoint.get("inputs")).model_dump(),
+        "inputs": spec_of(checkpoint.get("inputs")).model_dump(mode="json"),
         "input": INPUT_NAME,
         "output": OUTPUT_NAME,
         "checkpoint_sha256": checkpoint_sha256(checkpoint),

@@ -5,57 +5,110 @@ its rest reading, its part-to-part gain scales its response, and the tripod's pl
 lateral force differently. Raw volts carry all of that into the weights. The kinds here take out
 what physics says is unit-specific and leaves the rest linear:
 
-- `volts`: the divider's output as read (the paper's input);
+- `volts`: the front end's output as read (the paper's input);
 - `rest_volts`: volts minus the trial's rest reading (removes most of the preload);
-- `conductance`: the FSR conductance (µS) from inverting the divider, R = R_M (V+/v - 1),
-  G = 1/(R - R_i) - 1/R_open; above actuation G grows in proportion to the load;
+- `conductance`: the FSR conductance (µS) behind the volts, through the estimator's own circuit
+  (batch.yaml `sensor.front_end`, `pipeline.rig.frontend`); above actuation it grows with the load;
 - `rest_conductance`: conductance minus the trial's rest conductance: the load added by the needle,
   times each FSR's gain. The preload drops out; gain and placement are left as a linear map per
   unit, which is what a unit's calibration (`InputTransform`) fits.
 
+The conductance kinds need a circuit, and take it from the data, never from params: a model records
+the one its training units declared (`ModelInputs.front_end`), and a unit that declares its own is
+read through that. With no circuit declared, only the volts kinds exist.
+
 The rest reading is causal: the mean of a trial's samples in its first `rest_s` seconds (the
 running mean until then), the same number in training, in batch prediction and in the live
-client (`StreamFeatures`). Numpy only: the simulator's client imports this module.
+client (`StreamFeatures`). Numpy and pydantic only: the simulator's client imports this module.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, get_args
+from typing import Any, Literal, get_args
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.config import DividerParams, InputParams
+from pipeline.config import InputParams
+from pipeline.rig.frontend import Declared, Divider, Transimpedance, conductance_us
 
-KINDS: tuple[str, ...] = get_args(InputParams.model_fields["kind"].annotation)
-MIN_VOLTS = 1e-3  # an unloaded FSR reads a few mV; below this the divider cannot be inverted
-MIN_R_KOHM = 0.1  # floor of R - R_i: near V+ the series term would make it negative
-
-
-def spec_of(stored: Mapping[str, Any] | None) -> InputParams:
-    """The inputs a checkpoint or deployable model records (`<model>.inputs` of params.yaml, checked
-    the same way: an unknown setting or kind is a ValueError); None, a model from before inputs were
-    recorded, reads raw volts."""
-    return InputParams() if stored is None else InputParams.model_validate(stored)
+KINDS: tuple[str, ...] = tuple(
+    k for k in get_args(InputParams.model_fields["kind"].annotation) if k != "auto"
+)
+NEEDS_CIRCUIT = ("conductance", "rest_conductance")
+# keys of the inputs that models recorded before the circuit was data (a divider from params)
+LEGACY_DIVIDER = ("v_plus", "r_m_kohm", "r_series_kohm", "r_open_kohm")
 
 
-def _relative(spec: InputParams) -> bool:
+class ModelInputs(BaseModel):
+    """What a model computes from the volts: the params' `kind` and `rest_s`, and the circuit
+    (`front_end`) its training units declared, which the conductance kinds read through."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: Literal["volts", "rest_volts", "conductance", "rest_conductance"] = "volts"
+    rest_s: float = Field(0.5, gt=0)
+    front_end: Declared | None = None
+
+    @model_validator(mode="after")
+    def _circuit_if_needed(self) -> ModelInputs:
+        if self.kind in NEEDS_CIRCUIT and self.front_end is None:
+            raise ValueError(
+                f"inputs kind {self.kind!r} reads the FSRs' conductance, which needs the estimator's "
+                "front end, and none is declared (batch.yaml sensor.front_end, docs/rig-log-format.md "
+                "§3a); declare it, or use inputs kind volts or rest_volts"
+            )
+        return self
+
+    @property
+    def needs_circuit(self) -> bool:
+        return self.kind in NEEDS_CIRCUIT
+
+    def through(self, front_end: Divider | Transimpedance | None) -> ModelInputs:
+        """The same inputs read through another unit's circuit (None: keep this one)."""
+        if front_end is None or not self.needs_circuit:
+            return self
+        return self.model_copy(update={"front_end": front_end})
+
+
+def inputs_for(kind: str, rest_s: float, front_end: Divider | Transimpedance | None) -> ModelInputs:
+    """The inputs a model trains on: `kind` (chosen or pinned), through the training units' circuit
+    if it reads one (ValueError, saying what to declare, when it needs one and there is none)."""
+    if kind not in KINDS:
+        raise ValueError(f"inputs kind {kind!r} is not one of {', '.join(KINDS)}")
+    return ModelInputs(kind=kind, rest_s=rest_s, front_end=front_end if kind in NEEDS_CIRCUIT else None)
+
+
+def spec_of(stored: Mapping[str, Any] | None) -> ModelInputs:
+    """The inputs a checkpoint or deployable model records, checked (an unknown setting or kind is a
+    ValueError); None, a model from before inputs were recorded, reads raw volts. A model recorded
+    before the circuit was data carries its divider's constants: they become its front end."""
+    if stored is None:
+        return ModelInputs()
+    d = dict(stored)
+    legacy = {k: d.pop(k) for k in LEGACY_DIVIDER if k in d}
+    if legacy and d.get("front_end") is None and d.get("kind") in NEEDS_CIRCUIT:
+        d["front_end"] = {
+            "circuit": "divider",
+            "supply_v": legacy.get("v_plus", 5.0),
+            "fixed_kohm": legacy.get("r_m_kohm", 10.0),
+            "series_kohm": legacy.get("r_series_kohm", 0.0),
+        }
+    return ModelInputs.model_validate(d)
+
+
+def _relative(spec: ModelInputs) -> bool:
     """Whether the inputs are relative to the trial's rest reading."""
     return spec.kind.startswith("rest_")
 
 
-def conductance_us(volts: np.ndarray, spec: DividerParams | InputParams) -> np.ndarray:
-    """FSR conductance in µS from divider volts (elementwise), through `spec`'s divider."""
-    v = np.clip(np.asarray(volts, dtype=np.float64), MIN_VOLTS, spec.v_plus - MIN_VOLTS)
-    r = spec.r_m_kohm * (spec.v_plus / v - 1.0)
-    g = 1.0 / np.maximum(r - spec.r_series_kohm, MIN_R_KOHM) - 1.0 / spec.r_open_kohm
-    return g * 1e3  # 1/kOhm -> µS
-
-
-def _absolute(volts: np.ndarray, spec: InputParams) -> np.ndarray:
+def _absolute(volts: np.ndarray, spec: ModelInputs) -> np.ndarray:
     volts = np.asarray(volts, dtype=np.float64)
-    return conductance_us(volts, spec) if spec.kind.endswith("conductance") else volts
+    if spec.front_end is not None and spec.needs_circuit:
+        return conductance_us(volts, spec.front_end)
+    return volts
 
 
 def rest_reading(values: np.ndarray, codes: np.ndarray, t: np.ndarray, rest_s: float) -> np.ndarray:
@@ -79,7 +132,7 @@ def rest_reading(values: np.ndarray, codes: np.ndarray, t: np.ndarray, rest_s: f
     return out
 
 
-def features(volts: np.ndarray, codes: np.ndarray, t: np.ndarray, spec: InputParams) -> np.ndarray:
+def features(volts: np.ndarray, codes: np.ndarray, t: np.ndarray, spec: ModelInputs) -> np.ndarray:
     """(n, channels) model inputs of volts (n, channels) whose rows belong to trials `codes` at
     times `t` (s); any row order."""
     x = _absolute(volts, spec)
@@ -94,7 +147,7 @@ class StreamFeatures:
 
     __slots__ = ("_frozen", "_n", "_spec", "_sum", "_t0")
 
-    def __init__(self, spec: InputParams, n_channels: int) -> None:
+    def __init__(self, spec: ModelInputs, n_channels: int) -> None:
         self._spec = spec
         self._sum = np.zeros(n_channels)
         self.reset()

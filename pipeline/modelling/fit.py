@@ -28,11 +28,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from pipeline.config import PARAMS_MODELS, FNNParams, InputParams, LSParams, LSTMParams
+from pipeline.config import PARAMS_MODELS, FNNParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
+from pipeline.modelling.choice import choose_inputs
+from pipeline.modelling.features import ModelInputs, inputs_for
 from pipeline.modelling.inputs import column_stats, features_of, inputs_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch, exact_sqrt
 from pipeline.modelling.predict import Predictor
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, KINDS, channels_of, rate_hz
 
 if TYPE_CHECKING:
@@ -120,11 +123,14 @@ def fit(
     val: pd.DataFrame | None = None,
     *,
     train_data_sha256: str | None = None,
+    front_end: Circuit | None = None,
     log: Log | None = None,
 ) -> TrainResult:
     """Train one model of `kind` on `train`, early-stopping the networks on `val` (if it has rows).
 
     `train_data_sha256` identifies the data in the checkpoint; by default a hash of the frames.
+    `front_end` is the circuit the training units declare, which the conductance inputs read through
+    (ValueError if they need one and there is none).
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -146,7 +152,13 @@ def fit(
     _import_backends(kind)  # before the clock: train_seconds measures the work, not the imports
     codes = trial_codes(train)
     started = time.perf_counter()
-    spec = params.inputs
+    choice = None
+    if params.inputs.kind == "auto":  # chosen by validation on this data (pipeline.modelling.choice)
+        window = params.window if isinstance(params, LSTMParams) else 1
+        intercept = params.fit_intercept if isinstance(params, LSParams) else True
+        choice = choose_inputs(kind, train, val, channels, front_end, params.inputs.rest_s, window, intercept)
+        log(f"inputs by validation ({choice.folds}): {choice.chosen}; mean NRMSE % {choice.scores}")
+    spec = inputs_for(choice.chosen if choice else params.inputs.kind, params.inputs.rest_s, front_end)
     if isinstance(params, LSParams):
         cfg = ModelConfig(kind="ls", n_in=len(channels))
         state, pre, history, summary = _fit_ls(params, spec, train, val, channels)
@@ -167,7 +179,8 @@ def fit(
         "state_dict": state,
         "preprocessing": pre,
         "channels": list(channels),
-        "inputs": spec.model_dump(),
+        "inputs": spec.model_dump(mode="json"),
+        "inputs_choice": None if choice is None else choice.to_dict(),  # None: pinned in params
         "targets": list(AXES),
         "rate_hz": rate_hz(train["t_s"], codes) if "t_s" in train.columns else math.nan,
         "angle_deg": _angle_deg(train),
@@ -180,6 +193,8 @@ def fit(
         "angle_deg": checkpoint["angle_deg"],
         **summary,
         "loss": LOSS_DEFINITION,
+        "inputs": spec.kind,
+        "inputs_choice": None if choice is None else choice.to_dict(),
         "train_seconds": round(seconds, 3),
         "n_train": len(train),
         "n_val": len(val),
@@ -206,7 +221,7 @@ def _scaled_mse(pred: np.ndarray, y: np.ndarray, y_std: np.ndarray) -> float:
 
 
 def _fit_ls(
-    params: LSParams, spec: InputParams, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
+    params: LSParams, spec: ModelInputs, train: pd.DataFrame, val: pd.DataFrame, channels: list[str]
 ) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, float]], dict[str, Any]]:
     """Eq. (2) on the unscaled inputs: that is the paper's method, and scaling would add an offset."""
     import torch
@@ -249,7 +264,7 @@ def _preprocessing(x_mean: np.ndarray, x_std: np.ndarray, y_mean: np.ndarray, y_
 def _fit_network(
     cfg: ModelConfig,
     params: FNNParams | LSTMParams,
-    spec: InputParams,
+    spec: ModelInputs,
     train: pd.DataFrame,
     val: pd.DataFrame,
     channels: list[str],

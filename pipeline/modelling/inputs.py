@@ -8,9 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.config import InputParams
 from pipeline.modelling.checkpoint import ModelConfig
-from pipeline.modelling.features import features
+from pipeline.modelling.features import ModelInputs, features
 from pipeline.vocab import TRIAL_KEY
 
 
@@ -57,7 +56,7 @@ def times_of(frame: pd.DataFrame) -> np.ndarray:
     return frame["t_s"].to_numpy(np.float64) if "t_s" in frame.columns else np.arange(len(frame), dtype=float)
 
 
-def features_of(frame: pd.DataFrame, channels: list[str], spec: InputParams) -> np.ndarray:
+def features_of(frame: pd.DataFrame, channels: list[str], spec: ModelInputs) -> np.ndarray:
     """(n, channels) model inputs of a frame's rows (`features.features` per trial), in its order."""
     return features(frame[channels].to_numpy(np.float64), trial_codes(frame), times_of(frame), spec)
 
@@ -68,7 +67,7 @@ def inputs_of(
     channels: list[str],
     x_mean: np.ndarray,
     x_std: np.ndarray,
-    spec: InputParams,
+    spec: ModelInputs,
 ) -> np.ndarray:
     """Standardised float32 network inputs of a frame's rows, in the frame's order."""
     x = (features_of(frame, channels, spec) - x_mean) / x_std

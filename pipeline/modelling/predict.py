@@ -16,6 +16,7 @@ from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
 from pipeline.modelling.features import InputTransform, features, spec_of
 from pipeline.modelling.inputs import network_inputs, times_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch
+from pipeline.rig.frontend import Circuit
 from pipeline.vocab import KINDS
 
 PREDICT_CHUNK = 65_536  # rows per forward pass at prediction time
@@ -24,7 +25,7 @@ PREDICT_CHUNK = 65_536  # rows per forward pass at prediction time
 class Predictor:
     """A trained model behind one call: volts in, force in newtons out.
 
-    Attributes: `kind`, `channels` (the order it reads them in), `inputs` (the `InputParams` it
+    Attributes: `kind`, `channels` (the order it reads them in), `inputs` (the `ModelInputs` it
     computes from the volts), `targets`, `rate_hz`, `angle_deg`, `window` (samples of history it
     uses, 1 for ls/fnn), `config`, `checkpoint`. A unit's calibration is an `InputTransform` passed
     to `predict`: it maps the unit's inputs before the model reads them.
@@ -66,11 +67,15 @@ class Predictor:
     def __repr__(self) -> str:
         return f"Predictor(kind={self.kind!r}, angle_deg={self.angle_deg:g}, channels={list(self.channels)})"
 
-    def predict(self, frame: pd.DataFrame, transform: InputTransform | None = None) -> np.ndarray:
+    def predict(
+        self, frame: pd.DataFrame, transform: InputTransform | None = None, front_end: Circuit | None = None
+    ) -> np.ndarray:
         """Forces (n, 3) in N for the frame's rows, in its row order.
 
         Reads the model's channels by name (extra columns are ignored). The LSTM builds its windows
         per (batch_id, trial_id) in t_s order; a frame without those columns is one trial in row order.
+        `front_end` is the circuit of the unit that recorded the rows, when it declares its own (None:
+        the one the model was trained through).
         """
         missing = [c for c in self.channels if c not in frame.columns]
         if missing:
@@ -80,7 +85,7 @@ class Predictor:
                 f"the frame has {list(frame.columns)}"
             )
         volts = frame[list(self.channels)].to_numpy(np.float64)
-        return self._predict(volts, trial_codes(frame), times_of(frame), transform)
+        return self._predict(volts, trial_codes(frame), times_of(frame), transform, front_end)
 
     def predict_arrays(
         self,
@@ -114,12 +119,17 @@ class Predictor:
         return self._predict(volts, codes.astype(np.int64), np.asarray(t_s, dtype=np.float64), transform)
 
     def _predict(
-        self, volts: np.ndarray, codes: np.ndarray, t: np.ndarray, transform: InputTransform | None
+        self,
+        volts: np.ndarray,
+        codes: np.ndarray,
+        t: np.ndarray,
+        transform: InputTransform | None,
+        front_end: Circuit | None = None,
     ) -> np.ndarray:
         if not np.isfinite(volts).all():
             bad = [c for c, ok in zip(self.channels, np.isfinite(volts).all(axis=0), strict=True) if not ok]
             raise ValueError(f"non-finite volts in channel(s) {bad}")
-        x_in = features(volts, codes, t, self.inputs)
+        x_in = features(volts, codes, t, self.inputs.through(front_end))
         if transform is not None:
             x_in = transform.apply(x_in)
         return self._forward(x_in, codes, t)

@@ -17,8 +17,10 @@ the model's channels; `Predictions.get` returns None otherwise.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import json
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -48,6 +50,21 @@ def prediction_table(angle: str, split: str, force: np.ndarray) -> pa.Table:
         **{axis: pa.array(force[:, k]) for k, axis in enumerate(AXES)},
     }
     return pa.table(columns, schema=SCHEMA)
+
+
+INPUTS_FILE = "inputs.json"  # what each predicted model reads: {kind: {angle: {inputs, inputs_choice}}}
+
+
+def write_inputs(inputs: Mapping[str, Mapping[str, Any]], pred_dir: Path) -> None:
+    """INPUTS_FILE: each model's inputs and how they were chosen (from its checkpoint), for the report."""
+    pred_dir.mkdir(parents=True, exist_ok=True)
+    (pred_dir / INPUTS_FILE).write_text(json.dumps(inputs, indent=2, sort_keys=True) + "\n")
+
+
+def read_inputs(pred_dir: Path) -> dict[str, dict[str, Any]]:
+    """INPUTS_FILE's content ({} if the predict stage wrote none)."""
+    path = Path(pred_dir) / INPUTS_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def write_predictions(blocks: list[pa.Table], path: Path) -> int:

@@ -9,6 +9,7 @@ from typing import Any
 
 import pandas as pd
 
+from pipeline.dataset.splits import common_front_end, front_ends
 from pipeline.modelling.checkpoint import save_model_dir
 from pipeline.modelling.fit import ModelParams, fit
 from pipeline.vocab import file_sha256
@@ -18,7 +19,8 @@ Log = Callable[[str], None]
 
 def train_folder(kind: str, params: ModelParams, data_dir: Path, out_dir: Path, log: Log) -> dict[str, Any]:
     """Fit `kind` on `data_dir/train.parquet`, early-stopping on `val.parquet` (may be empty or
-    absent), and write the model folder; returns the metrics written."""
+    absent), reading through the circuit its units declare (`data_dir/front_ends.json`), and write
+    the model folder; returns the metrics written."""
     train_path, val_path = data_dir / "train.parquet", data_dir / "val.parquet"
     if not train_path.is_file():
         raise FileNotFoundError(f"{data_dir}: no train.parquet (run the split stage first)")
@@ -29,7 +31,11 @@ def train_folder(kind: str, params: ModelParams, data_dir: Path, out_dir: Path, 
     sha = file_sha256([p for p in (train_path, val_path) if p.is_file()])
     label = f"{kind} on {data_dir}"
     log(f"{label}: {len(train)} train rows, {len(val)} val rows, {params.model_dump(mode='json')}")
-    result = fit(kind, params, train, val, train_data_sha256=sha, log=lambda m: log(f"{label}: {m}"))
+    units = [str(u) for frame in (train, val) if "unit_id" in frame for u in frame["unit_id"].unique()]
+    circuit = common_front_end(front_ends(data_dir), units)
+    result = fit(
+        kind, params, train, val, train_data_sha256=sha, front_end=circuit, log=lambda m: log(f"{label}: {m}")
+    )
     written = save_model_dir(out_dir, result.checkpoint, result.metrics, result.history)
     m = result.metrics
     val_txt = "n/a (no val rows)" if m["best_val_loss"] is None else f"{m['best_val_loss']:.5f}"

@@ -68,6 +68,13 @@ def run_params(t: Trained) -> dict[str, str]:
         "window": str(ck["config"].get("window", 1)),
         "n_train": str(t.train_metrics.get("n_train", "")),
         "n_val": str(t.train_metrics.get("n_val", "")),
+        # what it reads, and how that was chosen (pinned in params, or by validation: the scores)
+        "inputs": str((ck.get("inputs") or {}).get("kind", "volts")),
+        "inputs_chosen_by": "params" if not ck.get("inputs_choice") else str(ck["inputs_choice"]["folds"]),
+        **{
+            f"inputs_score_{k}": "n/a" if v is None else f"{v:g}"
+            for k, v in ((ck.get("inputs_choice") or {}).get("scores") or {}).items()
+        },
     }
 
 

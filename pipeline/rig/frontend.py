@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
 MIN_KOHM = 0.01  # floor of an inverted resistance: a reading at the rail cannot be inverted further
 MAX_KOHM = 1e6  # ceiling: an open FSR (over 10 MOhm) reads as this, not as infinity
@@ -55,6 +55,7 @@ class Undeclared(_Circuit):
 
 
 FrontEnd = Annotated[Divider | Transimpedance | Undeclared, Field(discriminator="circuit")]
+Declared = Annotated[Divider | Transimpedance, Field(discriminator="circuit")]  # a circuit to read through
 CIRCUITS = ("divider", "transimpedance", "none")  # the values of `circuit`
 Circuit = Divider | Transimpedance
 
@@ -62,6 +63,15 @@ Circuit = Divider | Transimpedance
 def is_declared(front_end: Divider | Transimpedance | Undeclared | None) -> bool:
     """Whether a front end says how volts come from resistance (a divider or a transimpedance)."""
     return isinstance(front_end, Divider | Transimpedance)
+
+
+def declared(stored: dict | None) -> Circuit | None:
+    """The circuit a stored `front_end` mapping (batch.json, front_ends.json, a model's inputs or a
+    unit's calibration) declares; None for none or `circuit: none`. ValueError if malformed."""
+    if stored is None:
+        return None
+    fe = _ADAPTER.validate_python(stored)
+    return fe if is_declared(fe) else None
 
 
 def volts_of(r_kohm: np.ndarray, fe: Circuit) -> np.ndarray:
@@ -92,3 +102,6 @@ def resistance_of(volts: np.ndarray, fe: Circuit) -> np.ndarray:
 def conductance_us(volts: np.ndarray, fe: Circuit) -> np.ndarray:
     """The FSR's conductance (µS) behind output `volts`: above actuation it grows with the load."""
     return 1e3 / resistance_of(volts, fe)
+
+
+_ADAPTER: TypeAdapter[Divider | Transimpedance | Undeclared] = TypeAdapter(FrontEnd)

@@ -7,7 +7,8 @@ overlap (`pipeline.signals.filters`) and every grid sample given a phase
 Input: the ingest stage's accepted batches, `IN_DIR/<batch_id>/{batch.json, trials.parquet,
 fsr.parquet, ref.parquet}` (folders without `trials.parquet` were set aside by ingest and are
 skipped). Output: `OUT_DIR/<batch_id>.parquet` (every row carries the batch's `unit_id`) + `.json`
-(channels, rate, unit_id and the batch's `purpose`), and one offsets.csv row per trial. A trial
+(channels, rate, unit_id, the batch's `purpose` and its declared `front_end`), and one offsets.csv
+row per trial. A trial
 that cannot be aligned is set aside with its reason in that row.
 """
 
@@ -175,12 +176,14 @@ class BatchInfo:
     vref_v: float | None
     ref_units: str
     shared_clock: bool = False  # batch.yaml reference.clock: shared
+    front_end: dict[str, Any] | None = None  # batch.yaml sensor.front_end, as declared (None: absent)
 
     @classmethod
     def from_json(cls, meta: dict[str, Any]) -> BatchInfo:
         s, r = meta["sensor"], meta["reference"]
         return cls(
             shared_clock=r.get("clock") == "shared",
+            front_end=s.get("front_end"),
             batch_id=str(meta["batch_id"]),
             unit_id=str(s["unit_id"]),
             purpose=str(meta.get("purpose") or "training"),
@@ -374,6 +377,7 @@ def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = _stderr) -
             "rate_hz": p.rate_hz,
             "unit_id": info.unit_id,
             "purpose": info.purpose,
+            "front_end": info.front_end,
         }
         (out_dir / f"{info.batch_id}.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         written |= {f"{info.batch_id}.parquet", f"{info.batch_id}.json"}

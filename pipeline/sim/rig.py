@@ -213,7 +213,7 @@ def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
         "vref_v": design.vref_v,
     }
     if p.declare_front_end:
-        sensor["front_end"] = design.front_end.model_dump(mode="json")
+        sensor["front_end"] = rigs.declared_front_end(design).model_dump(mode="json")
     return {
         "format": FORMAT,
         "batch_id": plan.batch_id,

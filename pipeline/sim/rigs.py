@@ -11,7 +11,7 @@ Every figure is in docs/physics.md §11 with its source; none was chosen by how 
 
 from __future__ import annotations
 
-from pipeline.rig.frontend import Divider, Transimpedance
+from pipeline.rig.frontend import Circuit, Divider, Transimpedance
 from pipeline.sim.physics import Estimator
 
 DEFAULT = "default"
@@ -59,3 +59,10 @@ def rig(name: str) -> Estimator:
         return RIGS[name]
     except KeyError:
         raise ValueError(f"simulate.rig: no rig {name!r}; the family is {', '.join(RIGS)}") from None
+
+
+def declared_front_end(est: Estimator) -> Circuit:
+    """The circuit a lab with this estimator declares (batch.yaml `sensor.front_end`): its read-out,
+    with the FSR's own series term under the silicone (R_i of the published calibration, docs/physics.md
+    §6) as the series resistance it knows of."""
+    return est.front_end.model_copy(update={"series_kohm": est.front_end.series_kohm + est.ri_kohm})

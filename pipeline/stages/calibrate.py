@@ -20,9 +20,10 @@ from pipeline.calibration.document import write_unit
 from pipeline.calibration.rows import calibration_rows
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
+from pipeline.dataset.splits import front_ends
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predict import load_predictor
-from pipeline.vocab import angle_name
+from pipeline.vocab import CALIBRATION, angle_name
 
 
 def _log(msg: str) -> None:
@@ -38,6 +39,7 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
     started = time.perf_counter()
     try:
         by_unit = calibration_rows(data_dir)
+        circuits = front_ends(data_dir / CALIBRATION)
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e
@@ -52,7 +54,7 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
     out_dir.mkdir(parents=True, exist_ok=True)
     written = set()
     for unit_id, rows in by_unit.items():
-        doc = calibrate_unit(unit_id, rows, models, angles, p, _log, cues)
+        doc = calibrate_unit(unit_id, rows, models, angles, p, _log, cues, circuits.get(unit_id))
         written.add(write_unit(doc, out_dir).name)
         missing = (
             f"; no calibration insertion at {', '.join(doc['angles_missing'])}°"

@@ -55,7 +55,8 @@ def main(
                 _log(f"warning: no {k} model at {angle_name(preset)}°: no {k} thresholds in its pack")
             return {k: predictions.on_split(k, angle_name(preset), "train", train) for k in kinds}
 
-        packs = build_packs(train, predicted_for, p, _log)
+        circuits = files.front_ends()
+        packs = build_packs(train, predicted_for, p, _log, circuits)
         available = tuple(k for k in p.kinds if all(predictions.has(k, angle_name(a)) for a in packs))
         for k in p.kinds:
             if k not in available:
@@ -81,6 +82,7 @@ def main(
                 lambda kind, preset, a: predictions.get(kind, angle_name(preset), angle_name(a), "external"),
                 log=_log,
                 units=units,
+                circuits=circuits,
             )
             calibrated = calibrated_units(docs)
             evaluation["by_unit_group"] = evaluate_unit_groups(
@@ -94,6 +96,7 @@ def main(
                 UNCALIBRATED,
                 unit_roles(data_dir),
                 calibrated,
+                circuits,
             )
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")

@@ -21,8 +21,9 @@ import typer
 
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.metrics.evaluation import gather, load_eval_sets
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.predictions import Predictions, read_inputs
 from pipeline.reporting import cues, figures, report, units
+from pipeline.reporting.inputs import inputs_section
 from pipeline.vocab import angle_name
 
 
@@ -63,7 +64,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     figures.plot_profiles(eval_sets, scored, models, fig_dir / figures.FIGURES[0])
     figures.plot_gaps(eval_sets, scored, models, gaps, fig_dir / figures.FIGURES[1])
     figures.plot_gap_matrix(metrics, models, fig_dir / figures.FIGURES[2])
-    unit_section = units.estimator_units(metrics, evaluation)
+    unit_section = inputs_section(read_inputs(pred_dir)) + units.estimator_units(metrics, evaluation)
     text = report.render(metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section)
     (reports_dir / "report.md").write_text(text)
     _log(f"report.md, {len(figures.FIGURES)} figures and the cue summary -> {reports_dir}")

@@ -8,9 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.config import CuesParams, DividerParams
+from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
 from pipeline.cues.tracker import CueTracker, Evidence
+from pipeline.rig.frontend import Circuit, Divider, volts_of
 from tests.cues.synthetic import (
     CHANNELS,
     end_of_insertion,
@@ -152,17 +153,22 @@ def test_without_a_contact_there_is_no_profile_and_the_tracker_says_so(params: C
     assert "standard profile unavailable" in states[-1].reason
 
 
-def _volts(conductance_us: np.ndarray, d: DividerParams) -> np.ndarray:
-    """The divider's output for an FSR of this conductance (the inverse of `conductance_us`)."""
-    r = 1.0 / (conductance_us * 1e-3 + 1.0 / d.r_open_kohm) + d.r_series_kohm
-    return d.v_plus * d.r_m_kohm / (d.r_m_kohm + r)
+def _volts(conductance_us: np.ndarray, fe: Circuit) -> np.ndarray:
+    """The circuit's output for an FSR of this conductance (the inverse of `conductance_us`)."""
+    return volts_of(1e3 / conductance_us, fe)
 
 
+SUPPLY_SIDE = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.62)
+GROUND_SIDE = Divider(circuit="divider", supply_v=3.3, fixed_kohm=47.0, fsr_at="ground")
+
+
+@pytest.mark.parametrize("divider", [SUPPLY_SIDE, GROUND_SIDE], ids=["supply-side", "ground-side"])
 @pytest.mark.parametrize("rest_us", [[20.0, 30.0, 25.0], [45.0, 12.0, 60.0]])
-def test_the_loading_direction_does_not_depend_on_a_units_preload(rest_us: list[float]) -> None:
+def test_the_loading_direction_does_not_depend_on_a_units_preload(rest_us: list[float], divider) -> None:
     # given: an estimator unit's FSRs at rest (its cast-in preload), then the needle's load adding
-    # conductance in one direction, as physics says (above actuation G grows with the load)
-    divider, push = DividerParams(), np.array([3.0, 1.0, 2.0])
+    # conductance in one direction, as physics says (above actuation G grows with the load), read
+    # through the circuit its batches declare
+    push = np.array([3.0, 1.0, 2.0])
     p = CuesParams()
     t = np.arange(0.0, 4.0, 1 / 30)
     g = np.array(rest_us) + 20.0 * np.clip(t - 1.0, 0.0, None)[:, None] * push

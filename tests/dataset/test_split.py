@@ -65,7 +65,7 @@ def test_more_data_at_45_leaves_angle_30_byte_identical(tmp_path):
     a, b = files_of(tmp_path / "a"), files_of(tmp_path / "b")
     # Then angle 30's files do not change at all, and angle 45 has the new trials
     at_30 = [k for k in a if k.startswith("30/")]
-    assert len(at_30) == 4 and all(a[k] == b[k] for k in at_30)
+    assert len(at_30) == 5 and all(a[k] == b[k] for k in at_30)  # four splits and front_ends.json
     ma = json.loads(a["manifest.json"])
     mb = json.loads(b["manifest.json"])
     assert ma["angles"]["30"] == mb["angles"]["30"]
@@ -208,8 +208,13 @@ def test_calibration_trials_go_to_their_own_folder_only_even_when_named_held_out
         "u1": {
             "role": "training",
             "batches": ["sim-heldout-30deg", "sim-heldout-45deg", "sim-tissue-1", "sim-tissue-2"],
+            "front_end": None,
         },
-        "u-new": {"role": "new", "batches": ["sim-heldout-30deg-u-new", "sim-heldout-calib-u-new"]},
+        "u-new": {
+            "role": "new",
+            "batches": ["sim-heldout-30deg-u-new", "sim-heldout-calib-u-new"],
+            "front_end": None,
+        },
     }
     assert unit_roles(out) == {"u1": "training", "u-new": "new"}  # what later stages read
     # And the new unit's held-out trials are external as usual
@@ -227,8 +232,12 @@ def test_adding_a_calibration_batch_leaves_the_angle_files_byte_identical(tmp_pa
     a, b = files_of(tmp_path / "a"), files_of(tmp_path / "b")
     # Then every angle file is byte-identical; only calibration files and the manifest are new
     angle_files = [k for k in a if k != "manifest.json"]
-    assert len(angle_files) == 8 and all(a[k] == b[k] for k in angle_files)
-    assert sorted(set(b) - set(a)) == ["calibration/30.parquet", "calibration/45.parquet"]
+    assert len(angle_files) == 10 and all(a[k] == b[k] for k in angle_files)  # 4 splits + front_ends.json
+    assert sorted(set(b) - set(a)) == [
+        "calibration/30.parquet",
+        "calibration/45.parquet",
+        "calibration/front_ends.json",
+    ]
     ma, mb = json.loads(a["manifest.json"]), json.loads(b["manifest.json"])
     assert ma["angles"] == mb["angles"]
 
@@ -244,7 +253,7 @@ def test_calibration_files_of_a_batch_that_is_gone_are_removed(tmp_path):
     _calibration(src, "sim-calib-u-new", angles=(30.0,))
     sp.run(src, out, SplitParams())
     # Then only 30 deg's calibration file is left, then none; the angle folders stay
-    assert sorted(p.name for p in (out / "calibration").iterdir()) == ["30.parquet"]
+    assert sorted(p.name for p in (out / "calibration").iterdir()) == ["30.parquet", "front_ends.json"]
     for f in ("sim-calib-u-new.parquet", "sim-calib-u-new.json"):
         (src / f).unlink()
     sp.run(src, out, SplitParams())

@@ -12,6 +12,7 @@ import pandas as pd
 from pipeline.metrics.evaluation import EvalSet, Scored, compute_metrics
 from pipeline.modelling import predictions
 from pipeline.modelling.batch import predict_model
+from pipeline.modelling.features import ModelInputs
 from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -58,9 +59,10 @@ class FakePredictor:
     def __init__(self, model: str, angle: str, error: ErrorFn = gap_error, channels: list[str] = CHANNELS):
         self.kind, self.angle_deg, self.channels = model, float(angle), tuple(channels)
         self.error = error
+        self.inputs = ModelInputs()  # raw volts: no circuit to read through
 
-    def predict(self, frame: pd.DataFrame, transform: object = None) -> np.ndarray:
-        assert transform is None, "no unit calibration in these tests"
+    def predict(self, frame: pd.DataFrame, transform: object = None, front_end: object = None) -> np.ndarray:
+        assert transform is None and front_end is None, "no unit calibration or circuit in these tests"
         assert not set(AXES) & set(frame.columns), "forces must not reach the model"
         truth = frame[CHANNELS].to_numpy(dtype=float)
         data = frame["angle_deg"].to_numpy(dtype=float)

@@ -5,14 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.config import EffectScales, InputParams
-from pipeline.modelling.features import (
-    InputTransform,
-    StreamFeatures,
-    conductance_us,
-    features,
-)
-from pipeline.sim import physics
+from pipeline.config import EffectScales
+from pipeline.modelling.features import InputTransform, ModelInputs, StreamFeatures, features, spec_of
+from pipeline.rig.frontend import volts_of
+from pipeline.sim import physics, rigs
 
 QUIET = EffectScales(
     fsr_threshold=False,
@@ -30,14 +26,55 @@ def _volts(load: np.ndarray, est: physics.Estimator) -> np.ndarray:
     return physics.fsr_volts(load, np.zeros(len(load)), est, QUIET, gain, np.random.default_rng(0))
 
 
+CIRCUIT = rigs.declared_front_end(physics.Estimator())  # what the simulator's batches declare
+
+
+def _spec(kind: str) -> ModelInputs:
+    return ModelInputs(kind=kind, front_end=CIRCUIT if kind.endswith("conductance") else None)
+
+
 def test_conductance_inverts_the_simulated_divider() -> None:
     # given: loads on an ideal unit (no threshold, noise or hysteresis), read through the divider
     est = physics.Estimator()
     load = np.linspace(0.2, 3.0, 30)[:, None].repeat(3, axis=1)
-    # when: inverting the divider
-    g = conductance_us(_volts(load, est), InputParams(kind="conductance"))
-    # then: conductance is load / (2 R_S), as the FSR law says, in µS
-    np.testing.assert_allclose(g, load / (2 * est.rs_kohm_n) * 1e3, rtol=1e-6)
+    # when: inverting the divider the batches declare
+    g = features(_volts(load, est), np.zeros(30, np.int64), np.arange(30) / 30, _spec("conductance"))
+    # then: conductance is load / (2 R_S), as the FSR law says, in µS (plus the open FSR's 0.1 µS)
+    np.testing.assert_allclose(g, load / (2 * est.rs_kohm_n) * 1e3 + 1e3 / est.r_open_kohm, rtol=1e-6)
+
+
+def test_conductance_needs_a_declared_circuit_and_says_so() -> None:
+    with pytest.raises(ValueError, match=r"none is declared \(batch\.yaml sensor\.front_end"):
+        ModelInputs(kind="rest_conductance")
+    assert ModelInputs(kind="rest_volts").front_end is None
+
+
+def test_a_model_from_before_circuits_were_data_keeps_its_divider() -> None:
+    stored = {
+        "kind": "rest_conductance",
+        "v_plus": 5.0,
+        "r_m_kohm": 10.0,
+        "r_series_kohm": 1.62,
+        "r_open_kohm": 10000.0,
+        "rest_s": 0.5,
+    }
+    spec = spec_of(stored)
+    assert spec.front_end == CIRCUIT and spec.kind == "rest_conductance"
+    assert spec_of({"kind": "volts", "v_plus": 5.0, "rest_s": 0.5}).front_end is None
+
+
+def test_a_unit_with_its_own_circuit_is_read_through_it() -> None:
+    # given: the same FSR conductances read by the default divider and by a 3.3 V ground-side one
+    other = rigs.declared_front_end(rigs.rig("divider-3v3-ground"))
+    r = np.geomspace(5.0, 500.0, 40)[:, None].repeat(3, axis=1)
+    codes, t = np.zeros(40, np.int64), np.arange(40) / 30
+    spec = _spec("conductance")
+    # when: each reading goes through its own circuit
+    mine = features(volts_of(r, CIRCUIT), codes, t, spec)
+    theirs = features(volts_of(r, other), codes, t, spec.through(other))
+    # then: the same inputs, though the volts fall where the others rise
+    np.testing.assert_allclose(mine, theirs, rtol=1e-9)
+    assert spec.through(None) is spec and _spec("volts").through(other).front_end is None
 
 
 def test_rest_conductance_removes_the_preload() -> None:
@@ -47,7 +84,7 @@ def test_rest_conductance_removes_the_preload() -> None:
     extra = np.concatenate([np.zeros(20), np.linspace(0, 0.5, 40)])[:, None].repeat(3, axis=1)
     t = np.arange(len(extra)) / 30.0
     codes = np.zeros(len(extra), np.int64)
-    spec = InputParams(kind="rest_conductance")
+    spec = _spec("rest_conductance")
     # when: computing their inputs
     fa = features(_volts(np.asarray(a.preloads_n) + extra, a), codes, t, spec)
     fb = features(_volts(np.asarray(b.preloads_n) + extra, b), codes, t, spec)
@@ -64,7 +101,7 @@ def test_streaming_gives_the_batch_numbers_and_is_causal(kind: str) -> None:
     volts = 0.6 + 0.3 * rng.random((80, 3))
     codes = np.repeat([0, 1], 40)
     t = np.tile(np.arange(40) / 30.0, 2)
-    spec = InputParams(kind=kind)
+    spec = _spec(kind)
     order = rng.permutation(80)
     # when: computing them in a shuffled batch and one sample at a time
     batch = np.empty((80, 3))

@@ -40,7 +40,8 @@ def test_every_member_writes_batches_that_declare_its_circuit_and_align(tmp_path
     meta = BatchMeta.model_validate(yaml.safe_load((batch / "batch.yaml").read_text()))
     # Then its batch.yaml declares the member's circuit and ADC
     design = rigs.rig(name)
-    assert meta.sensor.front_end == design.front_end
+    assert meta.sensor.front_end == rigs.declared_front_end(design)
+    assert meta.sensor.front_end.series_kohm == design.ri_kohm  # the FSR's R_i, as a lab would know it
     assert (meta.sensor.adc_bits, meta.sensor.vref_v) == (design.adc_bits, design.vref_v)
     # and, ingested and resampled with the defaults, every trial is kept (no gate tuned to one rig)
     ingest_batches([tmp_path / "sim"], tmp_path / "ing", IngestParams(), log=_quiet)
@@ -57,11 +58,10 @@ def test_the_declared_circuit_inverts_each_members_volts_to_its_fsr_conductance(
     load = np.tile(np.linspace(0.3, 2.0, 30)[:, None], (1, 3))
     v = physics.fsr_volts(load, np.zeros(30), est, effects, np.ones(3), np.random.default_rng(0))
     # When its volts are read back through the circuit the batch declares
-    g = conductance_us(v, est.front_end)
-    # Then they give the FSR's conductance (series term included), which grows with the load
+    g = conductance_us(v, rigs.declared_front_end(est))
+    # Then they give the FSR's own conductance (the law's, with the open FSR's), growing with the load
     law = load**est.law_exponent / (2 * est.rs_kohm_n) / (1 + np.exp(-(load - est.actuation_n) / 0.01))
-    r_fsr = 1.0 / (law + 1.0 / est.r_open_kohm) + est.ri_kohm
-    np.testing.assert_allclose(g, 1e3 / r_fsr, rtol=1e-9)
+    np.testing.assert_allclose(g, 1e3 * (law + 1.0 / est.r_open_kohm), rtol=1e-9)
     assert (np.diff(g[:, 0]) > 0).all()
     rising = np.diff(v[:, 0]) > 0
     assert rising.all() if getattr(est.front_end, "fsr_at", "supply") == "supply" else (~rising).all()

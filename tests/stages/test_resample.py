@@ -73,6 +73,7 @@ def test_stage_writes_deterministic_outputs_and_reports(tmp_path):
         "channels": ["v0"],
         "rate_hz": 30.0,
         "unit_id": "unit-bench-b",
+        "front_end": None,
         "purpose": "calibration",
     }
     assert json.loads((out1 / "bench-a.json").read_text())["purpose"] == "training"

@@ -1,0 +1,153 @@
+"""Choosing a model's inputs by validation on the lab's own data (`<model>.inputs.kind: auto`).
+
+Which inputs carry the force best depends on the rig: the volts of one circuit are nearly linear in
+the load, another's saturate; a rest-relative reading removes a preload some rigs do not have. A lab
+cannot be expected to know which, so each candidate kind (`features.KINDS`; the conductance kinds
+only where the training units declare their circuit) is scored on held-out data, and the best is
+trained. Training the network once per candidate would cost several times the training; a fixed
+stand-in costs a few linear solves: for least squares the model itself (linear in the inputs), for
+the networks a ridge regression on each input, its square and the pairwise products (a smooth map
+of the inputs, as a small network fits), plus, for the LSTM, the inputs a quarter and a half of its
+window back (its memory). The folds:
+
+- leave-one-unit-out when the training rows come from several estimator units: what a new unit
+  will meet, and where a unit-specific preload or gain hurts;
+- else by trial: fitted on the train split, scored on the validation split (5 folds by trial when
+  that is empty).
+
+The score is the mean over folds of the NRMSE (% of each axis' range, mean of fx, fy, fz). Ties go
+to the simpler kind (the order of `KINDS`). Pure numpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.modelling.features import KINDS, ModelInputs
+from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes
+from pipeline.rig.frontend import Circuit
+from pipeline.vocab import AXES
+
+RIDGE = 1e-3  # relative to the mean diagonal of the normal equations: only against ill-conditioning
+MIN_FOLD_ROWS = 20  # a fold with fewer held-out rows is not scored
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The inputs chosen for one model, and why: each candidate's score (mean NRMSE %, None where it
+    could not be computed), the folds and the stand-in model."""
+
+    chosen: str
+    scores: dict[str, float | None]
+    folds: str
+    stand_in: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def candidates(front_end: Circuit | None) -> list[str]:
+    """The input kinds a model can read: the conductance kinds only through a declared circuit."""
+    return [k for k in KINDS if front_end is not None or not k.endswith("conductance")]
+
+
+def _basis(
+    x: np.ndarray, linear: bool, intercept: bool, lags: Sequence[int], codes: np.ndarray, t: np.ndarray
+) -> np.ndarray:
+    """The inputs as they are (`linear`, least squares), or standardised with their squares and
+    pairwise products, and the lagged inputs; a column of ones with `intercept`."""
+    ones = [np.ones((len(x), 1))] if intercept else []
+    if linear:
+        return np.concatenate([*ones, x], axis=1)
+    mean, std = x.mean(axis=0), x.std(axis=0)
+    z = (x - mean) / np.where(std > 0, std, 1.0)
+    cols = [z, z**2]
+    c = z.shape[1]
+    cols += [z[:, [i]] * z[:, [j]] for i in range(c) for j in range(i + 1, c)]
+    if lags:
+        order, start = sequence_order(codes, t)
+        pos = np.empty(len(order), dtype=np.int64)
+        pos[order] = np.arange(len(order))
+        for lag in lags:  # the row `lag` samples back in its own trial (its first row at the start)
+            back = order[np.maximum(pos - lag, start[pos])]
+            cols.append(z[back])
+    return np.concatenate([*ones, *cols], axis=1)
+
+
+def _nrmse(pred: np.ndarray, y: np.ndarray) -> float:
+    span = y.max(axis=0) - y.min(axis=0)
+    rmse = np.sqrt(np.mean((pred - y) ** 2, axis=0))
+    return float(np.mean(100.0 * rmse / np.where(span > 0, span, 1.0)))
+
+
+def _ridge(a: np.ndarray, y: np.ndarray) -> np.ndarray:
+    gram = a.T @ a
+    lam = RIDGE * float(np.trace(gram)) / len(gram) if len(gram) else 0.0
+    return np.linalg.solve(gram + lam * np.eye(len(gram)), a.T @ y)
+
+
+def _folds(
+    train: pd.DataFrame, val: pd.DataFrame
+) -> tuple[str, list[tuple[np.ndarray, np.ndarray]], pd.DataFrame]:
+    """(description, [(fit rows, score rows)], the rows they index)."""
+    rows = pd.concat([train, val], ignore_index=True) if len(val) else train.reset_index(drop=True)
+    units = rows["unit_id"].astype(str).to_numpy() if "unit_id" in rows.columns else np.full(len(rows), "")
+    distinct = sorted(set(units))
+    if len(distinct) >= 2:
+        folds = [(units != u, units == u) for u in distinct]
+        return f"leave-one-unit-out ({len(distinct)} units)", folds, rows
+    if len(val):
+        is_val = np.r_[np.zeros(len(train), bool), np.ones(len(val), bool)]
+        return "by trial: train split -> validation split", [(~is_val, is_val)], rows
+    codes = trial_codes(rows)
+    fold = codes % 5
+    return "by trial: 5 folds", [(fold != k, fold == k) for k in range(5)], rows
+
+
+def choose_inputs(
+    model_kind: str,
+    train: pd.DataFrame,
+    val: pd.DataFrame,
+    channels: list[str],
+    front_end: Circuit | None,
+    rest_s: float,
+    window: int = 1,
+    intercept: bool = True,
+) -> Choice:
+    """The input kind that the stand-in predicts the force from best on held-out rows (module
+    docstring), among `candidates(front_end)`."""
+    folds_txt, folds, rows = _folds(train, val)
+    lags = sorted({max(1, window // 4), max(1, window // 2)}) if model_kind == "lstm" and window > 1 else []
+    y = rows[list(AXES)].to_numpy(np.float64)
+    codes, t = trial_codes(rows), times_of(rows)
+    scores: dict[str, float | None] = {}
+    for kind in candidates(front_end):
+        spec = ModelInputs(
+            kind=kind, rest_s=rest_s, front_end=front_end if kind.endswith("conductance") else None
+        )
+        a = _basis(features_of(rows, channels, spec), model_kind == "ls", intercept, lags, codes, t)
+        found = []
+        for fit_rows, score_rows in folds:
+            if score_rows.sum() < MIN_FOLD_ROWS or fit_rows.sum() <= a.shape[1]:
+                continue
+            w = _ridge(a[fit_rows], y[fit_rows])
+            found.append(_nrmse(a[score_rows] @ w, y[score_rows]))
+        scores[kind] = float(np.mean(found)) if found else None
+    known = {k: s for k, s in scores.items() if s is not None and np.isfinite(s)}
+    chosen = (
+        min(known, key=lambda k: (round(known[k], 6), KINDS.index(k))) if known else candidates(front_end)[0]
+    )
+    if model_kind == "ls":
+        stand_in = "least squares on the inputs" + ("" if intercept else ", no intercept")
+    else:
+        stand_in = "ridge on inputs, squares and pairwise products" + (
+            f", lags {lags} samples" if lags else ""
+        )
+    return Choice(
+        chosen, {k: None if s is None else round(s, 4) for k, s in scores.items()}, folds_txt, stand_in
+    )

@@ -1,0 +1,72 @@
+"""The report's "What the models read" section: each model's inputs, the circuit they are read
+through, and how they were chosen (pinned in params, or by validation with each candidate's score).
+Data in: the predict stage's `inputs.json` (from the checkpoints)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from pipeline.reporting.style import table
+from pipeline.vocab import kind_label, sorted_angles
+
+
+def _circuit(inputs: Mapping[str, Any]) -> str:
+    fe = inputs.get("front_end")
+    if not fe:
+        return "–"
+    if fe.get("circuit") == "divider":
+        return f"divider {fe['supply_v']:g} V, {fe['fixed_kohm']:g} kΩ, FSR at {fe.get('fsr_at', 'supply')}"
+    return f"transimpedance {fe['drive_v']:g} V, {fe['feedback_kohm']:g} kΩ"
+
+
+def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
+    """The section's Markdown ("" when the predict stage recorded no model)."""
+    if not models:
+        return ""
+    kinds_seen = sorted(
+        {
+            k
+            for m in models.values()
+            for r in m.values()
+            for k in ((r.get("inputs_choice") or {}).get("scores") or {})
+        }
+    )
+    rows = []
+    folds = set()
+    for kind in models:
+        for angle in sorted_angles(models[kind]):
+            r = models[kind][angle]
+            choice = r.get("inputs_choice") or {}
+            scores = choice.get("scores") or {}
+            if choice:
+                folds.add(f"{choice.get('folds')}; stand-in: {choice.get('stand_in')}")
+            cells = []
+            for k in kinds_seen:
+                v = scores.get(k)
+                cells.append("–" if k not in scores else ("n/a" if v is None else f"{v:.2f}"))
+            rows.append(
+                [
+                    kind_label(kind),
+                    f"{angle}°",
+                    f"**{r['inputs']['kind']}**",
+                    "validation" if choice else "params",
+                    _circuit(r["inputs"]),
+                    *cells,
+                ]
+            )
+    header = ["model", "angle", "inputs", "chosen by", "read through", *(f"{k} (%)" for k in kinds_seen)]
+    lines = [
+        "## What the models read",
+        "",
+        "Each model's inputs (docs/units.md): pinned in params.yaml, or chosen by validation on this "
+        "data (`inputs.kind: auto`, pipeline/modelling/choice.py), with each candidate's mean NRMSE on "
+        "the held-out folds. The conductance kinds are candidates only where the training units declare "
+        "their circuit (batch.yaml `sensor.front_end`).",
+        "",
+        *(f"- Folds: {f}" for f in sorted(folds)),
+        "",
+        *table(header, rows),
+        "",
+    ]
+    return "\n".join(lines)
