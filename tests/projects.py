@@ -10,6 +10,7 @@ import sys
 from collections.abc import Mapping
 from pathlib import Path
 
+import pandas as pd
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,6 +23,17 @@ SMALL_SIM = {
     "calibration_trials_per_angle": 1,
     "units": ["est-sim-001", "est-sim-002"],
     "new_units": ["est-sim-101"],
+}
+# three training units and a new one with a calibration batch (the unit swap and any-rig tests)
+A, B, C, D = "unit-a", "unit-b", "unit-c", "unit-d"
+SWAP_SIM = {
+    "angles_deg": [15, 45],
+    "train_batches": 1,
+    "trials_per_angle": 2,  # x 3 units: 6 training trials per angle
+    "heldout_trials_per_angle": 2,
+    "calibration_trials_per_angle": 1,
+    "units": [A, B, C],
+    "new_units": [D],
 }
 TINY_MODELS = {
     "fnn": {"max_epochs": 3, "patience": 2},
@@ -57,6 +69,18 @@ def run(root: Path, *cmd: str, env: Mapping[str, str] | None = None) -> str:
     return done.stdout + done.stderr
 
 
+def use_small_models(root: Path, kinds: tuple[str, ...] = ("ls", "fnn")) -> dict:
+    """Train, cue and register only `kinds`, with few-epoch networks (end-to-end tests of the plumbing,
+    not of accuracy); returns the params written."""
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["train"]["models"] = list(kinds)
+    params["cues"]["kinds"] = params["register"]["candidates"] = list(kinds)
+    for model, update in TINY_MODELS.items():
+        params[model].update(update)
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    return params
+
+
 def make_tiny_project(root: Path) -> tuple[Path, dict]:
     """make_project on the small rig with few-epoch networks (for tests of the DAG, not of accuracy);
     returns the folder and its params."""
@@ -87,3 +111,12 @@ def copy_project(built: Path, root: Path) -> tuple[Path, dict]:
     state = lambda folder, _names: ["tmp"] if folder.endswith(".dvc") else []  # noqa: E731
     shutil.copytree(built, root, symlinks=True, ignore=state)
     return root, yaml.safe_load((root / "params.yaml").read_text())
+
+
+def first_external_trial(root: Path, angle: str, unit: str) -> pd.DataFrame:
+    """The rows of `unit`'s first external trial at `angle`, in time order (index: the rows'
+    positions in the split file, as the predictions store keeps them)."""
+    external = pd.read_parquet(root / "data" / "processed" / angle / "external.parquet")
+    trial = external[external.unit_id == unit]
+    first = trial[["batch_id", "trial_id"]].drop_duplicates().iloc[0]
+    return trial[(trial.batch_id == first.batch_id) & (trial.trial_id == first.trial_id)].sort_values("t_s")

@@ -10,35 +10,18 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
 
 from pipeline.client import ForceClient, UncalibratedUnit
 from pipeline.modelling.predictions import Predictions
-from tests.projects import TINY_MODELS, make_project, run
+from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models
 
 pytestmark = pytest.mark.slow
-
-A, B, C, D = "unit-a", "unit-b", "unit-c", "unit-d"
-SWAP_SIM = {
-    "angles_deg": [15, 45],
-    "train_batches": 1,
-    "trials_per_angle": 2,  # x 3 units: 6 training trials per angle
-    "heldout_trials_per_angle": 2,
-    "calibration_trials_per_angle": 1,
-    "units": [A, B, C],
-    "new_units": [D],
-}
 
 
 def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
     # Given a project whose simulator records with units A, B, C, and D (new) with a calibration batch
     root = make_project(tmp_path / "proj", SWAP_SIM)
-    params = yaml.safe_load((root / "params.yaml").read_text())
-    params["train"]["models"] = ["ls", "fnn"]
-    params["cues"]["kinds"] = params["register"]["candidates"] = ["ls", "fnn"]
-    for model, update in TINY_MODELS.items():
-        params[model].update(update)
-    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    use_small_models(root)
     # When the whole pipeline runs
     run(root, "dvc", "repro")
     # Then D's calibration trials are in no split, only in processed/calibration
@@ -65,10 +48,7 @@ def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
     client = ForceClient.from_registry(15, unit_id=D, cache_dir=cache, poll_s=None)
     # Then it is calibrated and gives the force the pipeline scored for D's held-out trial
     assert client.calibrated and client.has_cues
-    external = pd.read_parquet(root / "data" / "processed" / "15" / "external.parquet")
-    trial = external[external.unit_id == D]
-    first = trial[["batch_id", "trial_id"]].drop_duplicates().iloc[0]
-    rows = trial[(trial.batch_id == first.batch_id) & (trial.trial_id == first.trial_id)].sort_values("t_s")
+    rows = first_external_trial(root, "15", D)
     expected = Predictions(root / "data" / "predictions").get(client.kind, "15", "15", "external")
     client.reset()
     got = np.array(

@@ -346,7 +346,9 @@ class ForceClient:
         self.calibrated = transform is not None
         # a calibrated unit that declared its circuit is read through it (else the model's)
         circuit = declared((doc or {}).get("front_end")) if self.calibrated else None
-        self._features = StreamFeatures(self.inputs.through(circuit), self._n)
+        spec = self.inputs.through(circuit)
+        if spec != self._features.spec:  # the unit is decided before its first insertion's samples
+            self._features = StreamFeatures(spec, self._n)
         if self._tracker is not None:
             self._tracker.use_front_end(circuit)
         self.calibration = dict(info or {}) if self.calibrated else None

@@ -159,6 +159,11 @@ class StreamFeatures:
         self._frozen = False
 
     @property
+    def spec(self) -> ModelInputs:
+        """The inputs it computes."""
+        return self._spec
+
+    @property
     def rest_ready(self) -> bool:
         """Whether the rest reading is complete (`rest_s` of samples seen)."""
         return self._frozen

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.calibration.document import FORMAT as UNIT_FORMAT
-from pipeline.config import FNNParams, LSParams, LSTMParams
+from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, save_checkpoint
 from pipeline.modelling.predict import Predictor
@@ -20,10 +20,11 @@ from pipeline.vocab import AXES, angle_name
 
 UNREACHABLE = "http://127.0.0.1:9"  # the discard port: connection refused at once
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
+VOLTS = InputParams(kind="volts")  # the client's tests read raw volts (the inputs are tests/modelling's)
 TINY = {
-    "ls": LSParams(),
-    "fnn": FNNParams(hidden=(8, 8), max_epochs=6, patience=3, batch_size=64),
-    "lstm": LSTMParams(window=6, hidden=6, max_epochs=3, patience=2, batch_size=64),
+    "ls": LSParams(inputs=VOLTS),
+    "fnn": FNNParams(hidden=(8, 8), max_epochs=6, patience=3, batch_size=64, inputs=VOLTS),
+    "lstm": LSTMParams(window=6, hidden=6, max_epochs=3, patience=2, batch_size=64, inputs=VOLTS),
 }
 
 

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.config import FNNParams, LSParams, LSTMParams
+from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import ModelConfig, save_checkpoint
 from pipeline.modelling.fit import Adam, fit
 from pipeline.modelling.inputs import sequence_order, window_index
@@ -18,10 +18,11 @@ from pipeline.modelling.predict import load_predictor
 from pipeline.vocab import KINDS
 from tests.modelling.frames import CHANNELS, make_frame
 
+VOLTS = InputParams(kind="volts")  # these tests read the channels as they are (the choice: test_choice.py)
 FAST = {
-    "ls": LSParams(),
-    "fnn": FNNParams(max_epochs=8, patience=3, batch_size=32),
-    "lstm": LSTMParams(window=5, hidden=6, max_epochs=4, patience=2, batch_size=32),
+    "ls": LSParams(inputs=VOLTS),
+    "fnn": FNNParams(max_epochs=8, patience=3, batch_size=32, inputs=VOLTS),
+    "lstm": LSTMParams(window=5, hidden=6, max_epochs=4, patience=2, batch_size=32, inputs=VOLTS),
 }
 
 

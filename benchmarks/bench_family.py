@@ -1,0 +1,187 @@
+"""The pipeline on every member of the simulator's family of rigs (docs/physics.md §11): the figures of
+issue 24's targets, one row per member, from one cold `dvc repro` each.
+
+    python benchmarks/bench_family.py [--members default,transimpedance,...] [--no-declare]
+                                      [--new-rig MEMBER] [--small] [--keep DIR]
+
+Each member runs in a fresh copy of this checkout's code, dvc.yaml and params.yaml, with
+`simulate.rig` set to it (the default layout: three training units, a new unit with its calibration
+batch; `--small` for a quick look), every stage but register. `--no-declare` leaves the circuit out
+of every batch.yaml; `--new-rig` records the new unit's batches with another member (a lab whose
+replacement estimator is built differently). Printed per member: the champion's mean external NRMSE
+on the training units (same unit), on the new unit without and with its calibration and their
+ratios to the same-unit figure, the best cue's balanced accuracy within 3 s on the calibrated new
+unit, the inputs the models chose, and the wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+SMALL = {"train_batches": 2, "trials_per_angle": 2, "heldout_trials_per_angle": 6, "angles_deg": [0, 30, 60]}
+
+
+def project(root: Path, simulate: dict[str, Any], angles: list[float] | None) -> Path:
+    """A copy of this checkout's pipeline with the simulate section updated, its own DVC repo."""
+    root.mkdir(parents=True)
+    for name in ("dvc.yaml", ".dvcignore"):
+        shutil.copy(REPO / name, root / name)
+    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["simulate"].update(simulate)
+    if angles is not None:
+        params["train"]["angles"] = angles
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    (root / "data" / "raw").mkdir(parents=True)
+    env = dict(os.environ, PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}")
+    subprocess.run(["dvc", "init", "--no-scm", "-q"], cwd=root, check=True, env=env)
+    return root
+
+
+def new_unit_of(root: Path, member: str, declare: bool) -> None:
+    """The new unit's held-out batches and calibration batch, recorded with another design, as a
+    lab would drop them into data/raw (the simulator then records none)."""
+    sys.path.insert(0, str(root))
+    from pipeline.config import SimulateParams
+    from pipeline.sim import rig
+
+    params = yaml.safe_load((root / "params.yaml").read_text())["simulate"]
+    p = SimulateParams(**{**params, "rig": member, "declare_front_end": declare})
+    unit = p.new_units[0]
+    raw = root / "data" / "raw"
+    for angle in p.angles_deg:
+        rig.write_new_batch(
+            p, raw, f"lab2-heldout-{int(angle)}deg", (angle,), p.heldout_trials_per_angle, unit
+        )
+    rig.write_new_batch(p, raw, "lab2-calib", p.angles_deg, 1, unit, purpose="calibration")
+    sys.path.remove(str(root))
+
+
+def run_member(member: str, declare: bool, new_rig: str | None, small: bool, work: Path) -> dict[str, Any]:
+    simulate: dict[str, Any] = {"rig": member, "declare_front_end": declare}
+    angles = None
+    if small:
+        simulate.update(SMALL)
+        angles = SMALL["angles_deg"]
+    if new_rig:
+        simulate["calibration_trials_per_angle"] = 0
+    root = project(work / member, simulate, angles)
+    if new_rig:
+        new_unit_of(root, new_rig, declare)
+        params = yaml.safe_load((root / "params.yaml").read_text())
+        new = params["simulate"]["new_units"]
+        params["simulate"][
+            "new_units"
+        ] = []  # the simulator records none: the lab's batches are the new unit's
+        (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        assert new
+    env = dict(
+        os.environ,
+        PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
+    )
+    stages = subprocess.run(
+        ["dvc", "stage", "list", "--name-only"], cwd=root, env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    started = time.perf_counter()
+    done = subprocess.run(
+        ["dvc", "repro", *[s for s in stages if s != "register"]],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    seconds = time.perf_counter() - started
+    if done.returncode:
+        return {"member": member, "error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
+    metrics = json.loads((root / "reports" / "metrics.json").read_text())
+    champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
+    cues = json.loads((root / "reports" / "cues" / "evaluation.json").read_text())
+    best = _best_cue(cues, "new_calibrated")
+    best_same = _best_cue(cues, "same_unit")
+    inputs = json.loads((root / "data" / "predictions" / "inputs.json").read_text())
+    chosen = sorted({f"{k}:{r['inputs']['kind']}" for k, by in inputs.items() for r in by.values()})
+    same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
+    return {
+        "member": member,
+        "same_unit_pct": same,
+        "new_uncalibrated_pct": uncal,
+        "new_calibrated_pct": cal,
+        "calibrated_ratio": None if not same or cal is None else cal / same,
+        "uncalibrated_ratio": None if not same or uncal is None else uncal / same,
+        "cues_same_unit": best_same,
+        "cues_new_calibrated": best,
+        "inputs": chosen,
+        "seconds": seconds,
+    }
+
+
+def _best_cue(evaluation: dict[str, Any], group: str) -> float | None:
+    """The best deployable cue's balanced accuracy within the window, in one unit group."""
+    results = ((evaluation.get("by_unit_group") or {}).get(group) or {}).get("results") or {}
+    found = [
+        r["balanced_within_s"]
+        for kind, methods in results.items()
+        if kind != "reference"
+        for r in methods.values()
+        if r.get("balanced_within_s") is not None
+    ]
+    return max(found, default=None)
+
+
+def _f(x: float | None, spec: str) -> str:
+    return "–" if x is None else format(x, spec)
+
+
+def main() -> None:
+    from pipeline.sim.rigs import RIGS
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--members", default=",".join(RIGS))
+    ap.add_argument("--no-declare", action="store_true")
+    ap.add_argument("--new-rig", default=None)
+    ap.add_argument("--small", action="store_true")
+    ap.add_argument("--keep", type=Path, default=None, help="keep the projects in this folder")
+    args = ap.parse_args()
+    work = args.keep or Path(tempfile.mkdtemp(prefix="needlecue-family-"))
+    rows = []
+    for member in args.members.split(","):
+        row = run_member(member, not args.no_declare, args.new_rig, args.small, work)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print()
+    print(
+        "| member | same unit % | new, uncal. % (×) | new, calibrated % (×) | cues same | cues new cal. "
+        "| inputs | s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if "error" in r:
+            print(f"| {r['member']} | error | | | | | | {r['seconds']:.0f} |")
+            continue
+        print(
+            f"| {r['member']} | {_f(r['same_unit_pct'], '.2f')} "
+            f"| {_f(r['new_uncalibrated_pct'], '.2f')} ({_f(r['uncalibrated_ratio'], '.2f')}) "
+            f"| {_f(r['new_calibrated_pct'], '.2f')} ({_f(r['calibrated_ratio'], '.2f')}) "
+            f"| {_f(r['cues_same_unit'], '.1%')} | {_f(r['cues_new_calibrated'], '.1%')} "
+            f"| {', '.join(r['inputs'])} | {r['seconds']:.0f} |"
+        )
+    if args.keep is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

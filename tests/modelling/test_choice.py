@@ -1,0 +1,101 @@
+"""Inputs chosen by validation on the data at hand (`inputs.kind: auto`): the kind that carries the
+force across units wins, conductance only through a declared circuit, and the choice is recorded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.config import FNNParams, InputParams, LSParams
+from pipeline.modelling.choice import candidates, choose_inputs
+from pipeline.modelling.fit import fit
+from pipeline.rig.frontend import Divider, Transimpedance, volts_of
+from pipeline.vocab import AXES
+
+CHANNELS = ["fsr1", "fsr2", "fsr3"]
+DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0)
+MIX = np.array([[0.8, -0.4, 0.1], [0.2, 0.5, -0.6], [0.4, 0.4, 0.4]])  # load on each FSR -> force
+
+
+def _units(circuit, preloads: dict[str, float], seed: int = 0) -> pd.DataFrame:
+    """Trials of several units: each FSR's conductance is its unit's preload plus the load, which
+    sets the force linearly; the volts come through `circuit`."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for unit, preload in preloads.items():
+        for k in range(4):
+            t = np.arange(120) / 30.0
+            push = np.clip(np.sin(np.pi * t / 4.0), 0, None)[:, None] * rng.uniform(0.5, 1.5, 3)
+            push[t < 0.6] = 0.0  # a rest reading before the load
+            g_us = 1e3 * (preload + 0.02 * push)  # conductance in µS: the load adds in proportion
+            volts = volts_of(1e3 / g_us, circuit)
+            force = (push @ MIX.T) + rng.normal(0, 1e-3, (len(t), 3))
+            parts.append(
+                pd.DataFrame(
+                    {
+                        "batch_id": f"b-{unit}",
+                        "trial_id": f"t{k}",
+                        "unit_id": unit,
+                        "t_s": t,
+                        **dict(zip(CHANNELS, volts.T, strict=True)),
+                        **dict(zip(AXES, force.T, strict=True)),
+                    }
+                )
+            )
+    return pd.concat(parts, ignore_index=True)
+
+
+UNITS = {"u1": 0.004, "u2": 0.012, "u3": 0.020}  # three units, three cast-in preloads
+
+
+def test_across_units_of_different_preload_a_rest_relative_conductance_wins():
+    # given: three units of one declared circuit whose preloads differ
+    rows = _units(DIVIDER, UNITS)
+    # when: least squares' inputs are chosen by leave-one-unit-out
+    choice = choose_inputs("ls", rows, rows.iloc[:0], CHANNELS, DIVIDER, rest_s=0.5, intercept=False)
+    # then: the kind that is linear in the load and blind to the preload wins, by far
+    assert choice.folds == "leave-one-unit-out (3 units)"
+    assert choice.chosen == "rest_conductance"
+    assert choice.scores["rest_conductance"] < 0.5 * min(choice.scores["volts"], choice.scores["conductance"])
+
+
+def test_without_a_declared_circuit_no_conductance_is_a_candidate():
+    rows = _units(DIVIDER, UNITS)
+    assert candidates(None) == ["volts", "rest_volts"]
+    choice = choose_inputs("fnn", rows, rows.iloc[:0], CHANNELS, None, rest_s=0.5)
+    assert set(choice.scores) == {"volts", "rest_volts"} and choice.chosen == "rest_volts"
+
+
+def test_on_one_unit_the_choice_is_by_trial_on_the_validation_split():
+    # given: one unit (a transimpedance front end: volts linear in conductance), train and val trials
+    rows = _units(Transimpedance(circuit="transimpedance", drive_v=1.0, feedback_kohm=47.0), {"u1": 0.01})
+    train, val = rows[rows.trial_id != "t3"], rows[rows.trial_id == "t3"]
+    choice = choose_inputs("ls", train, val, CHANNELS, None, rest_s=0.5, intercept=False)
+    assert choice.folds == "by trial: train split -> validation split"
+    # the output is linear in the load above the preload's offset: rest_volts takes the offset out
+    assert choice.chosen == "rest_volts"
+
+
+def test_fit_records_the_choice_and_a_pinned_kind_records_none():
+    rows = _units(DIVIDER, UNITS)
+    train, val = rows[rows.unit_id != "u3"], rows[rows.unit_id == "u3"]
+    auto = fit("ls", LSParams(), train, val, front_end=DIVIDER)
+    assert auto.checkpoint["inputs"]["kind"] == auto.metrics["inputs"] == "rest_conductance"
+    assert auto.checkpoint["inputs"]["front_end"] == DIVIDER.model_dump(mode="json")
+    assert auto.checkpoint["inputs_choice"]["chosen"] == "rest_conductance"
+    pinned = fit("ls", LSParams(inputs=InputParams(kind="volts")), train, val, front_end=DIVIDER)
+    assert pinned.checkpoint["inputs_choice"] is None and pinned.checkpoint["inputs"]["front_end"] is None
+
+
+def test_a_pinned_conductance_without_a_circuit_says_what_to_declare():
+    rows = _units(DIVIDER, {"u1": 0.01})
+    with pytest.raises(ValueError, match=r"sensor\.front_end"):
+        fit("fnn", FNNParams(max_epochs=1, inputs=InputParams(kind="rest_conductance")), rows)
+
+
+def test_the_choice_is_deterministic():
+    rows = _units(DIVIDER, UNITS, seed=3)
+    a = choose_inputs("lstm", rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5, window=15)
+    b = choose_inputs("lstm", rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5, window=15)
+    assert a == b and "lags [3, 7] samples" in a.stand_in
