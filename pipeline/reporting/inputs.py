@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from pipeline.modelling.features import KINDS
 from pipeline.reporting.style import table
 from pipeline.vocab import kind_label, sorted_angles
 
@@ -24,14 +25,13 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
     """The section's Markdown ("" when the predict stage recorded no model)."""
     if not models:
         return ""
-    kinds_seen = sorted(
-        {
-            k
-            for m in models.values()
-            for r in m.values()
-            for k in ((r.get("inputs_choice") or {}).get("scores") or {})
-        }
-    )
+    scored = {
+        k
+        for m in models.values()
+        for r in m.values()
+        for k in ((r.get("inputs_choice") or {}).get("scores") or {})
+    }
+    kinds_seen = [k for k in KINDS if k in scored]  # the kinds' own order: simplest first
     rows = []
     folds = set()
     for kind in models:

@@ -71,7 +71,7 @@ def targets(transfer: Mapping[str, Any], cue_groups: Mapping[str, Any]) -> list[
         "- Same unit (the training units' external trials): champion NRMSE "
         + _value(same, ".2f", " %", NEEDS["same_unit"])
         + (
-            f"; the best single kind, {kind_label(best_kind)}, {kinds[best_kind]:.2f} %"
+            f"; the best one kind of model at every angle, {kind_label(best_kind)}, {kinds[best_kind]:.2f} %"
             if best_kind is not None
             else ""
         ),

@@ -22,7 +22,7 @@ def test_the_targets_give_this_runs_figures():
     # Given a run whose champion scores 4.0 % on its training units and 4.4 % on the new unit
     text = estimator_units(_metrics(), None)
     # Then the section quotes them and their ratio, judged against the targets
-    assert "champion NRMSE 4.00 %; the best single kind, FNN, 4.00 %" in text
+    assert "champion NRMSE 4.00 %; the best one kind of model at every angle, FNN, 4.00 %" in text
     assert "at most 1.2× the same-unit figure: 1.10× ✓" in text
     assert (
         "without its calibration, champion NRMSE (reported; at most 1.5× where the front end is declared): "
