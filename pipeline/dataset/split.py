@@ -5,8 +5,11 @@ Input: the resample stage's `IN_DIR/<batch_id>.parquet` + `<batch_id>.json`. Out
 angle (folder `vocab.angle_name`): `train.parquet`, `val.parquet`, `test.parquet`,
 `external.parquet` (always all four; empty with the right schema when there is nothing);
 `calibration/<angle>.parquet` for each angle with calibration trials (same schema as the
-angle's split files); and `OUT_DIR/manifest.json` listing which trial went where, and each
-estimator unit's batches and role (`training` if it has rows in a train split, else `new`).
+angle's split files); `front_ends.json` in each angle folder and in `calibration/`: the circuit
+each unit with trials there declares (batch.yaml `sensor.front_end`, null if none), which every
+feature that needs a circuit reads; and `OUT_DIR/manifest.json` listing which trial went where, and
+each estimator unit's batches, role (`training` if it has rows in a train split, else `new`) and
+front end.
 
 Rules:
 - trials of batches with `purpose: calibration` (a new unit's short calibration session) go to

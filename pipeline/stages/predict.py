@@ -4,7 +4,8 @@ Input: `DATA_DIR/<angle>/{train,val,test,external}.parquet`, `MODELS_DIR/<kind>/
 for the `train` section's angles and kinds, and the units' calibrations `CAL_DIR/<unit>.json` (the
 calibrate stage's): a calibrated unit's external rows are predicted through its transform. Output:
 `OUT_DIR/<kind>/<angle>.parquet` (see `pipeline.modelling.predictions`), which evaluate, cues,
-report and register read.
+report and register read, and `OUT_DIR/inputs.json` (what each model reads and how that was
+chosen, for the report). A unit that declares its own circuit (`front_ends.json`) is read through it.
 
 Usage: `python -m pipeline.run predict DATA_DIR MODELS_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
 """

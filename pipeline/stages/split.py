@@ -3,7 +3,8 @@ held-out batches as the external set (`pipeline.dataset.split`).
 
 Input: the resample stage's `IN_DIR/<batch_id>.{parquet,json}`. Output: `OUT_DIR/<angle>/
 {train,val,test,external}.parquet`, `OUT_DIR/calibration/<angle>.parquet` (the trials of
-`purpose: calibration` batches, never in a split) and `OUT_DIR/manifest.json`.
+`purpose: calibration` batches, never in a split), `front_ends.json` next to them (each unit's
+declared circuit) and `OUT_DIR/manifest.json`.
 
 Usage: `python -m pipeline.run split IN_DIR OUT_DIR [--params params.yaml]`.
 """

@@ -1,7 +1,9 @@
 """`train` stage: one model (ls, fnn or lstm) for one angle's processed data.
 
 Input: `DATA_DIR/train.parquet` and `DATA_DIR/val.parquet` (the split stage's; val may be empty,
-then the networks train all `max_epochs` without early stopping). Output in `OUT_DIR`:
+then the networks train all `max_epochs` without early stopping), and `DATA_DIR/front_ends.json`
+(the circuit the training units declare). With `inputs.kind: auto` the inputs are chosen by
+validation first (`pipeline.modelling.choice`). Output in `OUT_DIR`:
 `model.pt` (see `pipeline.modelling.checkpoint`), `train_metrics.json`, `history.csv`.
 Only the model's own params section is read, so editing `fnn` never retrains `lstm`.
 
