@@ -3,8 +3,8 @@
 Input: `DATA_DIR/calibration/<angle>.parquet` (the split stage's calibration rows, from batches with
 `purpose: calibration`; `front_ends.json` beside them: each unit's declared circuit, which its rows
 are read through and its document records) and `MODELS_DIR/<kind>/<angle>/model.pt`. Output:
-`OUT_DIR/<unit_id>.json` per unit (`pipeline.calibration.unit`), which predict applies to that unit's rows and register stores
-in MLflow. A calibration batch never trains or scores the shared models.
+`OUT_DIR/<unit_id>.json` per unit (`pipeline.calibration.unit`), which predict applies to that
+unit's rows and register stores in MLflow. A calibration batch never trains or scores the shared models.
 
 Usage: `python -m pipeline.run calibrate DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
 """
