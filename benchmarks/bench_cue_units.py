@@ -57,7 +57,9 @@ def main() -> None:
             test[a] = pd.concat([test[a], f[f["unit_id"] == unit]], ignore_index=True)
         estimator = fit_angle_estimator(others, params)
         packs = {a: build_cue_pack(others, a, params, None, angle_estimator=estimator) for a in others}
-        evidence = evidence_of(trial_features(calib, channels, params), len(channels)).get(unit, {})
+        levels = estimator["levels"]  # the unit's evidence at the estimator's loading levels
+        trials = trial_features(calib, channels, params, levels=levels)[0]
+        evidence = evidence_of(trials, len(channels)).get(unit, {})
         scores = []
         for known in ({}, {unit: evidence}):
             ev = evaluate_cues(

@@ -206,6 +206,9 @@ class LSTMParams(Section):
 PARAMS_MODELS: dict[str, type[Section]] = {"ls": LSParams, "fnn": FNNParams, "lstm": LSTMParams}
 
 
+AUTO_EVIDENCE_LEVELS = 9  # cues.evidence_levels: auto
+
+
 class CuesParams(Section):
     """`cues`: the simulator's angle cues (pipeline/cues/)."""
 
@@ -218,7 +221,9 @@ class CuesParams(Section):
     contact_samples: int = Field(2, ge=1)
     min_rest_s: float = Field(0.3, ge=0, description="rest reading needed before a contact or a cue")
     # angle estimator: one LDA per evidence stage (rest, then each loading level reached)
-    evidence_levels: tuple[float, ...] = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45)
+    # "auto": AUTO_EVIDENCE_LEVELS levels spread over the loading most training trials reach
+    # (pipeline.cues.trials.loading_levels), or the levels themselves
+    evidence_levels: Literal["auto"] | tuple[float, ...] = "auto"
     lda_shrinkage: Literal["auto"] | float = "auto"
     # a unit's trials at an angle count n against this weight of the average unit's shifted mean
     unit_template_weight: Literal["auto"] | float = "auto"
@@ -243,8 +248,10 @@ class CuesParams(Section):
         if self.stop_from_deg <= self.continue_below_deg:
             raise ValueError("stop_from_deg must exceed continue_below_deg")
         lv = self.evidence_levels
-        if any(x <= 0 for x in lv) or any(b <= a for a, b in itertools.pairwise(lv)):
-            raise ValueError(f"evidence_levels must be positive and increasing, got {list(lv)}")
+        if lv == "auto":
+            lv = (1.0,) * AUTO_EVIDENCE_LEVELS
+        elif any(x <= 0 for x in lv) or any(b <= a for a, b in itertools.pairwise(lv)):
+            raise ValueError(f"evidence_levels must be 'auto' or positive and increasing, got {list(lv)}")
         if isinstance(self.lda_shrinkage, float) and not 0 <= self.lda_shrinkage <= 1:
             raise ValueError("lda_shrinkage is 'auto' or a float in [0, 1]")
         if isinstance(self.unit_template_weight, float) and self.unit_template_weight < 0:

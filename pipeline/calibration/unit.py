@@ -7,14 +7,15 @@ applies to those models only).
      "angles_missing", "set_aside": [{batch_id, trial_id, file, angle, reason}],
      "transforms": {kind: {"matrix", "offset", "fitted_through": [angle], "models": {angle: sha},
                            "loss_before", "loss_after", "loss_after_by_angle", "identity_kept"?}},
-     "params": {...}, "cues": {"evidence": {angle: {"n": [per stage], "means": [per stage]}}}}
+     "params": {...}, "cues": {"levels": [loading levels],
+     "evidence": {angle: {"n": [per stage], "means": [per stage]}}}}
 
 The stage and `needlecue calibrate` both build it here; `pipeline.calibration.document` reads it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import pandas as pd
@@ -65,11 +66,13 @@ def calibrate_unit(
     log: Log | None = None,
     cues: CuesParams | None = None,
     front_end: Circuit | None = None,
+    cue_levels: Sequence[float] = (),
 ) -> dict[str, Any]:
     """The calibration document of `unit_id` from its calibration `rows` (processed frame, any angles)
     through `models` ({kind: {angle: Predictor}}), for a pipeline trained at `trained_angles`; with
     `cues`, also what its calibration insertions tell the cue packs' angle estimator (its evidence,
-    `pipeline.cues.units`). `front_end` is the circuit the unit's batches declare: its rows are read
+    `pipeline.cues.units`, gathered at the angle estimator's loading levels `cue_levels`, from
+    `training_levels`). `front_end` is the circuit the unit's batches declare: its rows are read
     through it, and the document carries it for the simulator's client."""
     log = log or (lambda _m: None)
     set_aside = _trial_problems(rows, p)
@@ -106,8 +109,12 @@ def calibrate_unit(
     if cues is not None:
         channels = next((list(m.channels) for ms in models.values() for m in ms.values()), None)
         frames = {float(a): f for a, f in by_angle.items()}
-        trials = trial_features(frames, channels, cues, {unit_id: front_end}) if channels else []
-        doc["cues"] = {"evidence": evidence_of(trials, len(channels or ())).get(unit_id, {})}
+        circuit = {unit_id: front_end}
+        trials = trial_features(frames, channels, cues, circuit, cue_levels)[0] if channels else []
+        doc["cues"] = {
+            "levels": list(cue_levels),
+            "evidence": evidence_of(trials, len(channels or ())).get(unit_id, {}),
+        }
     for kind, predictors in models.items():
         fit_angles = [a for a in angles if a in predictors]
         if not fit_angles:

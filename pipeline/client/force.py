@@ -355,10 +355,11 @@ class ForceClient:
         self.uncalibrated_reason = None if self.calibrated else (reason or "unknown")
         self._cues_on = self._tracker is not None and (self.calibrated or self._cues_uncalibrated)
         if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
-            from pipeline.cues.tracker import unit_evidence
+            from pipeline.cues.tracker import calibration_evidence, unit_evidence
 
-            evidence = ((doc or {}).get("cues") or {}).get("evidence") if self.calibrated else None
-            self._tracker.set_unit(unit_evidence(self.metadata["cues"], self.unit_id, evidence))
+            pack = self.metadata["cues"]
+            evidence = calibration_evidence(pack, (doc or {}).get("cues")) if self.calibrated else None
+            self._tracker.set_unit(unit_evidence(pack, self.unit_id, evidence))
         after = (self.calibrated, self.uncalibrated_reason, self.calibration)
         if not self.calibrated and (first or before[:2] != after[:2]):
             self._warn_uncalibrated()

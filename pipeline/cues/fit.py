@@ -172,14 +172,14 @@ def fit_angle_estimator(
                 f"{channels_of(train_by_angle[a])}, {angle_name(angles[0])}° has {channels}"
             )
     n_ch = len(channels)
-    trials = trial_features(train_by_angle, channels, params, circuits)
+    trials, levels = trial_features(train_by_angle, channels, params, circuits)
     label = {a: k for k, a in enumerate(angles)}
     y_all = np.array([label[t.angle] for t in trials], dtype=np.int64)
     g_all = np.array([t.batch for t in trials])
     u_all = np.array([t.unit for t in trials])
     st_all = np.array([t.stage for t in trials], dtype=np.int64)
     out_stages = []
-    for j in range(len(params.evidence_levels) + 1):
+    for j in range(len(levels) + 1):
         sel = np.flatnonzero(st_all >= j)
         y, g, u = y_all[sel], g_all[sel], u_all[sel]
         if len(np.unique(y)) < len(angles) or len(sel) <= len(angles) + 1:
@@ -232,11 +232,11 @@ def fit_angle_estimator(
     return {
         "method": "linear discriminant per evidence stage (shared shrunk covariance, uniform priors), "
         "class means per estimator unit (pipeline.cues.units), softmax(scores / temperature)",
-        "features": "log rest volts per channel, then the unit direction of the conductance change since "
-        "rest (through each unit's declared front end; of the volts where none is declared) when the "
-        "norm of log(v / rest) first reaches each evidence level",
+        "features": "per channel, the log of the rest signal (the FSR's conductance through each unit's "
+        "declared front end; the volts where none is declared), then the unit direction of the "
+        "signal's change since rest when the norm of log(signal / rest) first reaches each level",
         "classes_deg": angles,
-        "levels": [float(x) for x in params.evidence_levels[: len(out_stages) - 1]],
+        "levels": [float(x) for x in levels[: len(out_stages) - 1]],
         "stages": out_stages,
         "units": {
             unit: {a: {"n": e["n"], "means": [_siglist(m) for m in e["means"]]} for a, e in per.items()}

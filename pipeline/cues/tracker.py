@@ -30,7 +30,7 @@ from pipeline.config import CuesParams
 from pipeline.rig.frontend import Circuit, Divider, conductance_us, declared
 from pipeline.vocab import format_problem
 
-FORMAT = "needlecue-cues/3"  # 3: loading directions in conductance (2: in log volts)
+FORMAT = "needlecue-cues/4"  # 4: levels and rest in the signal read (3: directions in conductance)
 CUES = ("wait", "continue", "correct", "stop")
 VERDICTS = CUES[1:]  # the cues a deviation maps to
 METHODS = ("combined", "paper")
@@ -52,6 +52,18 @@ def unit_evidence(
         return calibration
     units = (pack.get("angle_estimator") or {}).get("units") or {}
     return units.get(unit_id) if unit_id is not None else None
+
+
+def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None) -> UnitEvidence | None:
+    """The evidence in a unit calibration's `cues` section ({"levels", "evidence"}) if it was gathered
+    at the loading levels of this pack's angle estimator, else None (features at other levels are
+    not the estimator's: the unit is then read as the average one)."""
+    if not cues or not cues.get("evidence"):
+        return None
+    levels = np.asarray((pack.get("angle_estimator") or {}).get("levels") or [], dtype=np.float64)
+    mine = np.asarray(cues.get("levels") or [], dtype=np.float64)[: len(levels)]
+    same = len(mine) == len(levels) and np.allclose(mine, levels, rtol=1e-5, atol=0.0)  # as stored
+    return cues["evidence"] if same else None
 
 
 def class_means(
@@ -127,6 +139,7 @@ class Evidence:
     changed (the rest mean moved, or a new loading level was reached)."""
 
     __slots__ = (
+        "_rest_signal",
         "contact_i",
         "contact_t",
         "front_end",
@@ -164,6 +177,7 @@ class Evidence:
         self.contact_t: float | None = None
         self.contact_i = -1  # frame index of contact (counted from reset)
         self.rest: list[float] | None = None  # rest mean, frozen at contact
+        self._rest_signal: np.ndarray | None = None  # its signal (conductance or volts)
         self.snaps: list[list[float]] = []  # the unit loading direction at each level reached
 
     @property
@@ -183,14 +197,20 @@ class Evidence:
             self.t_first is not None and t - self.t_first >= self.min_rest_s - 1e-9 and self.rest_n > 0
         )
 
+    def signal(self, volts: Sequence[float]) -> np.ndarray:
+        """What the evidence reads of `volts`: the FSRs' conductance through the declared circuit (the
+        same for every design of front end), else the volts themselves."""
+        v = np.asarray(volts, dtype=np.float64)
+        return v if self.front_end is None else conductance_us(v, self.front_end)
+
     def features(self) -> list[float] | None:
-        """log rest volts per channel, then the unit direction of the conductance change since rest at
-        each level reached (the direction, not the size: how hard the tissue pushes back is not the
-        angle's business)."""
+        """log of the rest signal per channel, then the unit direction of the signal's change since
+        rest at each level reached (the direction, not the size: how hard the tissue pushes back is
+        not the angle's business)."""
         rest = self.rest_mean()
         if rest is None:
             return None
-        out = [math.log(x) for x in rest]
+        out = np.log(self.signal(rest)).tolist()
         for s in self.snaps:
             out.extend(s)
         return out
@@ -236,20 +256,17 @@ class Evidence:
     def _snap(self, v: list[float]) -> bool:
         if len(self.snaps) >= len(self.levels):
             return False
-        # The levels are reached by how far the volts moved from rest (log ratio, as contact) ...
-        norm = math.sqrt(sum(math.log(x / r) ** 2 for x, r in zip(v, self.rest, strict=True)))  # type: ignore[arg-type]
+        # A level is reached by how far the signal moved from rest (the norm of its log ratio), and
+        # the direction is the signal's: above actuation an FSR's conductance grows in proportion to
+        # its share of the load, whatever its cast-in preload (docs/units.md, "How the cue estimator
+        # reads a unit"). Without a declared circuit there is no conductance: the volts stand in.
+        if self._rest_signal is None:
+            self._rest_signal = self.signal(self.rest)  # type: ignore[arg-type]
+        now = self.signal(v)
+        norm = float(np.sqrt(np.sum(np.log(now / self._rest_signal) ** 2)))
         if norm < self.levels[len(self.snaps)]:
             return False
-        # ... and the direction is the conductance's: above actuation an FSR's conductance grows in
-        # proportion to its share of the load, whatever its cast-in preload, which the log ratio to
-        # rest carries (docs/units.md, "How the cue estimator reads a unit"). Without a declared
-        # circuit there is no conductance: the volts' own change gives the direction.
-        if self.front_end is None:
-            dg = np.asarray(v) - np.asarray(self.rest)
-        else:
-            dg = conductance_us(np.asarray(v), self.front_end) - conductance_us(
-                np.asarray(self.rest), self.front_end
-            )
+        dg = now - self._rest_signal
         size = float(np.sqrt(np.sum(dg * dg))) or 1.0
         direction = (dg / size).tolist()
         while len(self.snaps) < len(self.levels) and norm >= self.levels[len(self.snaps)]:

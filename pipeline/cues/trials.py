@@ -9,10 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from pipeline.config import CuesParams
-from pipeline.cues.tracker import Evidence
+from pipeline.config import AUTO_EVIDENCE_LEVELS, CuesParams
+from pipeline.cues.tracker import MIN_VOLTS, Evidence
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, TRIAL_KEY, rate_hz
+
+AUTO_REACH = 0.9  # "auto" evidence levels end at the loading this share of training trials reach
 
 
 @dataclass
@@ -72,11 +74,12 @@ def trials_rate_hz(trials: Sequence[Trial]) -> float:
     return rate_hz(t, groups)
 
 
-def run_evidence(trial: Trial, params: CuesParams) -> Evidence:
-    """The evidence of a whole trial (causal code, fed frame by frame until every level is reached)."""
+def run_evidence(trial: Trial, params: CuesParams, levels: Sequence[float] = ()) -> Evidence:
+    """The evidence of a whole trial (causal code, fed frame by frame until the contact and every
+    one of the loading `levels` are reached; none: the contact alone)."""
     ev = Evidence(
         trial.volts.shape[1],
-        params.evidence_levels,
+        levels,
         params.contact_threshold,
         params.contact_samples,
         params.min_rest_s,
@@ -84,6 +87,31 @@ def run_evidence(trial: Trial, params: CuesParams) -> Evidence:
     )
     for i, (ti, vi) in enumerate(zip(trial.t.tolist(), trial.volts.tolist(), strict=True)):
         ev.push(ti, vi, None, i)
-        if ev.stage >= len(params.evidence_levels):
+        if ev.contact_t is not None and ev.stage >= len(levels):
             break
     return ev
+
+
+def peak_loading(trial: Trial, params: CuesParams) -> float | None:
+    """The largest loading a trial reaches after its contact, measured as the evidence measures its
+    levels (the norm of the signal's log ratio to rest); None without a contact."""
+    ev = run_evidence(trial, params)
+    if ev.contact_t is None:
+        return None
+    rest = ev.signal(ev.rest)  # type: ignore[arg-type]
+    now = ev.signal(np.maximum(trial.volts[ev.contact_i :], MIN_VOLTS))
+    return float(np.sqrt(np.sum(np.log(now / rest) ** 2, axis=1)).max())
+
+
+def loading_levels(trials: Sequence[Trial], params: CuesParams) -> tuple[float, ...]:
+    """The evidence levels: the params' own, or for "auto" AUTO_EVIDENCE_LEVELS evenly spaced up to
+    the loading that AUTO_REACH of the (training) `trials` reach. Fixed levels suit one rig: the same
+    push moves another design's signal more or less, and most insertions must pass every level."""
+    if params.evidence_levels != "auto":
+        return tuple(params.evidence_levels)
+    peaks = [x for x in (peak_loading(tr, params) for tr in trials) if x is not None]
+    if not peaks:
+        return ()
+    top = float(np.quantile(peaks, 1.0 - AUTO_REACH, method="lower"))  # a trial's own peak
+    n = AUTO_EVIDENCE_LEVELS
+    return tuple(top * k / n for k in range(1, n + 1))

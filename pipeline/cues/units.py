@@ -22,9 +22,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.trials import run_evidence, trials_of
+from pipeline.cues.trials import Trial, loading_levels, run_evidence, trials_of
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import angle_name
+from pipeline.vocab import angle_name, channels_of
 
 ITERATIONS = 50  # alternating means converge in a few for the designs seen here; fixed for determinism
 NO_UNIT = ""  # the unit of trials whose frame has no unit_id column
@@ -45,23 +45,53 @@ class TrialFeatures:
         return self.features[: n_ch * (j + 1)]
 
 
+def _trials(
+    frames_by_angle: Mapping[float, pd.DataFrame],
+    channels: Sequence[str],
+    circuits: Mapping[str, Circuit | None] | None,
+) -> list[Trial]:
+    return [
+        tr
+        for angle in sorted(frames_by_angle, key=float)
+        for tr in trials_of(frames_by_angle[angle], channels, float(angle), circuits)
+    ]
+
+
+def training_levels(
+    train_by_angle: Mapping[float, pd.DataFrame],
+    params: CuesParams,
+    circuits: Mapping[str, Circuit | None] | None = None,
+) -> tuple[float, ...]:
+    """The loading levels the angle estimator gathers its evidence at, from the training frames
+    (what `trial_features` of them uses), for a new unit's evidence to match; () without frames."""
+    frames = {a: f for a, f in train_by_angle.items() if len(f)}
+    if not frames:
+        return ()
+    channels = channels_of(next(iter(frames.values())))
+    return loading_levels(_trials(frames, channels, circuits), params)
+
+
 def trial_features(
     frames_by_angle: Mapping[float, pd.DataFrame],
     channels: Sequence[str],
     params: CuesParams,
     circuits: Mapping[str, Circuit | None] | None = None,
-) -> list[TrialFeatures]:
-    """The evidence of every trial with a rest reading, in angle then trial order, each read through
-    its unit's circuit in `circuits`."""
+    levels: Sequence[float] | None = None,
+) -> tuple[list[TrialFeatures], tuple[float, ...]]:
+    """(the evidence of every trial with a rest reading, in angle then trial order, each read
+    through its unit's circuit in `circuits`; the loading levels it was gathered at). `levels`: the
+    angle estimator's (a new unit's evidence must be gathered at the training trials' levels); None:
+    `loading_levels` of these trials."""
+    trials = _trials(frames_by_angle, channels, circuits)
+    levels = loading_levels(trials, params) if levels is None else tuple(levels)
     out = []
-    for angle in sorted(frames_by_angle, key=float):
-        for tr in trials_of(frames_by_angle[angle], channels, float(angle), circuits):
-            ev = run_evidence(tr, params)
-            f = ev.features()
-            if f is not None:
-                unit = NO_UNIT if tr.unit is None else tr.unit
-                out.append(TrialFeatures(unit, float(angle), tr.batch, np.asarray(f), ev.stage))
-    return out
+    for tr in trials:
+        ev = run_evidence(tr, params, levels)
+        f = ev.features()
+        if f is not None:
+            unit = NO_UNIT if tr.unit is None else tr.unit
+            out.append(TrialFeatures(unit, tr.angle, tr.batch, np.asarray(f), ev.stage))
+    return out, levels
 
 
 def evidence_of(trials: Sequence[TrialFeatures], n_ch: int) -> dict[str, dict[str, dict[str, Any]]]:

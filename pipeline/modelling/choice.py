@@ -46,14 +46,19 @@ class Choice:
     scores: dict[str, float | None]
     folds: str
     stand_in: str
+    only: str | None = None  # why some kinds were not candidates (None: every kind the data allows)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
-def candidates(front_end: Circuit | None) -> list[str]:
-    """The input kinds a model can read: the conductance kinds only through a declared circuit."""
-    return [k for k in KINDS if front_end is not None or not k.endswith("conductance")]
+def candidates(front_end: Circuit | None, other_designs: Sequence[str] = ()) -> list[str]:
+    """The input kinds a model can read: the conductance kinds only through a declared circuit, and
+    only they when it must also serve units that declare another circuit (`other_designs`): the
+    volts of one design are not the volts of another, the FSR's conductance is."""
+    if front_end is None:
+        return [k for k in KINDS if not k.endswith("conductance")]
+    return [k for k in KINDS if k.endswith("conductance") or not other_designs]
 
 
 def _basis(
@@ -118,15 +123,17 @@ def choose_inputs(
     rest_s: float,
     window: int = 1,
     intercept: bool = True,
+    other_designs: Sequence[str] = (),
 ) -> Choice:
     """The input kind that the stand-in predicts the force from best on held-out rows (module
-    docstring), among `candidates(front_end)`."""
+    docstring), among `candidates(front_end, other_designs)`."""
     folds_txt, folds, rows = _folds(train, val)
     lags = sorted({max(1, window // 4), max(1, window // 2)}) if model_kind == "lstm" and window > 1 else []
     y = rows[list(AXES)].to_numpy(np.float64)
     codes, t = trial_codes(rows), times_of(rows)
     scores: dict[str, float | None] = {}
-    for kind in candidates(front_end):
+    kinds = candidates(front_end, other_designs)
+    for kind in kinds:
         spec = ModelInputs(
             kind=kind, rest_s=rest_s, front_end=front_end if kind.endswith("conductance") else None
         )
@@ -139,15 +146,16 @@ def choose_inputs(
             found.append(_nrmse(a[score_rows] @ w, y[score_rows]))
         scores[kind] = float(np.mean(found)) if found else None
     known = {k: s for k, s in scores.items() if s is not None and np.isfinite(s)}
-    chosen = (
-        min(known, key=lambda k: (round(known[k], 6), KINDS.index(k))) if known else candidates(front_end)[0]
-    )
+    chosen = min(known, key=lambda k: (round(known[k], 6), KINDS.index(k))) if known else kinds[0]
     if model_kind == "ls":
         stand_in = "least squares on the inputs" + ("" if intercept else ", no intercept")
     else:
         stand_in = "ridge on inputs, squares and pairwise products" + (
             f", lags {lags} samples" if lags else ""
         )
+    only = None
+    if front_end is not None and other_designs:
+        only = f"the conductance kinds: {', '.join(other_designs)} declare another circuit"
     return Choice(
-        chosen, {k: None if s is None else round(s, 4) for k, s in scores.items()}, folds_txt, stand_in
+        chosen, {k: None if s is None else round(s, 4) for k, s in scores.items()}, folds_txt, stand_in, only
     )

@@ -124,13 +124,15 @@ def fit(
     *,
     train_data_sha256: str | None = None,
     front_end: Circuit | None = None,
+    other_designs: Sequence[str] = (),
     log: Log | None = None,
 ) -> TrainResult:
     """Train one model of `kind` on `train`, early-stopping the networks on `val` (if it has rows).
 
     `train_data_sha256` identifies the data in the checkpoint; by default a hash of the frames.
     `front_end` is the circuit the training units declare, which the conductance inputs read through
-    (ValueError if they need one and there is none).
+    (ValueError if they need one and there is none); `other_designs`, the units the model must also
+    serve that declare another circuit (then `inputs.kind: auto` chooses among the conductance kinds).
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -156,8 +158,14 @@ def fit(
     if params.inputs.kind == "auto":  # chosen by validation on this data (pipeline.modelling.choice)
         window = params.window if isinstance(params, LSTMParams) else 1
         intercept = params.fit_intercept if isinstance(params, LSParams) else True
-        choice = choose_inputs(kind, train, val, channels, front_end, params.inputs.rest_s, window, intercept)
-        log(f"inputs by validation ({choice.folds}): {choice.chosen}; mean NRMSE % {choice.scores}")
+        choice = choose_inputs(
+            kind, train, val, channels, front_end, params.inputs.rest_s, window, intercept, other_designs
+        )
+        only = f", among {choice.only}" if choice.only else ""
+        log(f"inputs by validation ({choice.folds}{only}): {choice.chosen}; mean NRMSE % {choice.scores}")
+    elif other_designs and front_end is not None and not params.inputs.kind.endswith("conductance"):
+        who = ", ".join(other_designs)
+        log(f"warning: {who} declare another circuit, which {params.inputs.kind} inputs cannot read")
     spec = inputs_for(choice.chosen if choice else params.inputs.kind, params.inputs.rest_s, front_end)
     if isinstance(params, LSParams):
         cfg = ModelConfig(kind="ls", n_in=len(channels))

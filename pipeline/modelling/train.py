@@ -32,9 +32,19 @@ def train_folder(kind: str, params: ModelParams, data_dir: Path, out_dir: Path, 
     label = f"{kind} on {data_dir}"
     log(f"{label}: {len(train)} train rows, {len(val)} val rows, {params.model_dump(mode='json')}")
     units = [str(u) for frame in (train, val) if "unit_id" in frame for u in frame["unit_id"].unique()]
-    circuit = common_front_end(front_ends(data_dir), units)
+    circuits = front_ends(data_dir)
+    circuit = common_front_end(circuits, units)
+    # the angle's other units (held out, new) that declare another circuit: the model serves them too
+    others = sorted(u for u, c in circuits.items() if u not in units and c is not None and c != circuit)
     result = fit(
-        kind, params, train, val, train_data_sha256=sha, front_end=circuit, log=lambda m: log(f"{label}: {m}")
+        kind,
+        params,
+        train,
+        val,
+        train_data_sha256=sha,
+        front_end=circuit,
+        other_designs=others,
+        log=lambda m: log(f"{label}: {m}"),
     )
     written = save_model_dir(out_dir, result.checkpoint, result.metrics, result.history)
     m = result.metrics

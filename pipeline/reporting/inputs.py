@@ -40,7 +40,8 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
             choice = r.get("inputs_choice") or {}
             scores = choice.get("scores") or {}
             if choice:
-                folds.add(f"{choice.get('folds')}; stand-in: {choice.get('stand_in')}")
+                only = f"; candidates: {choice['only']}" if choice.get("only") else ""
+                folds.add(f"{choice.get('folds')}; stand-in: {choice.get('stand_in')}{only}")
             cells = []
             for k in kinds_seen:
                 v = scores.get(k)
@@ -62,7 +63,8 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
         "Each model's inputs (docs/units.md): pinned in params.yaml, or chosen by validation on this "
         "data (`inputs.kind: auto`, pipeline/modelling/choice.py), with each candidate's mean NRMSE on "
         "the held-out folds. The conductance kinds are candidates only where the training units declare "
-        "their circuit (batch.yaml `sensor.front_end`).",
+        "their circuit (batch.yaml `sensor.front_end`), and the only ones where a unit the model "
+        "serves declares another.",
         "",
         *(f"- Folds: {f}" for f in sorted(folds)),
         "",

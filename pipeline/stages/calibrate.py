@@ -21,7 +21,8 @@ from pipeline.calibration.document import write_unit
 from pipeline.calibration.rows import calibration_rows
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
-from pipeline.dataset.splits import front_ends
+from pipeline.cues.units import training_levels
+from pipeline.dataset.splits import SplitFiles, front_ends
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predict import load_predictor
 from pipeline.vocab import CALIBRATION, angle_name
@@ -41,6 +42,8 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
     try:
         by_unit = calibration_rows(data_dir)
         circuits = front_ends(data_dir / CALIBRATION)
+        files = SplitFiles(data_dir)  # a unit's cue evidence is at the training trials' loading levels
+        levels = training_levels(files.by_angle("train"), cues, files.front_ends())
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e
@@ -55,7 +58,7 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
     out_dir.mkdir(parents=True, exist_ok=True)
     written = set()
     for unit_id, rows in by_unit.items():
-        doc = calibrate_unit(unit_id, rows, models, angles, p, _log, cues, circuits.get(unit_id))
+        doc = calibrate_unit(unit_id, rows, models, angles, p, _log, cues, circuits.get(unit_id), levels)
         written.add(write_unit(doc, out_dir).name)
         missing = (
             f"; no calibration insertion at {', '.join(doc['angles_missing'])}°"

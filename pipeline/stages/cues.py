@@ -24,6 +24,7 @@ from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
+from pipeline.cues.tracker import calibration_evidence
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.modelling.predictions import UNCALIBRATED, Predictions
 from pipeline.vocab import angle_name
@@ -72,7 +73,11 @@ def main(
             scored = p.model_copy(update={"kinds": available})
             docs = read_units(cal_dir)
             # what each calibrated unit's calibration insertions tell the angle estimator
-            units = {u: (d.get("cues") or {}).get("evidence") for u, d in docs.items()}
+            pack = next(iter(packs.values()), {})  # every preset's estimator has the same levels
+            units = {u: calibration_evidence(pack, d.get("cues")) for u, d in docs.items()}
+            gathered = {u for u, d in docs.items() if (d.get("cues") or {}).get("evidence")}
+            for u in sorted(u for u, e in units.items() if e is None and u in gathered):
+                _log(f"warning: {u}: its calibration's cue evidence is at other loading levels, not used")
             units = {u: e for u, e in units.items() if e}
             external = files.by_angle("external")
             evaluation = evaluate_cues(

@@ -23,7 +23,7 @@ def test_pack_is_small_json_and_round_trips(pack30: dict) -> None:
     # then: nothing is lost, it is small, and it says what it is
     assert back == pack30
     assert len(text) < 100_000
-    assert pack30["format"] == "needlecue-cues/3"
+    assert pack30["format"] == "needlecue-cues/4"
     assert pack30["channels"] == list(CHANNELS)
     assert pack30["angles"] == [float(a) for a in ANGLES]
     assert pack30["rate_hz"] == pytest.approx(RATE, rel=1e-3)

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker, Evidence
+from pipeline.cues.tracker import CueTracker, Evidence, calibration_evidence
 from pipeline.rig.frontend import Circuit, Divider, volts_of
 from tests.cues.synthetic import (
     CHANNELS,
@@ -36,7 +36,7 @@ def test_pack_is_only_for_its_own_preset_angle(pack30: dict) -> None:
     # given: the 30° pack / when: a tracker is asked for 45° / then: a clear error
     with pytest.raises(ValueError, match="preset angle 30"):
         CueTracker(pack30, 45)
-    with pytest.raises(ValueError, match="needlecue-cues/3"):
+    with pytest.raises(ValueError, match="needlecue-cues/4"):
         CueTracker({"format": "other"}, 30)
 
 
@@ -169,7 +169,7 @@ def test_the_loading_direction_does_not_depend_on_a_units_preload(rest_us: list[
     # conductance in one direction, as physics says (above actuation G grows with the load), read
     # through the circuit its batches declare
     push = np.array([3.0, 1.0, 2.0])
-    p = CuesParams()
+    p = CuesParams(evidence_levels=(0.05, 0.1, 0.2, 0.4))
     t = np.arange(0.0, 4.0, 1 / 30)
     g = np.array(rest_us) + 20.0 * np.clip(t - 1.0, 0.0, None)[:, None] * push
     ev = Evidence(3, p.evidence_levels, p.contact_threshold, p.contact_samples, p.min_rest_s, divider)
@@ -180,3 +180,14 @@ def test_the_loading_direction_does_not_depend_on_a_units_preload(rest_us: list[
     assert ev.stage == len(p.evidence_levels)
     directions = np.reshape(ev.features()[3:], (-1, 3))
     np.testing.assert_allclose(directions, np.tile(push / np.linalg.norm(push), (ev.stage, 1)), atol=1e-6)
+
+
+def test_a_calibrations_evidence_counts_only_at_the_estimators_own_levels(pack30: dict) -> None:
+    # given: the pack's loading levels, and a unit calibration's cue evidence gathered at them or not
+    levels = pack30["angle_estimator"]["levels"]
+    evidence = {"30": {"n": [1], "means": [[0.1, 0.2, 0.3]]}}
+    # then: evidence at the pack's levels is the unit's; at other levels, or none said, it is not
+    assert calibration_evidence(pack30, {"levels": levels, "evidence": evidence}) == evidence
+    assert calibration_evidence(pack30, {"levels": [2 * x for x in levels], "evidence": evidence}) is None
+    assert calibration_evidence(pack30, {"evidence": evidence}) is None
+    assert calibration_evidence(pack30, None) is None

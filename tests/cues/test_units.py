@@ -90,7 +90,9 @@ def test_a_new_unit_is_read_right_after_one_calibration_insertion_per_angle(unit
     # given: an estimator fitted on units A, B, C, and unit D's one calibration insertion per angle
     p = unit_setup["params"]
     pack = build_cue_pack(unit_setup["train"], 30, p)
-    evidence = evidence_of(trial_features(unit_setup["calib"], CHANNELS, p), len(CHANNELS))["D"]
+    levels = pack["angle_estimator"]["levels"]  # D's evidence is gathered where the estimator's was
+    trials = trial_features(unit_setup["calib"], CHANNELS, p, levels=levels)[0]
+    evidence = evidence_of(trials, len(CHANNELS))["D"]
     # when: D's held-out insertions are read with and without its calibration
     calibrated = _final_estimates(pack, unit_setup["heldout"], evidence)
     uncalibrated = _final_estimates(pack, unit_setup["heldout"], None)

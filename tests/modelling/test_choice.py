@@ -67,6 +67,19 @@ def test_without_a_declared_circuit_no_conductance_is_a_candidate():
     assert set(choice.scores) == {"volts", "rest_volts"} and choice.chosen == "rest_volts"
 
 
+def test_a_model_that_must_serve_a_unit_of_another_circuit_reads_conductance():
+    # given: units of one divider, and a held-out unit that declares an op-amp front end
+    rows = _units(DIVIDER, UNITS)
+    # when: the networks' inputs are chosen knowing of that unit
+    choice = choose_inputs("fnn", rows, rows.iloc[:0], CHANNELS, DIVIDER, rest_s=0.5, other_designs=["u9"])
+    # then: only the kinds that read the FSR itself were candidates, and the record says why
+    assert candidates(DIVIDER, ["u9"]) == ["conductance", "rest_conductance"]
+    assert set(choice.scores) == {"conductance", "rest_conductance"}
+    assert choice.only == "the conductance kinds: u9 declare another circuit"
+    # and without such a unit every kind competes
+    assert candidates(DIVIDER) == ["volts", "rest_volts", "conductance", "rest_conductance"]
+
+
 def test_on_one_unit_the_choice_is_by_trial_on_the_validation_split():
     # given: one unit (a transimpedance front end: volts linear in conductance), train and val trials
     rows = _units(Transimpedance(circuit="transimpedance", drive_v=1.0, feedback_kohm=47.0), {"u1": 0.01})
