@@ -61,16 +61,23 @@ def _client_reproduces_the_scored_force(
 
 def test_a_new_unit_of_another_design_is_read_through_its_own_declared_circuit(tmp_path, monkeypatch):
     # Given training units of the op-amp design and a new unit D built with a 3.3 V ground-side
-    # divider, each batch declaring its circuit; the models pinned to read conductance
-    root = _project(tmp_path, declare=True, pin="rest_conductance")
+    # divider, each batch declaring its circuit; the inputs left to the data
+    root = _project(tmp_path, declare=True, pin=None)
     training = rigs.declared_front_end(rigs.rig(TRAINING_RIG)).model_dump(mode="json")
     new = rigs.declared_front_end(rigs.rig(NEW_RIG)).model_dump(mode="json")
     # Then each unit's circuit is next to its rows, as its batches declare it
     circuits = json.loads((root / "data" / "processed" / "15" / "front_ends.json").read_text())
     assert circuits == {A: training, B: training, C: training, D: new}
-    # and the models read through the training units' circuit, D's calibration records its own
-    ck = load_checkpoint(root / "models" / "fnn" / "15")
-    assert ck["inputs"]["front_end"] == training and ck["inputs_choice"] is None
+    # and the models chose among the inputs that can read D at all: the FSR's conductance, through
+    # the training units' circuit; D's calibration records its own
+    for kind in ("ls", "fnn"):
+        ck = load_checkpoint(root / "models" / kind / "15")
+        assert ck["inputs"]["front_end"] == training
+        assert ck["inputs_choice"]["only"] == f"the conductance kinds: {D} declares another circuit"
+        assert set(ck["inputs_choice"]["scores"]) == {"conductance", "rest_conductance"}
+    # and through its own circuit and calibration, D's force is within the target of the same units'
+    transfer = json.loads((root / "reports" / "metrics.json").read_text())["unit_transfer"]["champion"]
+    assert transfer["new_calibrated"] <= 1.2 * transfer["same_unit"]
     doc = json.loads((root / "data" / "calibration" / f"{D}.json").read_text())
     assert doc["front_end"] == new
     # and the cue packs say which circuit their directions are in
@@ -78,6 +85,7 @@ def test_a_new_unit_of_another_design_is_read_through_its_own_declared_circuit(t
     # and the report says what the models read, through which circuit
     report = (root / "reports" / "report.md").read_text()
     assert "## What the models read" in report and "transimpedance 1 V, 47 kΩ" in report
+    assert f"candidates: the conductance kinds: {D} declares another circuit" in report
     # When a simulator serves D, then it reads D through D's circuit: the force the pipeline scored
     client, rows, got = _client_reproduces_the_scored_force(root, tmp_path, monkeypatch)
     # which is not what the training units' circuit would give

@@ -24,7 +24,7 @@ from pipeline.config import CuesParams
 from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, class_means, cue_for_deviation, discriminant
 from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
 from pipeline.cues.units import average_unit, evidence_of, trial_features
-from pipeline.rig.frontend import Circuit
+from pipeline.rig.frontend import Circuit, circuit_key
 from pipeline.vocab import AXES, angle_name, channels_of
 
 Circuits = Mapping[str, Circuit | None]  # {unit_id: its declared circuit (processed front_ends.json)}
@@ -500,11 +500,7 @@ def _shared_circuit(
 ) -> dict[str, Any] | None:
     """The circuit every training trial's unit declares, as stored (None if any declares none or
     they differ: then the directions of a unit without its own are read in volts)."""
-    found = {
-        json.dumps(tr.front_end.model_dump(mode="json"), sort_keys=True) if tr.front_end else ""
-        for a in angles
-        for tr in trials[a]
-    }
+    found = {circuit_key(tr.front_end) for a in angles for tr in trials[a]}
     return json.loads(found.pop()) if len(found) == 1 and "" not in found else None
 
 

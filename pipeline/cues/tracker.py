@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.config import CuesParams
-from pipeline.rig.frontend import Circuit, Divider, conductance_us, declared
+from pipeline.rig.frontend import Circuit, conductance_us, declared, legacy_divider
 from pipeline.vocab import format_problem
 
 FORMAT = "needlecue-cues/4"  # 4: levels and rest in the signal read (3: directions in conductance)
@@ -316,14 +316,7 @@ def pack_front_end(pack: Mapping[str, Any]) -> Circuit | None:
     if "front_end" in pack:
         return declared(pack["front_end"])
     old = (pack.get("params") or {}).get("divider")
-    if old is None:
-        return None
-    return Divider(
-        circuit="divider",
-        supply_v=old.get("v_plus", 5.0),
-        fixed_kohm=old.get("r_m_kohm", 10.0),
-        series_kohm=old.get("r_series_kohm", 0.0),
-    )
+    return None if old is None else legacy_divider(old)
 
 
 def check_pack(pack: Mapping[str, Any]) -> None:
@@ -430,18 +423,18 @@ class CueTracker:
         self._t2 = float(kinds[model_kind]["stop_from"]) if model_kind in kinds else math.inf
         limit = th.get("force_limit_n")
         self._force_limit2 = float(limit) ** 2 if p.force_check and limit is not None else math.inf
+        self._pack_front_end = pack_front_end(pack)
         self._ev = Evidence(
             len(pack["channels"]),
             levels,
             p.contact_threshold,
             p.contact_samples,
             p.min_rest_s,
-            front_end or pack_front_end(pack),
+            front_end or self._pack_front_end,
         )
         self._min_stage = min(p.min_stage, len(levels))
         self._deb = _Debounce(p.debounce_s)
         self._deb_paper = _Debounce(p.debounce_s)
-        self._pack_front_end = pack_front_end(pack)
         self.reset()
 
     def use_front_end(self, front_end: Circuit | None) -> None:

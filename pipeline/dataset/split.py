@@ -50,7 +50,7 @@ import pyarrow.parquet as pq
 from pipeline.config import SplitParams
 from pipeline.dataset.splits import FRONT_ENDS
 from pipeline.dataset.tables import columns_for, table_schema, write_table
-from pipeline.rig.frontend import declared
+from pipeline.rig.frontend import circuit_key, declared
 from pipeline.vocab import AXES, CALIBRATION, SPLITS, angle_name, sorted_angles
 
 MANIFEST = "manifest.json"
@@ -390,7 +390,7 @@ def unit_front_ends(trials: list[Trial]) -> dict[str, dict[str, Any] | None]:
     for t in trials:
         circuit = declared(t.front_end)
         if circuit is not None:
-            key = json.dumps(circuit.model_dump(mode="json"), sort_keys=True)
+            key = circuit_key(circuit)
             seen.setdefault(t.unit_id, {}).setdefault(key, ())
             if t.batch_id not in seen[t.unit_id][key]:
                 seen[t.unit_id][key] += (t.batch_id,)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.rig.frontend import Circuit, declared
+from pipeline.rig.frontend import Circuit, circuit_key, declared
 from pipeline.vocab import CALIBRATION, SPLITS, sorted_angles
 
 FRONT_ENDS = "front_ends.json"  # in each angle folder (and calibration/): {unit_id: its circuit or null}
@@ -92,10 +92,7 @@ def common_front_end(circuits: dict[str, Circuit | None], units: Iterable[str]) 
     found = {u: circuits.get(u) for u in sorted(set(units))}
     if not found or any(c is None for c in found.values()):
         return None
-    distinct = {
-        json.dumps(c.model_dump(mode="json"), sort_keys=True) for c in found.values() if c is not None
-    }
-    if len(distinct) > 1:
+    if len({circuit_key(c) for c in found.values()}) > 1:
         raise ValueError(
             f"the units {', '.join(found)} declare different front ends: one model's conductance inputs "
             "read one circuit; use inputs kind volts or rest_volts, or train on units of one design"

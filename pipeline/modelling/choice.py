@@ -155,7 +155,8 @@ def choose_inputs(
         )
     only = None
     if front_end is not None and other_designs:
-        only = f"the conductance kinds: {', '.join(other_designs)} declare another circuit"
+        verb = "declares" if len(other_designs) == 1 else "declare"
+        only = f"the conductance kinds: {', '.join(other_designs)} {verb} another circuit"
     return Choice(
         chosen, {k: None if s is None else round(s, 4) for k, s in scores.items()}, folds_txt, stand_in, only
     )

@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from pipeline.config import InputParams
-from pipeline.rig.frontend import Declared, Divider, Transimpedance, conductance_us
+from pipeline.rig.frontend import Declared, Divider, Transimpedance, conductance_us, legacy_divider
 
 KINDS: tuple[str, ...] = tuple(
     k for k in get_args(InputParams.model_fields["kind"].annotation) if k != "auto"
@@ -90,12 +90,7 @@ def spec_of(stored: Mapping[str, Any] | None) -> ModelInputs:
     d = dict(stored)
     legacy = {k: d.pop(k) for k in LEGACY_DIVIDER if k in d}
     if legacy and d.get("front_end") is None and d.get("kind") in NEEDS_CIRCUIT:
-        d["front_end"] = {
-            "circuit": "divider",
-            "supply_v": legacy.get("v_plus", 5.0),
-            "fixed_kohm": legacy.get("r_m_kohm", 10.0),
-            "series_kohm": legacy.get("r_series_kohm", 0.0),
-        }
+        d["front_end"] = legacy_divider(legacy).model_dump(mode="json")
     return ModelInputs.model_validate(d)
 
 

@@ -165,7 +165,7 @@ def fit(
         log(f"inputs by validation ({choice.folds}{only}): {choice.chosen}; mean NRMSE % {choice.scores}")
     elif other_designs and front_end is not None and not params.inputs.kind.endswith("conductance"):
         who = ", ".join(other_designs)
-        log(f"warning: {who} declare another circuit, which {params.inputs.kind} inputs cannot read")
+        log(f"warning: {who}: another circuit declared, which {params.inputs.kind} inputs cannot read")
     spec = inputs_for(choice.chosen if choice else params.inputs.kind, params.inputs.rest_s, front_end)
     if isinstance(params, LSParams):
         cfg = ModelConfig(kind="ls", n_in=len(channels))

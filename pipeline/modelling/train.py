@@ -12,6 +12,7 @@ import pandas as pd
 from pipeline.dataset.splits import common_front_end, front_ends
 from pipeline.modelling.checkpoint import save_model_dir
 from pipeline.modelling.fit import ModelParams, fit
+from pipeline.rig.frontend import circuit_key
 from pipeline.vocab import file_sha256
 
 Log = Callable[[str], None]
@@ -35,7 +36,8 @@ def train_folder(kind: str, params: ModelParams, data_dir: Path, out_dir: Path, 
     circuits = front_ends(data_dir)
     circuit = common_front_end(circuits, units)
     # the angle's other units (held out, new) that declare another circuit: the model serves them too
-    others = sorted(u for u, c in circuits.items() if u not in units and c is not None and c != circuit)
+    mine = ("", circuit_key(circuit))
+    others = sorted(u for u, c in circuits.items() if u not in units and circuit_key(c) not in mine)
     result = fit(
         kind,
         params,

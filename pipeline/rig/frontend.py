@@ -8,7 +8,9 @@ the same models (`pipeline.sim.physics`), so the forward map (`volts_of`) and it
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+import json
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
@@ -72,6 +74,22 @@ def declared(stored: dict | None) -> Circuit | None:
         return None
     fe = _ADAPTER.validate_python(stored)
     return fe if is_declared(fe) else None
+
+
+def legacy_divider(constants: Mapping[str, Any]) -> Divider:
+    """The divider of a model or cue pack recorded before circuits were data: its params named the
+    supply (`v_plus`), the fixed resistor (`r_m_kohm`) and the series term (`r_series_kohm`)."""
+    return Divider(
+        circuit="divider",
+        supply_v=constants.get("v_plus", 5.0),
+        fixed_kohm=constants.get("r_m_kohm", 10.0),
+        series_kohm=constants.get("r_series_kohm", 0.0),
+    )
+
+
+def circuit_key(circuit: Circuit | None) -> str:
+    """A circuit as one canonical string ("" for none): equal circuits, equal keys."""
+    return "" if circuit is None else json.dumps(circuit.model_dump(mode="json"), sort_keys=True)
 
 
 def volts_of(r_kohm: np.ndarray, fe: Circuit) -> np.ndarray:

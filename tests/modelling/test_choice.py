@@ -75,7 +75,7 @@ def test_a_model_that_must_serve_a_unit_of_another_circuit_reads_conductance():
     # then: only the kinds that read the FSR itself were candidates, and the record says why
     assert candidates(DIVIDER, ["u9"]) == ["conductance", "rest_conductance"]
     assert set(choice.scores) == {"conductance", "rest_conductance"}
-    assert choice.only == "the conductance kinds: u9 declare another circuit"
+    assert choice.only == "the conductance kinds: u9 declares another circuit"
     # and without such a unit every kind competes
     assert candidates(DIVIDER) == ["volts", "rest_volts", "conductance", "rest_conductance"]
 
