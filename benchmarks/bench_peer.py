@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import FNNParams, load_section
+from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.fit import fit
 from pipeline.vocab import channels_of
@@ -55,10 +56,9 @@ def peer(train: pd.DataFrame, channels: list[str], p: FNNParams):
 def main() -> None:
     base = load_section(FNNParams, "fnn", Path("params.yaml"))
     rows = []
-    for angle_dir in sorted(DATA.iterdir(), key=lambda d: (len(d.name), d.name)):
-        if not angle_dir.is_dir():
-            continue
-        train, val, ext = (pd.read_parquet(angle_dir / f"{s}.parquet") for s in ("train", "val", "external"))
+    files = SplitFiles(DATA)
+    for angle in files.angles():  # the angle folders only (not calibration/)
+        train, val, ext = (files.frame(angle, s) for s in ("train", "val", "external"))
         channels = channels_of(train)
         ref = ext[TARGETS].to_numpy()
         e_ours, e_peer, t_ours, t_peer = [], [], [], []
@@ -73,13 +73,13 @@ def main() -> None:
             e_ours.append(float(np.mean(nrmse_pct(ours.predict(ext), ref))))
             e_peer.append(float(np.mean(nrmse_pct(theirs(ext), ref))))
         row = (
-            angle_dir.name,
+            angle,
             *map(statistics.mean, (e_ours, e_peer)),
             *map(statistics.median, (t_ours, t_peer)),
         )
         rows.append(row)
         print(
-            f"{angle_dir.name:>4}°  NRMSE ours {row[1]:5.2f} % (seeds {min(e_ours):.2f}-{max(e_ours):.2f})  "
+            f"{angle:>4}°  NRMSE ours {row[1]:5.2f} % (seeds {min(e_ours):.2f}-{max(e_ours):.2f})  "
             f"MLPRegressor {row[2]:5.2f} % ({min(e_peer):.2f}-{max(e_peer):.2f})   "
             f"train ours {row[3]:5.2f} s  MLPRegressor {row[4]:5.2f} s",
             flush=True,
