@@ -4,6 +4,7 @@ the recording keeps what arrived. Each run is bounded (--duration, --give-up) to
 from __future__ import annotations
 
 import csv
+import http.client
 import json
 import time
 import urllib.request
@@ -29,8 +30,8 @@ def _run(
             try:
                 with urllib.request.urlopen(run.url + "state", timeout=2) as r:
                     seen |= set(json.loads(r.read()).get("problems") or {})
-            except OSError:
-                pass  # the session ended between two polls
+            except (OSError, http.client.HTTPException):
+                pass  # the session ended between two polls, or in the middle of one
             time.sleep(0.05)
         out, _ = run.live.communicate(timeout=30)
         assert run.live.returncode == 0, out
