@@ -4,7 +4,8 @@ model, reading x', gives the reference force of the unit's calibration trials at
 One transform per unit and model kind, shared by the angles: what differs between units (FSR gain,
 placement, alignment) belongs to the unit, not to the angle, so every calibration insertion constrains
 the same few numbers and angles without a calibration insertion are calibrated too. The loss is the
-mean squared force error, standardised per angle by the reference force's spread, plus `ridge` times
+mean squared force error in newtons, divided per angle by the reference force's spread pooled over the
+three axes (`force_scale`), plus `ridge` times
 the squared distance from the identity. Full-batch L-BFGS in float64 on one thread: the same data
 give the same transform bit for bit. If the fit does not lower the loss, the identity is kept.
 """
@@ -29,6 +30,16 @@ from pipeline.vocab import AXES
 MIN_FORCE_STD = 1e-3  # N: a flat reference force would otherwise weigh without bound
 
 
+def force_scale(y: np.ndarray) -> float:
+    """One angle's force spread (N): the root mean of the three axes' variances, floored.
+
+    One number for the three axes, not one per axis: an axis that hardly moves at an angle (the
+    lateral axes of a vertical insertion, whose spread in one trial is mostly the reference's noise)
+    would otherwise weigh as much as the axis that carries the force, and the fit would bend the
+    unit's transform to match noise (docs/units.md)."""
+    return max(float(np.sqrt(np.mean(y.var(axis=0)))), MIN_FORCE_STD)
+
+
 @dataclass(frozen=True)
 class AngleData:
     """One angle's calibration rows as a frozen model reads them, in trial-time order."""
@@ -50,7 +61,7 @@ class AngleData:
 
 
 def _losses(data: list[AngleData], forwards: list[Any], transform: Any) -> list[Any]:
-    """Per angle, the standardised mean squared error of the model on the transformed inputs."""
+    """Per angle, the mean squared error of the model on the transformed inputs over `force_scale`²."""
     import torch
 
     out = []
@@ -58,8 +69,7 @@ def _losses(data: list[AngleData], forwards: list[Any], transform: Any) -> list[
         x = transform(torch.from_numpy(d.x))
         if d.windows is not None:
             x = x[torch.from_numpy(d.windows)]
-        scale = torch.from_numpy(np.maximum(d.y.std(axis=0), MIN_FORCE_STD))
-        out.append((((forward(x) - torch.from_numpy(d.y)) / scale) ** 2).mean())
+        out.append((((forward(x) - torch.from_numpy(d.y)) / force_scale(d.y)) ** 2).mean())
     return out
 
 

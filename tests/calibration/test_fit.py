@@ -36,6 +36,23 @@ def test_a_known_channel_mix_is_recovered_through_a_frozen_ls_model() -> None:
     assert report["loss_after"] < 0.5 * report["loss_before"]
 
 
+def test_an_axis_that_hardly_moves_does_not_steer_the_transform() -> None:
+    # given: an LS model whose fy is small (a vertical insertion's lateral force), and a unit whose
+    # channels read off by a gain each, recorded with a reference whose fy is only noise at that scale
+    train = make_frame(n_trials=6, seed=0)
+    train["fy"] *= 0.02
+    model = fit("ls", LSParams(), train).predictor
+    a_true = np.diag([1.1, 0.92, 1.05])
+    seen = make_frame(n_trials=2, seed=5)
+    seen[["fx", "fy", "fz"]] = model.predict(seen)
+    seen["fy"] = 0.01 * np.random.default_rng(1).normal(size=len(seen))
+    # when: fitting the unit's gains
+    gains = P.model_copy(update={"ridge": 1e-9, "transform": "diagonal"})
+    transform, _ = fit_transform([AngleData.of(model, _distorted(seen, a_true))], gains)
+    # then: the axes that carry the force decide them, and they are undone
+    np.testing.assert_allclose(np.asarray(transform.matrix), a_true, atol=0.05)
+
+
 def test_a_unit_like_the_training_ones_keeps_about_the_identity() -> None:
     # given: an LS model and a unit with nothing to correct (its own training rows: LS is optimal there)
     train = make_frame(n_trials=4, seed=0)
