@@ -2,16 +2,17 @@
 issue 24's targets, one row per member, from one cold `dvc repro` each.
 
     python benchmarks/bench_family.py [--members default,transimpedance,...] [--no-declare]
-                                      [--new-rig MEMBER] [--small] [--keep DIR]
+                                      [--new-rig MEMBER] [--calibration-trials N] [--small] [--keep DIR]
 
 Each member runs in a fresh copy of this checkout's code, dvc.yaml and params.yaml, with
 `simulate.rig` set to it (the default layout: three training units, a new unit with its calibration
 batch; `--small` for a quick look), every stage but register. `--no-declare` leaves the circuit out
 of every batch.yaml; `--new-rig` records the new unit's batches with another member (a lab whose
-replacement estimator is built differently). Printed per member: the champion's mean external NRMSE
-on the training units (same unit), on the new unit without and with its calibration and their
-ratios to the same-unit figure, the best cue's balanced accuracy within 3 s on the calibrated new
-unit, the inputs the models chose, and the wall time.
+replacement estimator is built differently); `--calibration-trials` sets the new unit's calibration
+insertions per angle (`simulate.calibration_trials_per_angle`, default one). Printed per member: the
+champion's mean external NRMSE on the training units (same unit), on the new unit without and with
+its calibration and their ratios to the same-unit figure, the best cue's balanced accuracy within
+3 s on the calibrated new unit, the inputs the models chose, and the wall time.
 """
 
 from __future__ import annotations
@@ -70,8 +71,12 @@ def new_unit_of(root: Path, member: str, declare: bool) -> None:
     sys.path.remove(str(root))
 
 
-def run_member(member: str, declare: bool, new_rig: str | None, small: bool, work: Path) -> dict[str, Any]:
+def run_member(
+    member: str, declare: bool, new_rig: str | None, small: bool, work: Path, calibration_trials: int | None
+) -> dict[str, Any]:
     simulate: dict[str, Any] = {"rig": member, "declare_front_end": declare}
+    if calibration_trials is not None:
+        simulate["calibration_trials_per_angle"] = calibration_trials
     angles = None
     if small:
         simulate.update(SMALL)
@@ -153,13 +158,14 @@ def main() -> None:
     ap.add_argument("--members", default=",".join(RIGS))
     ap.add_argument("--no-declare", action="store_true")
     ap.add_argument("--new-rig", default=None)
+    ap.add_argument("--calibration-trials", type=int, default=None)
     ap.add_argument("--small", action="store_true")
     ap.add_argument("--keep", type=Path, default=None, help="keep the projects in this folder")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="needlecue-family-"))
     rows = []
     for member in args.members.split(","):
-        row = run_member(member, not args.no_declare, args.new_rig, args.small, work)
+        row = run_member(member, not args.no_declare, args.new_rig, args.small, work, args.calibration_trials)
         rows.append(row)
         print(json.dumps(row), flush=True)
     print()

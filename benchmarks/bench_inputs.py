@@ -6,8 +6,11 @@ trial's rest reading, conductance) and each model kind given (default: ls and fn
 DATA_DIR defaults to data/processed) with params.yaml's settings and only `inputs.kind` changed, and
 prints the external NRMSE (mean over axes, then angles) on the training units' held-out casts
 ("same unit") and on new units' held-out casts without calibration ("new unit"), with their ratio.
+Every model reads through the circuit its training units declare, and a unit that declares another
+is read through its own, as in the pipeline; the conductance kinds are skipped where no circuit is
+declared. The pipeline's own choice (`inputs.kind: auto`) is the last row of each model kind.
 
-Usage: `python -m benchmarks.bench_inputs [DATA_DIR] [--kinds ls,fnn]`.
+Usage: `python -m benchmarks.bench_inputs [DATA_DIR] [--kinds=ls,fnn] [--params=params.yaml]`.
 """
 
 from __future__ import annotations
@@ -20,44 +23,66 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import PARAMS_MODELS, load_section
-from pipeline.dataset.splits import SplitFiles, unit_roles
+from pipeline.dataset.splits import SplitFiles, common_front_end, unit_roles
 from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.features import KINDS as INPUT_KINDS
+from pipeline.modelling.features import NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
+from pipeline.rig.frontend import Circuit
 
 AXES = ["fx", "fy", "fz"]
+AUTO = "auto"  # the pipeline's own choice, by validation
 
 
-def score(model, frame: pd.DataFrame) -> float:
+def score(model, frame: pd.DataFrame, circuits: dict[str, Circuit | None]) -> float:
+    """Mean NRMSE over axes of `model` on `frame`, each unit's rows read through its own circuit."""
     if frame.empty:
         return float("nan")
-    return float(np.mean(nrmse_pct(model.predict(frame.drop(columns=AXES)), frame[AXES].to_numpy())))
+    pred = np.zeros((len(frame), len(AXES)))
+    for unit, rows in frame.groupby("unit_id", sort=True):
+        mask = (frame["unit_id"] == unit).to_numpy()
+        own = circuits.get(str(unit))
+        front_end = own if model.inputs.needs_circuit and own != model.inputs.front_end else None
+        pred[mask] = model.predict(rows.drop(columns=AXES), None, front_end)
+    return float(np.mean(nrmse_pct(pred, frame[AXES].to_numpy())))
 
 
 def main() -> None:
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     data = Path(args[0]) if args else Path("data/processed")
-    kinds = ["ls", "fnn"]
+    kinds, params = ["ls", "fnn"], Path("params.yaml")
     for a in sys.argv[1:]:
         if a.startswith("--kinds="):
             kinds = a.split("=", 1)[1].split(",")
+        if a.startswith("--params="):
+            params = Path(a.split("=", 1)[1])
     files, roles = SplitFiles(data), unit_roles(data)
+    circuits = files.front_ends()
     print(f"{'model':<6}{'inputs':<18}{'same unit %':>12}{'new unit %':>12}{'ratio':>8}{'train s':>9}")
     for kind in kinds:
-        base = load_section(PARAMS_MODELS[kind], kind, Path("params.yaml"))
-        for inputs in INPUT_KINDS:
+        base = load_section(PARAMS_MODELS[kind], kind, params)
+        for inputs in [*INPUT_KINDS, AUTO]:
             p = base.model_copy(update={"inputs": base.inputs.model_copy(update={"kind": inputs})})
             same, new, seconds = [], [], 0.0
             for angle in files.angles():
+                train, val = files.frame(angle, "train"), files.frame(angle, "val")
+                units = [str(u) for f in (train, val) for u in f["unit_id"].unique()]
+                circuit = common_front_end(circuits, units)
+                if inputs in NEEDS_CIRCUIT and circuit is None:
+                    break
+                others = sorted(u for u, c in circuits.items() if u not in units and c not in (None, circuit))
                 started = time.perf_counter()
-                model = fit(kind, p, files.frame(angle, "train"), files.frame(angle, "val")).predictor
+                model = fit(kind, p, train, val, front_end=circuit, other_designs=others).predictor
                 seconds += time.perf_counter() - started
                 ext = files.frame(angle, "external")
                 trained = ext["unit_id"].map(lambda u: roles.get(u) == "training")
-                same.append(score(model, ext[trained]))
-                new.append(score(model, ext[~trained]))
-            s, n = float(np.nanmean(same)), float(np.nanmean(new))
-            print(f"{kind:<6}{inputs:<18}{s:>12.2f}{n:>12.2f}{n / s:>8.2f}{seconds:>9.1f}", flush=True)
+                same.append(score(model, ext[trained], circuits))
+                new.append(score(model, ext[~trained], circuits))
+            else:
+                s, n = float(np.nanmean(same)), float(np.nanmean(new))
+                print(f"{kind:<6}{inputs:<18}{s:>12.2f}{n:>12.2f}{n / s:>8.2f}{seconds:>9.1f}", flush=True)
+                continue
+            print(f"{kind:<6}{inputs:<18}  (no circuit declared: skipped)", flush=True)
 
 
 if __name__ == "__main__":

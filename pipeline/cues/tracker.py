@@ -203,6 +203,17 @@ class Evidence:
         v = np.asarray(volts, dtype=np.float64)
         return v if self.front_end is None else conductance_us(v, self.front_end)
 
+    def rest_signal(self) -> np.ndarray:
+        """The signal of the rest mean (frozen at contact)."""
+        if self._rest_signal is None:
+            self._rest_signal = self.signal(self.rest)  # type: ignore[arg-type]
+        return self._rest_signal
+
+    def loading(self, signal: np.ndarray) -> Any:
+        """How far `signal` (one frame, or frames along the first axis) has moved from rest: the norm
+        of its log ratio to the rest signal, what the levels are set on. After contact only."""
+        return np.sqrt(np.sum(np.log(signal / self.rest_signal()) ** 2, axis=-1))
+
     def features(self) -> list[float] | None:
         """log of the rest signal per channel, then the unit direction of the signal's change since
         rest at each level reached (the direction, not the size: how hard the tissue pushes back is
@@ -260,13 +271,11 @@ class Evidence:
         # the direction is the signal's: above actuation an FSR's conductance grows in proportion to
         # its share of the load, whatever its cast-in preload (docs/units.md, "How the cue estimator
         # reads a unit"). Without a declared circuit there is no conductance: the volts stand in.
-        if self._rest_signal is None:
-            self._rest_signal = self.signal(self.rest)  # type: ignore[arg-type]
         now = self.signal(v)
-        norm = float(np.sqrt(np.sum(np.log(now / self._rest_signal) ** 2)))
+        norm = float(self.loading(now))
         if norm < self.levels[len(self.snaps)]:
             return False
-        dg = now - self._rest_signal
+        dg = now - self.rest_signal()
         size = float(np.sqrt(np.sum(dg * dg))) or 1.0
         direction = (dg / size).tolist()
         while len(self.snaps) < len(self.levels) and norm >= self.levels[len(self.snaps)]:

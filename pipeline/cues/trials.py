@@ -98,9 +98,7 @@ def peak_loading(trial: Trial, params: CuesParams) -> float | None:
     ev = run_evidence(trial, params)
     if ev.contact_t is None:
         return None
-    rest = ev.signal(ev.rest)  # type: ignore[arg-type]
-    now = ev.signal(np.maximum(trial.volts[ev.contact_i :], MIN_VOLTS))
-    return float(np.sqrt(np.sum(np.log(now / rest) ** 2, axis=1)).max())
+    return float(ev.loading(ev.signal(np.maximum(trial.volts[ev.contact_i :], MIN_VOLTS))).max())
 
 
 def loading_levels(trials: Sequence[Trial], params: CuesParams) -> tuple[float, ...]:

@@ -65,11 +65,18 @@ def predict_model(
             log(f"warning: {label} needs {missing}, absent at {angle}° {split}: not predicted there")
             continue
         what = f"{label} on {angle}° {split}"
-        force = predict_frame(predictor, frame, what)
+        # each row once: a unit with its own circuit through it, every other row as the training units
+        force = np.zeros((len(frame), len(AXES)))
+        left = np.ones(len(frame), dtype=bool)
         for unit, circuit in own.items() if "unit_id" in frame.columns else ():
             mask = (frame["unit_id"] == unit).to_numpy()
             if mask.any():
                 force[mask] = predict_frame(predictor, frame[mask], f"{what}, unit {unit}", None, circuit)
+                left &= ~mask
+        if left.all():
+            force = predict_frame(predictor, frame, what)
+        elif left.any():
+            force[left] = predict_frame(predictor, frame[left], what)
         parts.append(prediction_table(angle, split, force))
         if split == "external" and units and "unit_id" in frame.columns:
             calibrated = force.copy()
