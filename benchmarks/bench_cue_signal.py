@@ -1,5 +1,5 @@
 """How much angle signal a rig's FSRs carry for the cue estimator: the evidence behind issue 24's cue
-figures on the family (docs/units.md, "Cues on the family").
+figures on the family (docs/units.md, "What a sub-linear FSR costs the cues").
 
     python benchmarks/bench_cue_signal.py [--variants default,power-law,power-law:law_exponent=1.0]
 
