@@ -52,9 +52,10 @@ def project(root: Path, simulate: dict[str, Any], angles: list[float] | None) ->
     return root
 
 
-def new_unit_of(root: Path, member: str, declare: bool) -> None:
-    """The new unit's held-out batches and calibration batch, recorded with another design, as a
-    lab would drop them into data/raw (the simulator then records none)."""
+def new_unit_of(root: Path, member: str, declare: bool, calibration_trials: int) -> None:
+    """The new unit's held-out batches and calibration batch (`calibration_trials` insertions per
+    angle), recorded with another design, as a lab would drop them into data/raw (the simulator then
+    records none)."""
     sys.path.insert(0, str(root))
     from pipeline.config import SimulateParams
     from pipeline.sim import rig
@@ -67,7 +68,7 @@ def new_unit_of(root: Path, member: str, declare: bool) -> None:
         rig.write_new_batch(
             p, raw, f"lab2-heldout-{int(angle)}deg", (angle,), p.heldout_trials_per_angle, unit
         )
-    rig.write_new_batch(p, raw, "lab2-calib", p.angles_deg, 1, unit, purpose="calibration")
+    rig.write_new_batch(p, raw, "lab2-calib", p.angles_deg, calibration_trials, unit, purpose="calibration")
     sys.path.remove(str(root))
 
 
@@ -85,7 +86,7 @@ def run_member(
         simulate["calibration_trials_per_angle"] = 0
     root = project(work / member, simulate, angles)
     if new_rig:
-        new_unit_of(root, new_rig, declare)
+        new_unit_of(root, new_rig, declare, 1 if calibration_trials is None else calibration_trials)
         params = yaml.safe_load((root / "params.yaml").read_text())
         new = params["simulate"]["new_units"]
         params["simulate"][

@@ -25,25 +25,24 @@ import pandas as pd
 from pipeline.config import PARAMS_MODELS, load_section
 from pipeline.dataset.splits import SplitFiles, common_front_end, unit_roles
 from pipeline.metrics.scores import nrmse_pct
+from pipeline.modelling.batch import predict_model
 from pipeline.modelling.features import KINDS as INPUT_KINDS
 from pipeline.modelling.features import NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
-from pipeline.rig.frontend import Circuit
+from pipeline.rig.frontend import Circuit, circuit_key
 
 AXES = ["fx", "fy", "fz"]
 AUTO = "auto"  # the pipeline's own choice, by validation
 
 
 def score(model, frame: pd.DataFrame, circuits: dict[str, Circuit | None]) -> float:
-    """Mean NRMSE over axes of `model` on `frame`, each unit's rows read through its own circuit."""
+    """Mean NRMSE over axes of `model` on `frame`, predicted as the predict stage does (each unit's
+    rows through its own circuit where it declares another)."""
     if frame.empty:
         return float("nan")
-    pred = np.zeros((len(frame), len(AXES)))
-    for unit, rows in frame.groupby("unit_id", sort=True):
-        mask = (frame["unit_id"] == unit).to_numpy()
-        own = circuits.get(str(unit))
-        front_end = own if model.inputs.needs_circuit and own != model.inputs.front_end else None
-        pred[mask] = model.predict(rows.drop(columns=AXES), None, front_end)
+    block = {("bench", "external"): frame.reset_index(drop=True)}
+    table = predict_model(model, block, "bench", lambda _m: None, None, circuits)[0]
+    pred = np.column_stack([table[a].to_numpy() for a in AXES])
     return float(np.mean(nrmse_pct(pred, frame[AXES].to_numpy())))
 
 
@@ -70,7 +69,11 @@ def main() -> None:
                 circuit = common_front_end(circuits, units)
                 if inputs in NEEDS_CIRCUIT and circuit is None:
                     break
-                others = sorted(u for u, c in circuits.items() if u not in units and c not in (None, circuit))
+                # as the train stage does (pipeline.modelling.train.train_folder)
+                mine = ("", circuit_key(circuit))
+                others = sorted(
+                    u for u, c in circuits.items() if u not in units and circuit_key(c) not in mine
+                )
                 started = time.perf_counter()
                 model = fit(kind, p, train, val, front_end=circuit, other_designs=others).predictor
                 seconds += time.perf_counter() - started
