@@ -8,7 +8,8 @@ prints the external NRMSE (mean over axes, then angles) on the training units' h
 ("same unit") and on new units' held-out casts without calibration ("new unit"), with their ratio.
 Every model reads through the circuit its training units declare, and a unit that declares another
 is read through its own, as in the pipeline; the conductance kinds are skipped where no circuit is
-declared. The pipeline's own choice (`inputs.kind: auto`) is the last row of each model kind.
+declared. The pipeline's own choice (`inputs.kind: auto`: one kind for all angles, as the choose
+stage makes it) is the last row of each model kind.
 
 Usage: `python -m benchmarks.bench_inputs [DATA_DIR] [--kinds=ls,fnn] [--params=params.yaml]`.
 """
@@ -23,13 +24,15 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import PARAMS_MODELS, load_section
-from pipeline.dataset.splits import SplitFiles, common_front_end, unit_roles
+from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.batch import predict_model
 from pipeline.modelling.features import KINDS as INPUT_KINDS
 from pipeline.modelling.features import NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
-from pipeline.rig.frontend import Circuit, circuit_key
+from pipeline.modelling.train import choose_folders, load_angle
+from pipeline.rig.frontend import Circuit
+from pipeline.vocab import angle_name
 
 AXES = ["fx", "fy", "fz"]
 AUTO = "auto"  # the pipeline's own choice, by validation
@@ -63,19 +66,25 @@ def main() -> None:
         for inputs in [*INPUT_KINDS, AUTO]:
             p = base.model_copy(update={"inputs": base.inputs.model_copy(update={"kind": inputs})})
             same, new, seconds = [], [], 0.0
+            started = time.perf_counter()
+            quiet = lambda _m: None  # noqa: E731
+            choice = choose_folders(kind, p, data, files.angles(), quiet) if inputs == AUTO else None
+            seconds += time.perf_counter() - started
             for angle in files.angles():
-                train, val = files.frame(angle, "train"), files.frame(angle, "val")
-                units = [str(u) for f in (train, val) for u in f["unit_id"].unique()]
-                circuit = common_front_end(circuits, units)
-                if inputs in NEEDS_CIRCUIT and circuit is None:
+                # as the train stage reads it (pipeline.modelling.train)
+                found = load_angle(data / angle_name(angle))
+                if inputs in NEEDS_CIRCUIT and found.circuit is None:
                     break
-                # as the train stage does (pipeline.modelling.train.train_folder)
-                mine = ("", circuit_key(circuit))
-                others = sorted(
-                    u for u, c in circuits.items() if u not in units and circuit_key(c) not in mine
-                )
                 started = time.perf_counter()
-                model = fit(kind, p, train, val, front_end=circuit, other_designs=others).predictor
+                model = fit(
+                    kind,
+                    p,
+                    found.train,
+                    found.val,
+                    front_end=found.circuit,
+                    other_designs=found.other_designs,
+                    choice=choice,
+                ).predictor
                 seconds += time.perf_counter() - started
                 ext = files.frame(angle, "external")
                 trained = ext["unit_id"].map(lambda u: roles.get(u) == "training")

@@ -16,13 +16,17 @@ window back (its memory). The folds:
   that is empty).
 
 The score is the mean over folds of the NRMSE (% of each axis' range, mean of fx, fy, fz). Ties go
-to the simpler kind (the order of `KINDS`). Pure numpy.
+to the simpler kind (the order of `KINDS`). A model kind has one choice for all its angles (`pool`:
+each candidate's score averaged over the angles): per angle, the choice flips between near-tied kinds,
+while a unit's calibration transform is one for all angles' models. Pure numpy.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,6 +37,7 @@ from pipeline.modelling.inputs import features_of, sequence_order, times_of, tri
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES
 
+FORMAT = "needlecue-inputs-choice/1"  # the choose stage's file: one model kind's choice
 RIDGE = 1e-3  # relative to the mean diagonal of the normal equations: only against ill-conditioning
 MIN_FOLD_ROWS = 20  # a fold with fewer held-out rows is not scored
 
@@ -47,6 +52,7 @@ class Choice:
     folds: str
     stand_in: str
     only: str | None = None  # why some kinds were not candidates (None: every kind the data allows)
+    by_angle: dict[str, dict[str, float | None]] | None = None  # pooled (`pool`): each angle's own scores
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -160,3 +166,55 @@ def choose_inputs(
     return Choice(
         chosen, {k: None if s is None else round(s, 4) for k, s in scores.items()}, folds_txt, stand_in, only
     )
+
+
+def pool(by_angle: Mapping[str, Choice]) -> Choice:
+    """One choice over all angles of a model kind (`{angle name: that angle's choice}`): each kind
+    that was a candidate at every angle, scored by its mean over the angles where it was scored."""
+    if not by_angle:
+        raise ValueError("no angle to choose the inputs on")
+    choices = list(by_angle.values())
+    kinds = [k for k in choices[0].scores if all(k in c.scores for c in choices)]
+    if not kinds:
+        raise ValueError(
+            "no input kind is a candidate at every angle: "
+            + "; ".join(f"{a}°: {', '.join(c.scores)}" for a, c in by_angle.items())
+        )
+    scores: dict[str, float | None] = {}
+    for kind in kinds:
+        found = [s for c in choices if (s := c.scores[kind]) is not None and np.isfinite(s)]
+        scores[kind] = round(float(np.mean(found)), 4) if found else None
+    known = {k: s for k, s in scores.items() if s is not None}
+    chosen = min(known, key=lambda k: (known[k], KINDS.index(k))) if known else kinds[0]
+    folds = sorted({c.folds for c in choices})
+    where = f"at each of {len(choices)} angles, scores averaged" if len(choices) > 1 else "at one angle"
+    return replace(
+        choices[0],
+        chosen=chosen,
+        scores=scores,
+        folds=f"{'; '.join(folds)}, {where}",
+        only="; ".join(sorted({c.only for c in choices if c.only})) or None,
+        by_angle={angle: dict(c.scores) for angle, c in by_angle.items()},
+    )
+
+
+def save_choice(path: Path, kind: str, choice: Choice | None, pinned: str | None = None) -> None:
+    """The choose stage's file: `kind`'s choice over its angles, or the kind `pinned` in params."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    found = None if choice is None else choice.to_dict()
+    doc = {"format": FORMAT, "model": kind, "pinned": pinned, "choice": found}
+    path.write_text(json.dumps(doc, indent=2) + "\n")
+
+
+def load_choice(path: Path, kind: str) -> Choice | None:
+    """The choice `save_choice` wrote for `kind` (None: pinned in params); ValueError naming the file
+    when it is not one, or is another model kind's."""
+    try:
+        doc = json.loads(path.read_text())
+        found = (doc["format"], doc["model"], doc["choice"])
+        choice = None if found[2] is None else Choice(**found[2])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not a readable inputs choice ({e}); run the choose stage") from e
+    if found[:2] != (FORMAT, kind):
+        raise ValueError(f"{path}: {found[:2]} is not {kind}'s inputs choice ({FORMAT}); run choose")
+    return choice

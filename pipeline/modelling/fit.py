@@ -30,7 +30,7 @@ import pandas as pd
 
 from pipeline.config import PARAMS_MODELS, FNNParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
-from pipeline.modelling.choice import choose_inputs
+from pipeline.modelling.choice import Choice, choose_inputs
 from pipeline.modelling.features import ModelInputs, inputs_for
 from pipeline.modelling.inputs import column_stats, features_of, inputs_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch, exact_sqrt
@@ -125,6 +125,7 @@ def fit(
     train_data_sha256: str | None = None,
     front_end: Circuit | None = None,
     other_designs: Sequence[str] = (),
+    choice: Choice | None = None,
     log: Log | None = None,
 ) -> TrainResult:
     """Train one model of `kind` on `train`, early-stopping the networks on `val` (if it has rows).
@@ -133,6 +134,8 @@ def fit(
     `front_end` is the circuit the training units declare, which the conductance inputs read through
     (ValueError if they need one and there is none); `other_designs`, the units the model must also
     serve that declare another circuit (then `inputs.kind: auto` chooses among the conductance kinds).
+    With `inputs.kind: auto`, `choice` is the inputs chosen over all the kind's angles (the choose
+    stage's); without it they are chosen on this angle's rows alone.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -154,13 +157,11 @@ def fit(
     _import_backends(kind)  # before the clock: train_seconds measures the work, not the imports
     codes = trial_codes(train)
     started = time.perf_counter()
-    choice = None
-    if params.inputs.kind == "auto":  # chosen by validation on this data (pipeline.modelling.choice)
-        window = params.window if isinstance(params, LSTMParams) else 1
-        intercept = params.fit_intercept if isinstance(params, LSParams) else True
-        choice = choose_inputs(
-            kind, train, val, channels, front_end, params.inputs.rest_s, window, intercept, other_designs
-        )
+    if params.inputs.kind != "auto":
+        choice = None
+    elif choice is None:  # chosen by validation on this data (pipeline.modelling.choice)
+        choice = choose(kind, params, train, val, front_end, other_designs)
+    if choice is not None:
         only = f", among {choice.only}" if choice.only else ""
         log(f"inputs by validation ({choice.folds}{only}): {choice.chosen}; mean NRMSE % {choice.scores}")
     elif other_designs and front_end is not None and not params.inputs.kind.endswith("conductance"):
@@ -209,6 +210,22 @@ def fit(
         "train_data_sha256": sha,
     }
     return TrainResult(checkpoint, history, metrics)
+
+
+def choose(
+    kind: str,
+    params: ModelParams,
+    train: pd.DataFrame,
+    val: pd.DataFrame,
+    front_end: Circuit | None,
+    other_designs: Sequence[str] = (),
+) -> Choice:
+    """`choose_inputs` for one angle's rows with the model's own settings (the LSTM's window, least
+    squares' intercept)."""
+    window = params.window if isinstance(params, LSTMParams) else 1
+    intercept = params.fit_intercept if isinstance(params, LSParams) else True
+    rest_s, channels = params.inputs.rest_s, channels_of(train)
+    return choose_inputs(kind, train, val, channels, front_end, rest_s, window, intercept, other_designs)
 
 
 def _import_backends(kind: str) -> None:

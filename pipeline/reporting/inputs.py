@@ -34,26 +34,37 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
     kinds_seen = [k for k in KINDS if k in scored]  # the kinds' own order: simplest first
     rows = []
     folds = set()
+
+    def cells(scores: Mapping[str, float | None]) -> list[str]:
+        return [
+            "–" if k not in scores else ("n/a" if scores[k] is None else f"{scores[k]:.2f}")
+            for k in kinds_seen
+        ]
+
     for kind in models:
+        pooled = None
         for angle in sorted_angles(models[kind]):
             r = models[kind][angle]
             choice = r.get("inputs_choice") or {}
-            scores = choice.get("scores") or {}
             if choice:
                 only = f"; candidates: {choice['only']}" if choice.get("only") else ""
                 folds.add(f"{choice.get('folds')}; stand-in: {choice.get('stand_in')}{only}")
-            cells = []
-            for k in kinds_seen:
-                v = scores.get(k)
-                cells.append("–" if k not in scores else ("n/a" if v is None else f"{v:.2f}"))
+                pooled = choice if choice.get("by_angle") else pooled
+            own = (choice.get("by_angle") or {}).get(angle, choice.get("scores") or {})
+            how = "validation" if choice else "params"
+            rows.append(
+                [kind_label(kind), f"{angle}°", f"**{r['inputs']['kind']}**", how, _circuit(r["inputs"])]
+            )
+            rows[-1] += cells(own)
+        if pooled is not None:  # one choice for all angles: the mean scores that made it
             rows.append(
                 [
                     kind_label(kind),
-                    f"{angle}°",
-                    f"**{r['inputs']['kind']}**",
-                    "validation" if choice else "params",
-                    _circuit(r["inputs"]),
-                    *cells,
+                    "mean",
+                    f"**{pooled['chosen']}**",
+                    "all angles",
+                    "",
+                    *cells(pooled["scores"]),
                 ]
             )
     header = ["model", "angle", "inputs", "chosen by", "read through", *(f"{k} (%)" for k in kinds_seen)]
@@ -62,7 +73,8 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
         "",
         "Each model's inputs (docs/units.md): pinned in params.yaml, or chosen by validation on this "
         "data (`inputs.kind: auto`, pipeline/modelling/choice.py), with each candidate's mean NRMSE on "
-        "the held-out folds. The conductance kinds are candidates only where the training units declare "
+        "the held-out folds; one kind per model for all its angles, by the mean over the angles (row "
+        '"mean"). The conductance kinds are candidates only where the training units declare '
         "their circuit (batch.yaml `sensor.front_end`), and the only ones where a unit the model "
         "serves declares another.",
         "",

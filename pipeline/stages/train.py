@@ -2,12 +2,12 @@
 
 Input: `DATA_DIR/train.parquet` and `DATA_DIR/val.parquet` (the split stage's; val may be empty,
 then the networks train all `max_epochs` without early stopping), and `DATA_DIR/front_ends.json`
-(the circuit the training units declare). With `inputs.kind: auto` the inputs are chosen by
-validation first (`pipeline.modelling.choice`). Output in `OUT_DIR`:
+(the circuit the training units declare). With `inputs.kind: auto` the inputs are those of the
+choose stage's `--choice` file (all angles'; without it, chosen on this angle alone). Output in `OUT_DIR`:
 `model.pt` (see `pipeline.modelling.checkpoint`), `train_metrics.json`, `history.csv`.
 Only the model's own params section is read, so editing `fnn` never retrains `lstm`.
 
-Usage: `python -m pipeline.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--choice FILE] [--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import cast
 import typer
 
 from pipeline.config import PARAMS_MODELS, load_section
+from pipeline.modelling.choice import load_choice
 from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.train import train_folder
 from pipeline.vocab import KINDS
@@ -28,13 +29,16 @@ def _log(msg: str) -> None:
     print(f"train: {msg}", file=sys.stderr, flush=True)
 
 
-def main(model: str, data_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
+def main(
+    model: str, data_dir: Path, out_dir: Path, choice: Path | None = None, params: Path = Path("params.yaml")
+) -> None:
     """Train one model (ls, fnn or lstm) on one angle's processed data folder."""
     if model not in KINDS:
         raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
     try:
         section = cast("ModelParams", load_section(PARAMS_MODELS[model], model, params))
-        train_folder(model, section, data_dir, out_dir, _log)
+        chosen = load_choice(choice, model) if choice is not None and section.inputs.kind == "auto" else None
+        train_folder(model, section, data_dir, out_dir, _log, chosen)
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback
         _log(f"error: {e}")
         raise typer.Exit(1) from e

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from pipeline.config import FNNParams, InputParams, LSParams
-from pipeline.modelling.choice import candidates, choose_inputs
+from pipeline.modelling.choice import Choice, candidates, choose_inputs, load_choice, pool, save_choice
 from pipeline.modelling.fit import fit
 from pipeline.rig.frontend import Divider, Transimpedance, volts_of
 from pipeline.vocab import AXES
@@ -112,3 +112,47 @@ def test_the_choice_is_deterministic():
     a = choose_inputs("lstm", rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5, window=15)
     b = choose_inputs("lstm", rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5, window=15)
     assert a == b and "lags [3, 7] samples" in a.stand_in
+
+
+def _angle(scores: dict[str, float | None], folds: str = "leave-one-unit-out (3 units)") -> Choice:
+    return Choice(min((v, k) for k, v in scores.items() if v is not None)[1], scores, folds, "ridge")
+
+
+def test_one_kind_for_all_angles_by_the_mean_score_though_one_angle_prefers_another():
+    # given: two angles where the rest kinds are near-tied and each angle prefers another
+    by_angle = {
+        "0": _angle({"volts": 12.0, "rest_volts": 7.9, "rest_conductance": 8.2}),
+        "15": _angle({"volts": 12.6, "rest_volts": 7.8, "rest_conductance": 7.7}),
+    }
+    # when: pooling them
+    choice = pool(by_angle)
+    # then: the kind of the lower mean, with the means and each angle's own scores recorded
+    assert by_angle["15"].chosen == "rest_conductance"
+    assert choice.chosen == "rest_volts"
+    assert choice.scores == {"volts": 12.3, "rest_volts": 7.85, "rest_conductance": 7.95}
+    assert choice.by_angle == {a: c.scores for a, c in by_angle.items()}
+    assert choice.folds == "leave-one-unit-out (3 units), at each of 2 angles, scores averaged"
+
+
+def test_a_kind_that_is_not_a_candidate_at_every_angle_is_not_chosen():
+    # given: conductance scored well at one angle only (the other declares no circuit)
+    by_angle = {"0": _angle({"volts": 9.0, "conductance": 1.0}), "15": _angle({"volts": 9.0})}
+    # when / then: only the common kind competes; none in common is a located error
+    assert pool(by_angle).chosen == "volts" and list(pool(by_angle).scores) == ["volts"]
+    with pytest.raises(ValueError, match="at every angle: 0°: conductance; 15°: volts"):
+        pool({"0": _angle({"conductance": 1.0}), "15": _angle({"volts": 9.0})})
+
+
+def test_the_choice_file_round_trips_and_names_itself_when_wrong(tmp_path):
+    # given: the choose stage's file for lstm, and a pinned one for ls
+    chosen = pool({"0": _angle({"volts": 9.0, "rest_volts": 5.0})})
+    save_choice(tmp_path / "lstm.json", "lstm", chosen)
+    save_choice(tmp_path / "ls.json", "ls", None, pinned="volts")
+    # when / then: read back as written; another kind's file or garbage says which file
+    assert load_choice(tmp_path / "lstm.json", "lstm") == chosen
+    assert load_choice(tmp_path / "ls.json", "ls") is None
+    with pytest.raises(ValueError, match=r"lstm\.json.*not fnn's inputs choice"):
+        load_choice(tmp_path / "lstm.json", "fnn")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ValueError, match=r"bad\.json: not a readable inputs choice.*run the choose stage"):
+        load_choice(tmp_path / "bad.json", "ls")

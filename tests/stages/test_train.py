@@ -11,7 +11,7 @@ import typer
 from typer.testing import CliRunner
 
 from pipeline.modelling.checkpoint import load_checkpoint
-from pipeline.stages import train
+from pipeline.stages import choose, train
 from tests.modelling.folders import PARAMS, write_split
 
 
@@ -57,3 +57,30 @@ def test_unknown_model_is_rejected(tmp_path: Path, params_file: Path) -> None:
     # then: a usage error naming the valid kinds
     assert result.exit_code != 0
     assert "ls, fnn, lstm" in result.output
+
+
+def test_the_choose_stage_makes_one_choice_that_every_angle_trains_on(
+    tmp_path: Path, params_file: Path
+) -> None:
+    # given: two processed angle folders, and the trained angles in params
+    root = tmp_path / "processed"
+    write_split(root / "0", train_seed=0)
+    write_split(root / "15", train_seed=5)
+    params_file.write_text(params_file.read_text() + "train:\n  angles: [0, 15]\n")
+    choice_file = tmp_path / "choices" / "ls.json"
+    # when: choosing ls's inputs, then training each angle on the choice
+    app = typer.Typer()
+    app.command()(choose.main)
+    chosen = CliRunner().invoke(app, ["ls", str(root), str(choice_file), "--params", str(params_file)])
+    assert chosen.exit_code == 0, chosen.output
+    for angle in ("0", "15"):
+        out = tmp_path / "models" / "ls" / angle
+        args = ["ls", str(root / angle), str(out), "--choice", str(choice_file), "--params", str(params_file)]
+        result = invoke(*args)
+        assert result.exit_code == 0, result.output
+    # then: both checkpoints read the one kind chosen over both angles, with each angle's scores
+    doc = json.loads(choice_file.read_text())["choice"]
+    assert set(doc["by_angle"]) == {"0", "15"}
+    for angle in ("0", "15"):
+        ck = load_checkpoint(tmp_path / "models" / "ls" / angle)
+        assert ck["inputs"]["kind"] == doc["chosen"] and ck["inputs_choice"] == doc

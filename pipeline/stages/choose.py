@@ -1,0 +1,48 @@
+"""`choose` stage: one model kind's inputs, chosen once for all its angles (`inputs.kind: auto`).
+
+Input: `DATA_ROOT/<angle>/` (the split stage's folders) for each of `train.angles`. Output: `OUT_FILE`
+(`pipeline.modelling.choice.save_choice`): the chosen kind, its mean score over the angles and each
+angle's own scores; the train stage reads it. With a kind pinned in params nothing is scored and the
+file says so.
+
+Usage: `python -m pipeline.run choose {ls|fnn|lstm} DATA_ROOT OUT_FILE [--params params.yaml]`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import cast
+
+import typer
+
+from pipeline.config import PARAMS_MODELS, TrainParams, load_section
+from pipeline.modelling.choice import save_choice
+from pipeline.modelling.fit import ModelParams
+from pipeline.modelling.train import choose_folders
+from pipeline.vocab import KINDS
+
+
+def _log(msg: str) -> None:
+    print(f"choose: {msg}", file=sys.stderr, flush=True)
+
+
+def main(model: str, data_root: Path, out_file: Path, params: Path = Path("params.yaml")) -> None:
+    """Choose one model kind's inputs on all the trained angles' processed folders."""
+    if model not in KINDS:
+        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
+    try:
+        section = cast("ModelParams", load_section(PARAMS_MODELS[model], model, params))
+        if section.inputs.kind != "auto":
+            _log(f"{model}: inputs pinned in params ({section.inputs.kind}), nothing to choose")
+            save_choice(out_file, model, None, pinned=section.inputs.kind)
+            return
+        angles = load_section(TrainParams, "train", params).angles
+        save_choice(out_file, model, choose_folders(model, section, data_root, angles, _log))
+    except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback
+        _log(f"error: {e}")
+        raise typer.Exit(1) from e
+
+
+if __name__ == "__main__":
+    typer.run(main)
