@@ -63,7 +63,7 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
                     "mean",
                     f"**{pooled['chosen']}**",
                     "all angles",
-                    "",
+                    "–",
                     *cells(pooled["scores"]),
                 ]
             )
