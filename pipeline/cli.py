@@ -8,7 +8,7 @@ from typing import Annotated, Any
 import typer
 
 from pipeline.live import commands as live_commands
-from pipeline.live.commands import load_client
+from pipeline.live.commands import UnverifiedOption, load_client
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
 
@@ -353,6 +353,7 @@ def replay(
     out: Annotated[
         Path | None, typer.Option("--out", help="PNG to write (default: replay-<batch>-<trial>.png)")
     ] = None,
+    unverified: UnverifiedOption = False,
 ) -> None:
     """Replay a recorded trial through the simulator's client as if live: cue timeline, RMSE and a plot.
 
@@ -362,8 +363,9 @@ def replay(
 
     With --unit-id the unit's registered calibration (needle-unit-<unit>@current) is applied, as on the
     simulator; without it, or when it was made with other models, the force is uncalibrated and there
-    are no cues. Exit 1 on a bad input (file, trial, model folder, stream mismatch), 2 if the registry is
-    unreachable and there is no local copy of the model.
+    are no cues. A --model-dir whose graph or description is not what was registered is refused
+    (--unverified runs it anyway, loudly). Exit 1 on a bad input (file, trial, model folder, stream
+    mismatch), 2 if the registry is unreachable and there is no local copy of the model.
     """
     import pandas as pd
 
@@ -382,7 +384,7 @@ def replay(
     from pipeline.live.recording import is_session
 
     if trial.is_dir() and is_session(trial):
-        _replay_session(trial, angle, alias, model_dir, unit_id)
+        _replay_session(trial, angle, alias, model_dir, unit_id, unverified)
         return
     suffix = next((s for s in STREAM_SUFFIXES if trial.name.endswith(s)), None)
     if trial.is_dir() or suffix:  # rig-log/1: checked, ingested and resampled like the pipeline does
@@ -415,7 +417,7 @@ def replay(
     rows = frame[(frame["batch_id"].astype(str) == batch) & (frame["trial_id"].astype(str) == tid)]
 
     try:
-        client = load_client(angle, alias, model_dir, unit_id)
+        client = load_client(angle, alias, model_dir, unit_id, unverified=unverified)
         client.check_stream(channels_of(rows), rate_hz(rows["t_s"].to_numpy()))
         result = rp.replay(rows, client)
     except RegistryUnreachable as e:
@@ -449,7 +451,12 @@ def replay(
 
 
 def _replay_session(
-    folder: Path, angle: float | None, alias: str, model_dir: Path | None, unit_id: str | None
+    folder: Path,
+    angle: float | None,
+    alias: str,
+    model_dir: Path | None,
+    unit_id: str | None,
+    unverified: bool = False,
 ) -> None:
     """`needlecue replay` of a live session's recording: its lines through the same chain again."""
     from pipeline.live.app import replay_session
@@ -461,7 +468,7 @@ def _replay_session(
     unit_id = unit_id or (recorded_unit if recorded_unit != "unknown" else None)
     try:
         cues = bool((meta.get("live") or {}).get("cues_uncalibrated"))  # as the live session was told
-        client = load_client(angle, alias, model_dir, unit_id, cues)
+        client = load_client(angle, alias, model_dir, unit_id, cues, unverified)
         summary = replay_session(folder, client)
     except RegistryUnreachable as e:
         raise _fail(str(e), 2) from e

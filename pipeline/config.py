@@ -111,6 +111,9 @@ class IngestParams(Section):
     )
     max_volts: float = Field(5.0, gt=0, description="estimator volts without sensor.vref_v: 0 to this")
     max_trial_factor: float = Field(6.0, gt=1, description="a trial may last this many robot insertions")
+    clip_run_s: float = Field(
+        0.25, gt=0, description="a stream held at its far extreme this long is clipped (a flat top)"
+    )
     max_trial_s: float = Field(
         600.0, gt=0, description="a trial's limit when batch.yaml has no robot programme"
     )

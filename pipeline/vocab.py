@@ -34,8 +34,9 @@ KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
 # The deployable model (pipeline.modelling.export writes it, pipeline.client reads it).
 # /2: the graph reads the model's inputs (`inputs` in the metadata says how they are computed from
 # volts: pipeline.modelling.features); /1 graphs read raw volts. Clients read both.
-DEPLOY_FORMAT = "needlecue-deploy/2"
-DEPLOY_FORMATS = ("needlecue-deploy/1", DEPLOY_FORMAT)
+# /3: the description carries its graph's sha256 and the graph its description's (`description_sha256`)
+DEPLOY_FORMAT = "needlecue-deploy/3"
+DEPLOY_FORMATS = ("needlecue-deploy/1", "needlecue-deploy/2", DEPLOY_FORMAT)
 INPUT_NAME = "inputs"
 OUTPUT_NAME = "force_n"
 
@@ -111,6 +112,15 @@ def dump_json(obj: Any, digits: int, indent: int = 2) -> str:
         json.dumps(jsonable(obj, digits), indent=indent, sort_keys=True, ensure_ascii=False, allow_nan=False)
         + "\n"
     )
+
+
+def description_sha256(block: Mapping[str, Any]) -> str:
+    """SHA-256 of a deployable model's description (its MLmodel `needlecue` block) without the
+    block's `onnx_sha256`: the graph carries this hash and the block the graph's, so each vouches for
+    the other (`pipeline.client.folder`). Canonical JSON: sorted keys, no spaces."""
+    core = {k: v for k, v in block.items() if k != "onnx_sha256"}
+    text = json.dumps(core, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 def file_sha256(paths: Sequence[Path]) -> str:

@@ -30,6 +30,10 @@ The model is the ONNX graph of `pipeline.modelling.export` run by onnxruntime; n
 Importing this package and running a client needs numpy, pyyaml, onnxruntime and mlflow-skinny only
 (mlflow and onnxruntime are imported when first needed). Replaying recorded trials, which needs
 pandas, is `pipeline.client.replay`, not imported here.
+
+Nothing runs unchecked (module `folder`): a model folder's graph and its description (input settings,
+cue pack) must be the ones registered, fetched or cached, else `ModelRefused`; a unit's calibration
+must be the document registered. `from_dir(..., unverified=True)` runs a folder anyway, loudly.
 """
 
 from pipeline.client.cache import (
@@ -42,6 +46,7 @@ from pipeline.client.cache import (
     fetch,
     fetch_unit,
 )
+from pipeline.client.folder import ModelFolderError, ModelRefused
 from pipeline.client.force import DEFAULT_POLL_S, ForceClient, Frame, StreamMismatch, UncalibratedUnit
 from pipeline.registry.store import UNIT_ALIAS, RegistryUnreachable
 
@@ -54,7 +59,9 @@ __all__ = [
     "CachedCopyRefused",
     "ForceClient",
     "Frame",
+    "ModelFolderError",
     "ModelNotFound",
+    "ModelRefused",
     "RegistryUnreachable",
     "StreamMismatch",
     "UncalibratedUnit",

@@ -27,8 +27,9 @@ from typing import Any
 
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import read_unit
+from pipeline.client.folder import open_model
 from pipeline.registry import store
-from pipeline.vocab import DEPLOY_FORMAT, DEPLOY_FORMATS, file_sha256
+from pipeline.vocab import file_sha256
 
 # One logger for the whole client, named as before it was split into modules (log configs keep working).
 log = logging.getLogger("pipeline.client")
@@ -67,24 +68,6 @@ def read_version(folder: Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return info if isinstance(info, dict) else None
-
-
-def read_metadata(model_dir: Path) -> dict[str, Any]:
-    """The `needlecue` block of a model folder's MLmodel (plain YAML: no mlflow import, no pickle)."""
-    mlmodel = model_dir / "MLmodel"
-    if not mlmodel.is_file():
-        raise FileNotFoundError(f"{model_dir} is not a fetched model folder: it has no MLmodel file")
-    try:
-        meta = store.mlmodel_metadata(mlmodel).get("needlecue")
-    except ValueError as e:
-        raise ValueError(f"{mlmodel}: {e}") from e
-    if not isinstance(meta, dict) or meta.get("format") not in DEPLOY_FORMATS:
-        found = meta.get("format") if isinstance(meta, dict) else None
-        raise ValueError(
-            f"{mlmodel}: no {DEPLOY_FORMAT} block under metadata.needlecue (found format {found!r}); "
-            "was this model logged with pipeline.modelling.export.log_onnx_model?"
-        )
-    return meta
 
 
 @contextlib.contextmanager
@@ -264,6 +247,12 @@ def _offline_copy(
 ) -> Path:
     """The cached copy, checked, with a warning, when the registry cannot be used; else a clear error
     (`CachedCopyRefused` when the copy fails its check)."""
+    if cached is None and (target / VERSION_FILE).is_file():  # a copy is there, but not what it is
+        raise CachedCopyRefused(
+            f"cannot fetch {uri}: {error}; the local copy at {target} is refused: its {VERSION_FILE} is "
+            "unreadable (not a JSON object: damaged?), so what it holds is unknown. Reconnect to the "
+            "registry to fetch it again, or delete that folder"
+        ) from error
     if cached is None:
         raise store.RegistryUnreachable(
             f"cannot fetch {uri}: {error}; and there is no local copy at {target}"
@@ -309,9 +298,9 @@ def _model_problem(name: str, angle_deg: float) -> Verify:
         if why := _copy_problem(folder, info, name, "model.onnx", "onnx_sha256"):
             return why
         try:
-            meta = read_metadata(folder)
+            meta, _ = open_model(folder)  # the graph and its description, as registered
         except (OSError, ValueError) as e:
-            return f"its MLmodel is unusable ({e})"
+            return str(e)
         if float(meta.get("angle_deg", "nan")) != float(angle_deg):
             return f"its MLmodel is of the {meta.get('angle_deg')}° model, not {angle_deg:g}°"
         if meta.get("checkpoint_sha256") != info.get("checkpoint_sha256"):
@@ -343,7 +332,7 @@ def _model_info(folder: Path, mv: Any) -> dict[str, Any]:
     missing = [f for f in ("MLmodel", "model.onnx") if not (folder / f).is_file()]
     if missing:  # a broken registered model is an error, not a reason to go offline
         raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
-    meta = read_metadata(folder)
+    meta, _ = open_model(folder)  # ModelRefused (a ValueError): the registered version is broken
     return {
         "checkpoint_sha256": meta.get("checkpoint_sha256"),
         "onnx_sha256": file_sha256([folder / "model.onnx"]),
@@ -357,12 +346,22 @@ def _unit_info(unit_id: str) -> Describe:
         path = folder / UNIT_FILE
         if not path.is_file():
             raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {UNIT_FILE}")
+        sha, registered = (
+            file_sha256([path]),
+            (getattr(mv, "tags", None) or {}).get(store.CALIBRATION_SHA_TAG),
+        )
+        if sha != registered:  # the document's bytes as registered, or a version not to run
+            raise ValueError(
+                f"{mv.name} version {mv.version}: its {UNIT_FILE} (sha256 {sha[:12]}…) is not the document "
+                f"registered (tag {store.CALIBRATION_SHA_TAG}: {registered!r}); register it again with "
+                "`needlecue calibrate`"
+            )
         doc = read_unit(path)
         if doc.get("unit_id") != unit_id:
             raise ValueError(
                 f"{mv.name} version {mv.version} holds the calibration of unit {doc.get('unit_id')!r}"
             )
-        return {"unit_id": unit_id, "calibration_sha256": file_sha256([path])}
+        return {"unit_id": unit_id, "calibration_sha256": sha}
 
     return info
 

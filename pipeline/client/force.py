@@ -40,9 +40,9 @@ from pipeline.client.cache import (
     fetch,
     fetch_unit,
     poll_alias,
-    read_metadata,
     read_version,
 )
+from pipeline.client.folder import open_model
 from pipeline.modelling.features import InputTransform, StreamFeatures, spec_of
 from pipeline.registry import store
 from pipeline.rig.frontend import declared
@@ -128,9 +128,10 @@ class ForceClient:
         calibration: Path | str | Mapping[str, Any] | None = None,
         unit_id: str | None = None,
         cues_uncalibrated: bool = False,
+        unverified: bool = False,
     ) -> None:
         """The model of a folder (see `from_dir`, which this is)."""
-        self._load(Path(model_dir))
+        self._load(Path(model_dir), unverified)
         doc, info = _given_calibration(calibration)
         if doc is not None:
             if unit_id is not None and doc.get("unit_id") != unit_id:
@@ -149,15 +150,14 @@ class ForceClient:
         client._load(Path(model_dir))
         return client
 
-    def _load(self, model_dir: Path) -> None:
-        """Read the model folder and make the ONNX session, cue tracker and per-frame state."""
-        import onnxruntime as ort
-
+    def _load(self, model_dir: Path, unverified: bool = False) -> None:
+        """Check the model folder (`pipeline.client.folder.open_model`), make the ONNX session, cue
+        tracker and per-frame state."""
         self._follow: _Follow | None = None  # set by from_registry
         self._stream: tuple[tuple[str, ...], float, float] | None = None  # the last stream checked
         self.model_dir = Path(model_dir)
-        self.metadata: dict[str, Any] = read_metadata(self.model_dir)
-        meta = self.metadata
+        self.metadata, self._session = open_model(self.model_dir, unverified=unverified)
+        meta: dict[str, Any] = self.metadata
         self.kind: str = meta["kind"]
         self.angle_deg: float = float(meta["angle_deg"])
         self.channels: tuple[str, ...] = tuple(meta["channels"])
@@ -166,22 +166,12 @@ class ForceClient:
         self.window: int = int(meta["window"])
         self.inputs = spec_of(meta.get("inputs"))  # deploy/1 models read raw volts
         self.version: dict[str, Any] | None = read_version(self.model_dir)
-        onnx_file = self.model_dir / "model.onnx"
-        if not onnx_file.is_file():
-            raise FileNotFoundError(f"{self.model_dir} has no model.onnx")
-
-        opts = ort.SessionOptions()
-        # one frame at a time: threads would only add hand-off latency (and share the simulator's cores)
-        opts.intra_op_num_threads = 1
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        self._session = ort.InferenceSession(str(onnx_file), opts, providers=["CPUExecutionProvider"])
         inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
         shape = (self.window, len(self.channels)) if self.kind == "lstm" else (len(self.channels),)
         if [i.name for i in inputs] != [meta["input"]] or tuple(inputs[0].shape[1:]) != shape:
             found = [(i.name, i.shape) for i in inputs]
             raise ValueError(
-                f"{onnx_file}: inputs {found} do not match its MLmodel metadata "
+                f"{self.model_dir / 'model.onnx'}: inputs {found} do not match its MLmodel metadata "
                 f"({meta['input']!r} of shape (batch, {', '.join(map(str, shape))}))"
             )
         # Pre-allocated per-frame state: `step` writes into these arrays instead of allocating.
@@ -221,15 +211,22 @@ class ForceClient:
         calibration: Path | str | Mapping[str, Any] | None = None,
         unit_id: str | None = None,
         cues_uncalibrated: bool = False,
+        unverified: bool = False,
     ) -> ForceClient:
-        """The client of a fetched model folder (MLmodel + model.onnx).
+        """The client of a fetched model folder (MLmodel + model.onnx), refused (`ModelRefused`)
+        unless its graph and description are what was registered (`unverified`: run anyway, after a
+        loud warning).
 
         `calibration`: the unit's calibration document (a calibration.json path, or the document
         itself); its unit is the client's `unit_id` (a different `unit_id` is a ValueError). Without
         one, or when it was made with other models, the client is uncalibrated: an `UncalibratedUnit`
         warning, and no cues unless `cues_uncalibrated`."""
         return cls(
-            Path(model_dir), calibration=calibration, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated
+            Path(model_dir),
+            calibration=calibration,
+            unit_id=unit_id,
+            cues_uncalibrated=cues_uncalibrated,
+            unverified=unverified,
         )
 
     @classmethod

@@ -123,6 +123,9 @@ def _split_by_trial(
     return out
 
 
+REPEAT_RTOL, REPEAT_ATOL = 1e-9, 1e-12  # two recordings of one insertion never agree this closely
+
+
 def samples_sha256(t: Trial) -> str:
     """SHA-256 of a trial's samples: its channels' and forces' values in order, not their names."""
     h = hashlib.sha256()
@@ -132,19 +135,33 @@ def samples_sha256(t: Trial) -> str:
     return h.hexdigest()
 
 
+def _values(t: Trial) -> np.ndarray:
+    return np.column_stack([t.table.column(c).to_numpy() for c in [*t.channels, *AXES]]).astype(np.float64)
+
+
 def drop_repeats(trials: list[Trial]) -> tuple[list[Trial], list[dict[str, str]]]:
     """The trials with each recording once (the first in (batch, trial) order), and the set-aside
-    record of every repeat."""
+    record of every repeat: the same samples (`samples_sha256`), or the same to within rounding
+    (a copy whose timestamps were shifted lands on another grid phase: equal to about 1e-14)."""
     first: dict[str, Trial] = {}
+    by_shape: dict[tuple[int, tuple[str, ...]], list[tuple[Trial, np.ndarray]]] = {}
     kept, aside = [], []
     for t in sorted(trials, key=lambda t: t.key):
         original = first.setdefault(samples_sha256(t), t)
+        values = _values(t)
         if original is t:
-            kept.append(t)
-            continue
+            peers = by_shape.setdefault((len(values), t.channels), [])
+            # REPEAT_RTOL: far below any sensor's noise, far above float rounding
+            close = (o for o, v in peers if np.allclose(values, v, rtol=REPEAT_RTOL, atol=REPEAT_ATOL))
+            original = next(close, t)
+            if original is t:
+                peers.append((t, values))
+                kept.append(t)
+                continue
+        same = "the same samples as" if samples_sha256(original) == samples_sha256(t) else "samples equal to"
         reason = (
-            f"the same samples as {original.batch_id}/{original.trial_id}: a recording is used once "
-            "(a batch or trial copied under another name?)"
+            f"{same} {original.batch_id}/{original.trial_id}: a recording is used once "
+            "(a batch or trial copied under another name, or with its timestamps shifted?)"
         )
         aside.append({"angle": t.angle, "batch_id": t.batch_id, "trial_id": t.trial_id, "reason": reason})
     return kept, aside

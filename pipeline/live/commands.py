@@ -22,14 +22,18 @@ def load_client(
     model_dir: Path | None,
     unit_id: str | None,
     cues_uncalibrated: bool = False,
+    unverified: bool = False,
 ) -> Any:
     """The champion (or `model_dir`) with unit `unit_id`'s registered calibration, as the simulator
-    loads it. Raises what the client raises (RegistryUnreachable, ValueError, LookupError, ...)."""
+    loads it; `unverified` runs a `model_dir` that fails its check, after a loud warning. Raises what
+    the client raises (RegistryUnreachable, ValueError incl. ModelRefused, LookupError, ...)."""
     from pipeline.client import ForceClient
 
     if model_dir is None:
         if angle is None:
             raise ValueError("give --angle (the preset angle whose model to fetch) or --model-dir")
+        if unverified:
+            raise ValueError("--unverified is for --model-dir only: a fetched champion is always checked")
         return ForceClient.from_registry(angle, alias, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated)
     calibration = None
     if unit_id is not None:  # the unit's registered calibration, if there is one
@@ -42,8 +46,16 @@ def load_client(
         except (ModelNotFound, RegistryUnreachable) as e:
             typer.echo(f"warning: no calibration of unit {unit_id}: {e}", err=True)
     client = ForceClient.from_dir(
-        model_dir, calibration=calibration, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated
+        model_dir,
+        calibration=calibration,
+        unit_id=unit_id,
+        cues_uncalibrated=cues_uncalibrated,
+        unverified=unverified,
     )
+    if unverified:
+        typer.echo(
+            f"WARNING: {model_dir} runs UNVERIFIED (--unverified): its forces and cues may be wrong", err=True
+        )
     if angle is not None and client.angle_deg != angle:
         raise ValueError(f"--angle {angle:g} but the model in {model_dir} is for {client.angle_deg:g}°")
     return client
@@ -55,6 +67,13 @@ AngleOption = Annotated[
 AliasOption = Annotated[str, typer.Option("--alias", help="registry alias of the model")]
 ModelDirOption = Annotated[
     Path | None, typer.Option("--model-dir", help="an already-fetched model folder (skips the registry)")
+]
+UnverifiedOption = Annotated[
+    bool,
+    typer.Option(
+        "--unverified",
+        help="run a --model-dir whose graph or description is not what was registered (loudly)",
+    ),
 ]
 
 
@@ -88,6 +107,7 @@ def live(
     cues_uncalibrated: Annotated[
         bool, typer.Option(help="show angle cues even for an uncalibrated unit (not advised)")
     ] = False,
+    unverified: UnverifiedOption = False,
 ) -> None:
     """Run the champion and the cue tracker live on the estimator's serial stream: the trainee's page
     (http://127.0.0.1:8770/), a terminal line, and a recording `needlecue replay` plays back.
@@ -97,7 +117,7 @@ def live(
     from pipeline.registry.store import RegistryUnreachable
 
     try:
-        client = load_client(angle, alias, model_dir, unit, cues_uncalibrated)
+        client = load_client(angle, alias, model_dir, unit, cues_uncalibrated, unverified)
     except RegistryUnreachable as e:
         raise fail(str(e), 2) from e
     except (FileNotFoundError, ValueError, LookupError) as e:

@@ -9,12 +9,16 @@ volts into inputs, and applies a unit's calibration) and never a pickle:
 
 The same checkpoint gives the same ONNX bytes, in any process (a test checks it), and the MLflow model
 carries a `needlecue` metadata block (`deploy_metadata`) with everything the client needs to feed it.
+What a simulator runs is verified as one (`pipeline.client.folder`): the graph's own metadata holds
+the sha256 of that block, and the block the sha256 of the graph (`onnx_sha256`), both recorded when
+the model is logged.
 
 torch, onnx and mlflow are imported inside the functions, so importing this module is cheap.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -26,7 +30,7 @@ import numpy as np
 from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpoint_sha256
 from pipeline.modelling.features import spec_of
 from pipeline.modelling.networks import build_network
-from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAME, OUTPUT_NAME
+from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAME, OUTPUT_NAME, description_sha256
 
 if TYPE_CHECKING:
     import torch
@@ -84,8 +88,9 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
     return Deployable().float().eval()
 
 
-def to_onnx(checkpoint: dict[str, Any]) -> bytes:
-    """The serialized ONNX model of a checkpoint (see the module docstring for its input and output)."""
+def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes:
+    """The serialized ONNX model of a checkpoint (see the module docstring for its input and output);
+    `description`: the sha256 of the description it is logged with (`description_sha256`)."""
     import onnx
     import torch
 
@@ -115,6 +120,8 @@ def to_onnx(checkpoint: dict[str, Any]) -> bytes:
     # The graph alone says what it is: whoever finds a bare model.onnx can still feed it correctly.
     keys = ("format", "kind", "angle_deg", "channels", "targets", "rate_hz", "window", "checkpoint_sha256")
     info = {k: v for k, v in deploy_metadata(checkpoint, None).items() if k in keys}
+    if description is not None:
+        info["description_sha256"] = description
     del proto.metadata_props[:]
     proto.metadata_props.add(key="needlecue", value=json.dumps(info, sort_keys=True))
     proto.producer_name, proto.doc_string = "needlecue", ""
@@ -209,7 +216,9 @@ def log_onnx_model(
 
     if mlflow.active_run() is None:
         raise RuntimeError(f"log_onnx_model({name!r}) needs an active MLflow run (mlflow.start_run())")
-    model = to_onnx(checkpoint)
+    meta = deploy_metadata(checkpoint, cue_pack)
+    model = to_onnx(checkpoint, description_sha256(meta))
+    meta["onnx_sha256"] = hashlib.sha256(model).hexdigest()  # the bytes MLflow writes (a test checks)
     example = input_example(checkpoint)
     verify_onnx(checkpoint, model, example)  # MLflow's own check below only sees that it runs
     proto = onnx.load_from_string(model)
@@ -223,7 +232,7 @@ def log_onnx_model(
         name=name,
         signature=signature,
         input_example={INPUT_NAME: example},
-        metadata={"needlecue": deploy_metadata(checkpoint, cue_pack)},
+        metadata={"needlecue": meta},
         pip_requirements=["onnxruntime"],
         # MLflow's default lists CUDA first, then warns on every CPU-only load that it is missing
         onnx_execution_providers=["CPUExecutionProvider"],

@@ -27,6 +27,8 @@ EXPERIMENT = "needle-force"
 CHAMPION = "champion"
 CHALLENGER = "challenger"
 TAG = "needlecue."  # prefix of our own tags on runs and model versions
+# a unit calibration's version: the sha256 of its document's bytes, as registered (the client checks it)
+CALIBRATION_SHA_TAG = f"{TAG}calibration_sha256"
 UNIT_EXPERIMENT = "needle-units"  # one run per registered unit calibration document
 UNIT_ALIAS = "current"  # needle-unit-<unit_id>@current: the calibration a simulator applies
 ABOUT = """One run per trained model: `<angle>°-<kind>` (ls, fnn, lstm), tagged `angle_deg` and `model_type`.

@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.calibration.document import FILE, read_unit, transform_for
 from pipeline.registry.store import (
+    CALIBRATION_SHA_TAG,
     CHAMPION,
-    TAG,
     UNIT_ABOUT,
     UNIT_ALIAS,
     UNIT_EXPERIMENT,
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from pipeline.modelling.predict import Predictor
 
 Log = Callable[[str], None]
-SHA_TAG = f"{TAG}calibration_sha256"
+SHA_TAG = CALIBRATION_SHA_TAG
 ARTIFACT_DIR = "calibration"  # the run's artifact folder that a unit version is made from
 ADVICE = "run needlecue calibrate"
 FORCE_PREFIX = "needle-force-"

@@ -97,6 +97,66 @@ def check_flat(frame: pd.DataFrame, cols: Sequence[str], what: str, file: str, p
         probs.add(file, reason, trial_id=str(frame["trial_id"].iat[0]), line=int(frame["line"].iat[0]))
 
 
+def check_dead(frame: pd.DataFrame, cols: Sequence[str], what: str, file: str, probs: ProblemLog) -> None:
+    """One column constant over the whole trial while another moves: a dead or disconnected channel
+    (all constant is `check_flat`'s)."""
+    if len(frame) < 2:
+        return
+    values = frame[list(cols)].to_numpy(dtype=float)
+    still = values.max(axis=0) == values.min(axis=0)
+    if still.any() and not still.all():
+        moving = [c for c, s in zip(cols, still, strict=True) if not s]
+        for k in np.flatnonzero(still):
+            reason = (
+                f"{cols[k]} constant at {values[0, k]:g} over all {len(frame)} samples while "
+                f"{', '.join(moving)} move: a dead or disconnected channel of the {what}"
+            )
+            line = int(frame["line"].iat[0])
+            probs.add(file, reason, trial_id=str(frame["trial_id"].iat[0]), line=line, column=cols[k])
+
+
+def check_clipped(
+    frame: pd.DataFrame,
+    cols: Sequence[str],
+    time_col: str,
+    per_second: float,
+    min_run_s: float,
+    what: str,
+    file: str,
+    probs: ProblemLog,
+    rails: tuple[float, float] | None = None,
+) -> None:
+    """A flat top: the column held at the value farthest from its rest reading (its first sample) for
+    at least `min_run_s` seconds on end, where the sensor or its logger saturated or clipped. A
+    reading that rests on one value before the insertion is not flagged: only the far extreme is.
+    With `rails` (an ADC's range), only a flat top on a rail: a 10-bit reading of a slow, quiet
+    estimator holds its peak count for longer than that without being saturated."""
+    if len(frame) < 3:
+        return
+    t = frame[time_col].to_numpy(dtype=float) / per_second
+    trial = str(frame["trial_id"].iat[0])
+    for c in cols:
+        v = frame[c].to_numpy(dtype=float)
+        lo, hi = float(v.min()), float(v.max())
+        if lo == hi:
+            continue  # constant: check_flat's or check_dead's
+        far = hi if abs(hi - v[0]) >= abs(lo - v[0]) else lo
+        if rails is not None and far not in rails:
+            continue
+        at = np.r_[False, v == far, False]
+        starts, ends = np.flatnonzero(~at[:-1] & at[1:]), np.flatnonzero(at[:-1] & ~at[1:])
+        spans = t[ends - 1] - t[starts]
+        if spans.size and spans.max() >= min_run_s:
+            i = int(starts[int(np.argmax(spans))])
+            n = int((ends - starts)[int(np.argmax(spans))])
+            reason = (
+                f"{c} clipped: held at {far:g} {what}, its {'maximum' if far == hi else 'minimum'}, for "
+                f"{spans.max():.3g} s ({n} samples) from this line; the sensor or its logger saturated "
+                f"({'on its rail, ' if rails else ''}ingest.clip_run_s = {min_run_s:g} s or more)"
+            )
+            probs.add(file, reason, trial_id=trial, line=int(frame["line"].iat[i]), column=c)
+
+
 def check_length(
     frame: pd.DataFrame,
     time_col: str,

@@ -56,9 +56,11 @@ class _Trials:
 
 
 def _read_trials(
-    batch_dir: Path, batch_id: str, probs: ProblemLog, validator: Validator, warn: Warn
+    batch_dir: Path, batch_id: str, probs: ProblemLog, validator: Validator, warn: Warn, unit_id: str
 ) -> _Trials | None:
-    """trials.csv read, checked row by row and validated with GX; None if the batch must be set aside."""
+    """trials.csv read, checked row by row and validated with GX; None if the batch must be set aside.
+    A `unit_id` column must name the batch's unit (batch.yaml `sensor.unit_id`) on every row: one
+    estimator unit per batch, and a trial that names another is set aside, never relabelled."""
     path = _locate(batch_dir, TRIALS_FILE, probs, None)
     if path is None:
         return None
@@ -80,6 +82,15 @@ def _read_trials(
         warn(path, "a column without a name is ignored")
         extras = [h for h in extras if h]
     ids = [r[i_id].strip() for r in rows]
+    if "unit_id" in extras:
+        i_unit = table.header.index("unit_id")
+        for r, ln, tid in zip(rows, lines, ids, strict=True):
+            if (named := r[i_unit].strip()) != unit_id:
+                reason = (
+                    f"unit_id {named!r}, but batch.yaml's sensor.unit_id is {unit_id!r}: a batch is "
+                    "recorded with one estimator unit; put each unit's trials in a batch of its own"
+                )
+                probs.add(file, reason, trial_id=tid, line=ln, column="unit_id")
     # "15°" and "-0" name the angles 15 and 0 (+ 0.0 turns -0.0 into 0.0)
     degrees = [r[idx["angle_deg"]].strip().removesuffix("°") for r in rows]
     angle = numbers(degrees, lines, file, "angle_deg", ids, probs) + 0.0
@@ -194,20 +205,28 @@ def _rate_row(frame: pd.DataFrame, file: str, time_col: str, per_second: float) 
 def _plausible_fsr(
     frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
 ) -> None:
-    """Volts within 0 and the ADC's reference (counts: GX checks the ADC range), not flat, one insertion."""
+    """Volts within 0 and the ADC's reference (counts: GX checks the ADC range), not flat, no dead
+    channel, no flat top, one insertion."""
     channels = list(meta.sensor.channels)
     if meta.sensor.units == "volts":
         top = plausible.volts_limit(meta, p)
         what = "V (0 to sensor.vref_v, else ingest.max_volts: counts declared as volts?)"
         plausible.check_range(frame, channels, 0.0, top, what, file, probs)
     plausible.check_flat(frame, channels, "estimator stream", file, probs)
+    plausible.check_dead(frame, channels, "estimator", file, probs)
+    if meta.sensor.units == "volts":
+        unit, rails = "V", (0.0, plausible.volts_limit(meta, p))
+    else:
+        unit, rails = "counts", (0.0, float(2**meta.sensor.adc_bits - 1) if meta.sensor.adc_bits else -1.0)
+    plausible.check_clipped(frame, channels, FSR_TIME, 1000.0, p.clip_run_s, unit, file, probs, rails)
     plausible.check_length(frame, FSR_TIME, 1000.0, meta, p, file, probs)
 
 
 def _plausible_ref(
     frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
 ) -> None:
-    """Forces within the reference sensor's range, no isolated glitch, not flat, one insertion."""
+    """Forces within the reference sensor's range, no isolated glitch, not flat, no dead axis, no flat
+    top, one insertion."""
     forces = list(REF_COLUMNS[1:])
     unit = meta.reference.units
     scale = plausible.MN_PER_N if unit == "mN" else 1.0
@@ -219,6 +238,8 @@ def _plausible_ref(
     jump = p.reference_glitch_n * scale
     plausible.check_glitches(frame, forces, jump, unit, "ingest.reference_glitch_n", file, probs)
     plausible.check_flat(frame, forces, "reference stream", file, probs)
+    plausible.check_dead(frame, forces, "reference sensor", file, probs)
+    plausible.check_clipped(frame, forces, REF_COLUMNS[0], 1.0, p.clip_run_s, unit, file, probs)
     plausible.check_length(frame, REF_COLUMNS[0], 1.0, meta, p, file, probs)
 
 
@@ -264,7 +285,7 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
     if meta is None:
         return done()
     out.meta = meta
-    trials = _read_trials(batch_dir, batch_id, probs, validator, warn)
+    trials = _read_trials(batch_dir, batch_id, probs, validator, warn, meta.sensor.unit_id)
     if trials is None:
         return done()
     if trials.check is not None:

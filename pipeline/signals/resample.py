@@ -82,6 +82,27 @@ class Streams:
     force_n: np.ndarray  # (m, 3)
 
 
+# An estimator that moves less than this (about two counts of a 10-bit, 5 V ADC) while the reference
+# force spans more than this has not recorded the insertion: stuck, dead or unpowered. Any design
+# that can sense a needle moves its volts far more over an insertion.
+STILL_V = 0.01
+MOVED_N = 0.2
+
+
+def check_response(streams: Streams) -> None:
+    """SetAside, with that reason, when the estimator did not respond to an insertion the reference
+    recorded: before the clock alignment, which would blame the clocks."""
+    if streams.volts.size == 0 or streams.force_n.size == 0:
+        return
+    moved_v = float(np.max(np.ptp(streams.volts, axis=0)))
+    span_n = float(np.max(np.ptp(streams.force_n, axis=0)))
+    if moved_v < STILL_V and span_n >= MOVED_N:
+        raise SetAside(
+            f"the estimator does not respond: its channels move at most {1000 * moved_v:.1f} mV while "
+            f"the reference force spans {span_n:.2f} N (stuck at rest, dead or unpowered?)"
+        )
+
+
 def align(fsr: Streams, ref: Streams, p: ResampleParams, *, shared_clock: bool = False) -> OffsetEstimate:
     """The clock offset between `fsr`'s estimator stream and `ref`'s reference stream (usually one
     trial's; another trial's when checking a pairing). Raises SetAside when they cannot be aligned;
@@ -120,6 +141,7 @@ def resample_trial(
     """Align, resample and label one trial on its own (inputs already in s, V and N): with no other
     trial to compare with, a quality below `min_quality` sets it aside. Raises SetAside."""
     streams = Streams(t_fsr_s, volts, t_ref_s, force_n)
+    check_response(streams)
     est = align(streams, streams, p, shared_clock=shared_clock)
     if est.quality < p.min_quality:  # the streams do not record the same insertion, or not in this window
         raise SetAside(
@@ -273,6 +295,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
                 to_newtons(rf[list(AXES)].to_numpy(np.float64), info.ref_units),
             )
             streams = Streams(t_fsr, volts, t_ref, force)
+            check_response(streams)
             usable[tid] = streams, align(streams, streams, p, shared_clock=info.shared_clock)
         except SetAside as e:
             row["status"] = f"set aside: {e}"

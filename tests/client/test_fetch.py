@@ -11,10 +11,12 @@ import pytest
 
 from pipeline import client as fc
 from pipeline.client.cache import poll_alias
+from pipeline.client.folder import read_metadata
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.export import to_onnx
 from pipeline.modelling.fit import fit
 from pipeline.registry import store
+from pipeline.vocab import description_sha256
 from tests.client.builders import TINY, UNREACHABLE, Registered, cue_trials, register
 
 pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
@@ -32,7 +34,8 @@ def test_fetch_downloads_once_and_falls_back_to_the_copy_when_offline(
     version = json.loads((folder / "version.json").read_text())
     assert (version["name"], version["version"], version["alias"]) == ("needle-force-30", "1", "champion")
     assert version["run_id"] and version["checkpoint_sha256"] == checkpoint_sha256(registered.checkpoint)
-    assert (folder / "model.onnx").read_bytes() == to_onnx(registered.checkpoint)
+    meta = read_metadata(folder)  # the graph carries its description's hash
+    assert (folder / "model.onnx").read_bytes() == to_onnx(registered.checkpoint, description_sha256(meta))
     assert sorted(p.name for p in folder.parent.iterdir()) == ["champion"]
 
     # when: fetching again with the same version registered (a download would fail loudly)
@@ -138,12 +141,12 @@ def _cached_copy(registered: Registered, tmp_path: Path) -> tuple[Path, Path]:
             lambda f: f.joinpath("model.onnx").write_bytes(b"\0" + f.joinpath("model.onnx").read_bytes()),
             "model.onnx is not the file fetched",
         ),
-        (lambda f: f.joinpath("MLmodel").write_text("- just\n- a list\n"), "its MLmodel is unusable"),
+        (lambda f: f.joinpath("MLmodel").write_text("- just\n- a list\n"), "MLmodel: not an MLmodel file"),
         (
             lambda f: f.joinpath("MLmodel").write_text(
                 f.joinpath("MLmodel").read_text().replace("angle_deg: 30.0", "angle_deg: 45.0")
             ),
-            "not 30°",
+            r"needlecue\.angle_deg differs from the graph's own",
         ),
         (
             lambda f: f.joinpath("version.json").write_text(

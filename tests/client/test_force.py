@@ -63,9 +63,9 @@ def test_a_cue_pack_of_another_format_gives_force_without_cues(
     old = shutil.copytree(fetched, tmp_path / "old-pack")
     mlmodel = old / "MLmodel"
     mlmodel.write_text(mlmodel.read_text().replace("needlecue-cues/4", "needlecue-cues/3"))
-    # when: a client loads it, cues asked for
+    # when: a client loads it, cues asked for, the edited description run unverified
     with caplog.at_level(logging.WARNING, logger="pipeline.client"), pytest.warns(fc.UncalibratedUnit):
-        client = fc.ForceClient.from_dir(old, cues_uncalibrated=True)
+        client = fc.ForceClient.from_dir(old, cues_uncalibrated=True, unverified=True)
     # then: force every frame, no cue, and a warning that says why and what to do
     frame = client.step([0.6, 0.6, 0.6])
     assert frame.force_n.shape == (3,) and frame.cue is None
@@ -94,7 +94,7 @@ def test_a_folder_that_is_not_a_model_is_a_clear_error(tmp_path: Path) -> None:
     # when / then: each names the folder and what is missing
     with pytest.raises(FileNotFoundError, match="no MLmodel file"):
         fc.ForceClient.from_dir(tmp_path)
-    with pytest.raises(ValueError, match="no needlecue-deploy/2 block"):
+    with pytest.raises(ValueError, match="no needlecue-deploy/3 block"):
         fc.ForceClient.from_dir(tmp_path / "other")
 
 

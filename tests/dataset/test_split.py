@@ -132,6 +132,37 @@ def test_a_trial_repeated_under_another_id_is_set_aside():
     assert [(s["trial_id"], s["reason"].split(":")[0]) for s in aside] == [("t2", "the same samples as b/t1")]
 
 
+def test_a_copy_with_its_timestamps_shifted_is_set_aside():
+    # Given one trial resampled as recorded and again with every timestamp 1 s later (its samples
+    # then differ from the original's by float rounding, about 1e-15), and another trial
+    from pipeline.signals.resample import resample_trial
+    from tests.signals.fabricate import PARAMS, fabricate, volts_of
+
+    def trial(tid: str, fab, shift_s: float = 0.0) -> sp.Trial:
+        res = resample_trial(fab.t_ms / 1e3 + shift_s, volts_of(fab), fab.t_s + shift_s, fab.force, PARAMS)
+        cols = {"fsr1": res.volts[:, 0], "fsr2": res.volts[:, 1], "fsr3": res.volts[:, 2]}
+        return sp.Trial(
+            "b",
+            tid,
+            "30",
+            ("fsr1", "fsr2", "fsr3"),
+            pa.table({**cols, **dict(zip(AXES, res.force_n.T, strict=True))}),
+        )
+
+    fab = fabricate(seed=5, offset_s=0.1)
+    original, shifted, other = (
+        trial("t1", fab),
+        trial("t2", fab, 1.0),
+        trial("t3", fabricate(seed=6, offset_s=0.1)),
+    )
+    assert sp.samples_sha256(original) != sp.samples_sha256(shifted)
+    # When repeats are dropped
+    kept, aside = sp.drop_repeats([other, shifted, original])
+    # Then the copy is set aside, naming the original; the other trial stays
+    assert [t.trial_id for t in kept] == ["t1", "t3"]
+    assert [(s["trial_id"], s["reason"].split(":")[0]) for s in aside] == [("t2", "samples equal to b/t1")]
+
+
 def test_empty_splits_are_written_with_the_schema(tmp_path):
     # Given an angle with 2 training trials and no held-out batch
     src = tmp_path / "in"

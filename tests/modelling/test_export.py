@@ -19,6 +19,7 @@ from pipeline.modelling.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import sequence_order, window_index
 from pipeline.modelling.predict import Predictor
+from pipeline.vocab import description_sha256
 from tests.modelling.frames import make_frame
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -126,7 +127,7 @@ def test_deploy_metadata_identifies_the_model_and_carries_the_cue_pack(checkpoin
     meta = export.deploy_metadata(ck, pack)
     # then: plain JSON with everything a client needs, and a hash that follows the weights only
     assert json.loads(json.dumps(meta, allow_nan=False)) == meta
-    assert meta["format"] == "needlecue-deploy/2" and meta["kind"] == "fnn"
+    assert meta["format"] == "needlecue-deploy/3" and meta["kind"] == "fnn"
     assert meta["inputs"] == ck["inputs"]  # how the client computes what the graph reads
     assert (meta["channels"], meta["targets"], meta["window"]) == (CHANNELS, ["fx", "fy", "fz"], 1)
     assert meta["angle_deg"] == 30.0 and meta["rate_hz"] == pytest.approx(30.0)
@@ -170,8 +171,15 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     assert (out.name, out.type, tuple(out.shape)) == ("force_n", np.dtype(np.float32), (-1, 3))
     x = np.asarray(example["inputs"] if isinstance(example, dict) else example, dtype=np.float32)
     assert x.shape == (3, 6, 3) and np.allclose(x[1, 0], checkpoint["preprocessing"]["x_mean"].numpy())
-    assert model.metadata["needlecue"] == export.deploy_metadata(checkpoint, {"format": "test-pack"})
-    assert (folder / "model.onnx").read_bytes() == export.to_onnx(checkpoint)
+    meta = model.metadata["needlecue"]
+    assert {k: v for k, v in meta.items() if k != "onnx_sha256"} == export.deploy_metadata(
+        checkpoint, {"format": "test-pack"}
+    )
+    # the graph MLflow wrote is the one exported with the description's hash, and the description
+    # names it: each vouches for the other (pipeline.client.folder)
+    graph = (folder / "model.onnx").read_bytes()
+    assert graph == export.to_onnx(checkpoint, description_sha256(meta))
+    assert meta["onnx_sha256"] == hashlib.sha256(graph).hexdigest()
     assert "model.onnx" in files and "MLmodel" in files
     assert not [f for f in files if f.endswith((".pkl", ".pickle")) or "python_model" in f], files
     assert np.isfinite(run_onnx((folder / "model.onnx").read_bytes(), x)).all()

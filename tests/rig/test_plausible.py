@@ -20,6 +20,29 @@ def flatten(path: Path) -> None:
     write_lines(path, [rows[0], *(r.split(",")[0] + ",0,0,0" for r in rows[1:])])
 
 
+def clip(path: Path, column: str, fraction: float) -> None:
+    """A stream's `column` held at `fraction` of its peak (from its first value) wherever it went
+    beyond: a saturated sensor or logger."""
+    rows = lines_of(path)
+    k = rows[0].split(",").index(column)
+    values = [float(r.split(",")[k]) for r in rows[1:]]
+    rest = values[0]
+    peak = max(values, key=lambda v: abs(v - rest))
+    top = rest + fraction * (peak - rest)
+    out = [rows[0]]
+    for r, v in zip(rows[1:], values, strict=True):
+        cells = r.split(",")
+        cells[k] = f"{top:g}" if (v - top) * (peak - rest) > 0 else cells[k]
+        out.append(",".join(cells))
+    write_lines(path, out)
+
+
+def hold(path: Path, column: str, first: int, last: int, value: str) -> None:
+    """`column` set to `value` on lines `first`..`last` of a stream file."""
+    for line in range(first, last + 1):
+        set_cell(path, line, column, value)
+
+
 @dataclass(frozen=True)
 class Case:
     name: str
@@ -64,6 +87,48 @@ CASES = [
         2,
         None,
         "reference stream constant over all 2001 samples (fx = 0, fy = 0, fz = 0): sensor disconnected?",
+    ),
+    Case(
+        "a reference clipped at 40 % of its peak",
+        lambda b: clip(b / "t001.ref.csv", "fz", 0.4),
+        "t001.ref.csv",
+        None,
+        "fz",
+        "fz clipped: held at",
+    ),
+    Case(
+        "a dead estimator channel",
+        lambda b: hold(b / "t001.fsr.csv", "top", 2, 500, "0.8"),
+        "t001.fsr.csv",
+        2,
+        "top",
+        "top constant at 0.8 over all 499 samples while left, right, bottom move: a dead or disconnected",
+    ),
+    Case(
+        "an estimator channel saturated at its supply",
+        lambda b: hold(b / "t001.fsr.csv", "left", 200, 230, "5"),
+        "t001.fsr.csv",
+        200,
+        "left",
+        "left clipped: held at 5 V, its maximum, for 0.6",
+    ),
+    Case(
+        "a trial that names another estimator unit",
+        lambda b: write_lines(
+            b / "trials.csv",
+            [
+                f"{r},{u}"
+                for r, u in zip(
+                    lines_of(b / "trials.csv"),
+                    ["unit_id", "est-other", "est-bench-01", "est-bench-01"],
+                    strict=True,
+                )
+            ],
+        ),
+        "trials.csv",
+        2,
+        "unit_id",
+        "unit_id 'est-other', but batch.yaml's sensor.unit_id is 'est-bench-01': a batch is recorded",
     ),
     Case(
         "counts declared as volts",

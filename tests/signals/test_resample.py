@@ -58,3 +58,13 @@ def test_grid_points_in_a_long_gap_are_dropped():
     # And the 33 ms gaps of single dropped samples are not gaps
     fab2 = fabricate(seed=8, offset_s=0.05, drop_p=0.05)
     assert resample_fab(fab2).n_dropped_gap == 0
+
+
+def test_an_estimator_stuck_at_rest_is_set_aside_for_that_not_for_its_clocks():
+    # Given a trial whose estimator channels stayed at their rest reading through the insertion
+    fab = fabricate(seed=5, offset_s=0.1)
+    stuck = np.repeat(volts_of(fab)[:1], len(fab.t_ms), axis=0)
+    stuck[::7, 0] += 5.0 / 1023  # one count of noise on one channel: not a flat line
+    # When it is resampled, then the reason names the estimator, not the clock alignment
+    with pytest.raises(SetAside, match=r"the estimator does not respond: its channels move at most 4\.9 mV"):
+        resample_trial(fab.t_ms / 1e3, stuck, fab.t_s, fab.force, PARAMS)
