@@ -114,11 +114,12 @@ def check(
 
 
 def _repeats(checked: list[Any]) -> dict[tuple[str, str], str]:
-    """{(batch, trial): the batch/trial it repeats} for trials whose files are byte for byte those of
-    an earlier one in (batch, trial) order: the split stage keeps the first and sets the others aside."""
+    """{(batch, trial): the batch/trial it repeats} for trials whose values (both streams, times left
+    out) are those of an earlier one in (batch, trial) order: the split stage keeps the first and sets
+    the others aside."""
     first: dict[str, str] = {}
     out = {}
-    for batch, trial, sha in sorted((c.batch_id, t, h) for c in checked for t, h in c.files_sha256.items()):
+    for batch, trial, sha in sorted((c.batch_id, t, h) for c in checked for t, h in c.samples_sha256.items()):
         original = first.setdefault(sha, f"{batch}/{trial}")
         if original != f"{batch}/{trial}":
             out[(batch, trial)] = original
@@ -154,7 +155,7 @@ def _print_trials(
     for trial in sorted([*c.trials_accepted, *c.trials_set_aside]):
         state = "passes ingest" if trial in c.trials_accepted else "set aside at ingest (problems above)"
         if (c.batch_id, trial) in repeats:
-            state += f", but its files are those of {repeats[c.batch_id, trial]}: split will set it aside"
+            state += f", but its samples are those of {repeats[c.batch_id, trial]}: split will set it aside"
         known = last_run.get((c.folder.resolve(), trial))
         typer.echo(f"  {trial}: {state}" + (f"; last dvc repro: {entry_text(known)}" if known else ""))
 

@@ -10,6 +10,7 @@ import yaml
 from typer.testing import CliRunner
 
 from pipeline.cli import app
+from tests.rig.batches import gzip_file, lines_of, write_lines
 
 runner = CliRunner()
 LAB_BATCH = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
@@ -84,10 +85,37 @@ def test_check_names_a_batch_copied_under_another_name(tmp_path):
     # Then each copied trial names the one it repeats, and the check fails
     assert result.exit_code == 1
     assert (
-        "  t002: passes ingest, but its files are those of lab-bench-a/t002: split will set it aside"
+        "  t002: passes ingest, but its samples are those of lab-bench-a/t002: split will set it aside"
         in result.output
     )
     assert "3 trial(s) repeat another's recording" in result.output
+
+
+def test_check_names_a_trial_copied_with_its_timestamps_shifted_or_compressed(tmp_path):
+    # Given a batch, a copy of it with every timestamp 1 s later, and one with a gzip-compressed trial
+    shutil.copytree(LAB_BATCH, tmp_path / "raw" / "lab-bench-a")
+    shifted = shutil.copytree(LAB_BATCH, tmp_path / "raw" / "lab-bench-s")
+    (shifted / "batch.yaml").write_text(
+        (shifted / "batch.yaml").read_text().replace("lab-bench-a", "lab-bench-s")
+    )
+    for trial in ("t001", "t002", "t003"):
+        for name, col, step in ((f"{trial}.fsr.csv", 0, 1000.0), (f"{trial}.ref.csv", 0, 1.0)):
+            rows = lines_of(shifted / name)
+            out = [rows[0]]
+            for r in rows[1:]:
+                cells = r.split(",")
+                cells[col] = f"{float(cells[col]) + step:.3f}"
+                out.append(",".join(cells))
+            write_lines(shifted / name, out)
+    gz = shutil.copytree(LAB_BATCH, tmp_path / "raw" / "lab-bench-g")
+    (gz / "batch.yaml").write_text((gz / "batch.yaml").read_text().replace("lab-bench-a", "lab-bench-g"))
+    gzip_file(gz / "t001.fsr.csv")
+    # When checked
+    result = runner.invoke(app, ["check", str(tmp_path / "raw"), "--params", str(tmp_path / "none.yaml")])
+    # Then the shifted and the compressed copies name the original, as split would set them aside
+    assert result.exit_code == 1
+    assert "  t001: passes ingest, but its samples are those of lab-bench-a/t001" in result.output
+    assert result.output.count("but its samples are those of lab-bench-a/") == 6
 
 
 def test_check_refuses_a_missing_folder(tmp_path):

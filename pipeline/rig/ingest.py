@@ -48,14 +48,13 @@ from pipeline.config import IngestParams
 from pipeline.rig.expectations import Validator
 from pipeline.rig.format import (
     BATCH_FILE,
+    FSR_TIME,
     ID_PATTERN,
+    REF_COLUMNS,
     TRIAL_COLUMNS,
     TRIALS_FILE,
     Problem,
     batch_dirs,
-    find,
-    fsr_file,
-    ref_file,
 )
 from pipeline.rig.reader import ParsedBatch, parse_batch
 
@@ -402,15 +401,20 @@ class CheckedBatch:
     trials_accepted: list[str]
     trials_set_aside: list[str]
     problems: list[Problem]
-    files_sha256: dict[str, str] = field(default_factory=dict)  # accepted trial -> its two files' hash
+    samples_sha256: dict[str, str] = field(default_factory=dict)  # accepted trial -> its values' hash
 
 
-def _trial_sha256(batch_dir: Path, trial_id: str) -> str:
-    """SHA-256 of a trial's two stream files (the same bytes give the same samples downstream)."""
+def _samples_sha256(parsed: ParsedBatch, trial_id: str) -> str:
+    """SHA-256 of a trial's parsed values, both streams, without their times: the same recording
+    read from a gzip or TDMS copy, or copied with its timestamps shifted, hashes the same (as the
+    split stage, which compares the samples, sets it aside)."""
     h = hashlib.sha256()
-    for name in (fsr_file(trial_id), ref_file(trial_id)):
-        for path in find(batch_dir, name):  # the one form that was read (plain, gzip or TDMS)
-            h.update(path.read_bytes())
+    for frame, time_col in ((parsed.fsr, FSR_TIME), (parsed.ref, REF_COLUMNS[0])):
+        if frame is None:
+            continue
+        rows = frame[frame["trial_id"].astype(str) == trial_id]
+        values = rows.drop(columns=["trial_id", "line", time_col], errors="ignore")
+        h.update(np.ascontiguousarray(values.to_numpy(dtype=np.float64)).tobytes())
         h.update(b"\0")
     return h.hexdigest()
 
@@ -438,7 +442,7 @@ def check_batches(dirs: Sequence[Path], params: IngestParams) -> list[CheckedBat
             accepted = (
                 list(parsed.trials["trial_id"]) if parsed.accepted and parsed.trials is not None else []
             )
-            hashes = {t: _trial_sha256(b, t) for t in accepted}
+            hashes = {t: _samples_sha256(parsed, t) for t in accepted}
             out.append(CheckedBatch(b.name, b, accepted, parsed.trials_set_aside, parsed.problems, hashes))
     return out
 
