@@ -89,17 +89,27 @@ STILL_V = 0.01
 MOVED_N = 0.2
 
 
-def check_response(streams: Streams) -> None:
-    """SetAside, with that reason, when the estimator did not respond to an insertion the reference
-    recorded: before the clock alignment, which would blame the clocks."""
+def check_response(streams: Streams, channels: tuple[str, ...] | None = None) -> None:
+    """SetAside, with that reason, when the estimator, or one of its channels, did not respond to an
+    insertion the reference recorded: before the clock alignment, which would blame the clocks. A
+    channel is stuck when it moves less than STILL_V while another moves ten times that."""
     if streams.volts.size == 0 or streams.force_n.size == 0:
         return
-    moved_v = float(np.max(np.ptp(streams.volts, axis=0)))
+    moved = np.ptp(streams.volts, axis=0)
     span_n = float(np.max(np.ptp(streams.force_n, axis=0)))
-    if moved_v < STILL_V and span_n >= MOVED_N:
+    if span_n < MOVED_N:
+        return
+    if float(moved.max()) < STILL_V:
         raise SetAside(
-            f"the estimator does not respond: its channels move at most {1000 * moved_v:.1f} mV while "
-            f"the reference force spans {span_n:.2f} N (stuck at rest, dead or unpowered?)"
+            f"the estimator does not respond: its channels move at most {1000 * moved.max():.1f} mV "
+            f"while the reference force spans {span_n:.2f} N (stuck at rest, dead or unpowered?)"
+        )
+    names = channels or tuple(f"channel {k + 1}" for k in range(len(moved)))
+    if stuck := [n for n, m in zip(names, moved, strict=True) if m < STILL_V and moved.max() >= 10 * STILL_V]:
+        raise SetAside(
+            f"{', '.join(stuck)} does not respond: moves at most {1000 * moved.min():.1f} mV while "
+            f"another channel moves {1000 * moved.max():.0f} mV and the reference force spans "
+            f"{span_n:.2f} N (a stuck channel)"
         )
 
 
@@ -295,7 +305,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
                 to_newtons(rf[list(AXES)].to_numpy(np.float64), info.ref_units),
             )
             streams = Streams(t_fsr, volts, t_ref, force)
-            check_response(streams)
+            check_response(streams, tuple(info.channels))
             usable[tid] = streams, align(streams, streams, p, shared_clock=info.shared_clock)
         except SetAside as e:
             row["status"] = f"set aside: {e}"

@@ -68,3 +68,15 @@ def test_an_estimator_stuck_at_rest_is_set_aside_for_that_not_for_its_clocks():
     # When it is resampled, then the reason names the estimator, not the clock alignment
     with pytest.raises(SetAside, match=r"the estimator does not respond: its channels move at most 4\.9 mV"):
         resample_trial(fab.t_ms / 1e3, stuck, fab.t_s, fab.force, PARAMS)
+
+
+def test_one_stuck_channel_is_named():
+    # Given a trial whose second channel stayed at its rest reading (one count of noise) while the
+    # others recorded the insertion
+    fab = fabricate(seed=5, offset_s=0.1)
+    volts = volts_of(fab).copy()
+    volts[:, 1] = volts[0, 1]
+    volts[::5, 1] += 5.0 / 1023
+    # When it is resampled, then that channel is named as stuck
+    with pytest.raises(SetAside, match=r"channel 2 does not respond: moves at most 4\.9 mV while another"):
+        resample_trial(fab.t_ms / 1e3, volts, fab.t_s, fab.force, PARAMS)
