@@ -83,7 +83,7 @@ def main() -> None:
                     found.val,
                     front_end=found.circuit,
                     other_designs=found.other_designs,
-                    choice=choice,
+                    decided=choice,
                 ).predictor
                 seconds += time.perf_counter() - started
                 ext = files.frame(angle, "external")

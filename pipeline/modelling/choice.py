@@ -52,7 +52,6 @@ class Choice:
     folds: str
     stand_in: str
     only: str | None = None  # why some kinds were not candidates (None: every kind the data allows)
-    by_angle: dict[str, dict[str, float | None]] | None = None  # pooled (`pool`): each angle's own scores
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -194,25 +193,26 @@ def pool(by_angle: Mapping[str, Choice]) -> Choice:
         scores=scores,
         folds=f"{'; '.join(folds)}, {where}",
         only="; ".join(sorted({c.only for c in choices if c.only})) or None,
-        by_angle={angle: dict(c.scores) for angle, c in by_angle.items()},
     )
 
 
 def save_choice(path: Path, kind: str, choice: Choice | None, pinned: str | None = None) -> None:
-    """The choose stage's file: `kind`'s choice over its angles, or the kind `pinned` in params."""
+    """The choose stage's file: `kind`'s decision for all its angles (the kind, the folds, the
+    stand-in; not the scores, so that new data at one angle changes the file, and retrains the
+    other angles, only when it changes the decision), or the kind `pinned` in params."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    found = None if choice is None else choice.to_dict()
+    found = None if choice is None else {k: v for k, v in choice.to_dict().items() if k != "scores"}
     doc = {"format": FORMAT, "model": kind, "pinned": pinned, "choice": found}
     path.write_text(json.dumps(doc, indent=2) + "\n")
 
 
 def load_choice(path: Path, kind: str) -> Choice | None:
-    """The choice `save_choice` wrote for `kind` (None: pinned in params); ValueError naming the file
-    when it is not one, or is another model kind's."""
+    """The decision `save_choice` wrote for `kind` (no scores; None: pinned in params); ValueError
+    naming the file when it is not one, or is another model kind's."""
     try:
         doc = json.loads(path.read_text())
         found = (doc["format"], doc["model"], doc["choice"])
-        choice = None if found[2] is None else Choice(**found[2])
+        choice = None if found[2] is None else Choice(**{**found[2], "scores": {}})
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{path}: not a readable inputs choice ({e}); run the choose stage") from e
     if found[:2] != (FORMAT, kind):

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -125,7 +125,7 @@ def fit(
     train_data_sha256: str | None = None,
     front_end: Circuit | None = None,
     other_designs: Sequence[str] = (),
-    choice: Choice | None = None,
+    decided: Choice | None = None,
     log: Log | None = None,
 ) -> TrainResult:
     """Train one model of `kind` on `train`, early-stopping the networks on `val` (if it has rows).
@@ -134,8 +134,9 @@ def fit(
     `front_end` is the circuit the training units declare, which the conductance inputs read through
     (ValueError if they need one and there is none); `other_designs`, the units the model must also
     serve that declare another circuit (then `inputs.kind: auto` chooses among the conductance kinds).
-    With `inputs.kind: auto`, `choice` is the inputs chosen over all the kind's angles (the choose
-    stage's); without it they are chosen on this angle's rows alone.
+    With `inputs.kind: auto` each candidate is scored on this angle's rows, and the best is trained,
+    or the kind `decided` for all the model kind's angles (the choose stage's), with this angle's
+    scores beside it.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown model kind {kind!r}; expected one of {', '.join(KINDS)}")
@@ -157,10 +158,11 @@ def fit(
     _import_backends(kind)  # before the clock: train_seconds measures the work, not the imports
     codes = trial_codes(train)
     started = time.perf_counter()
-    if params.inputs.kind != "auto":
-        choice = None
-    elif choice is None:  # chosen by validation on this data (pipeline.modelling.choice)
+    choice = None
+    if params.inputs.kind == "auto":  # chosen by validation on this data (pipeline.modelling.choice)
         choice = choose(kind, params, train, val, front_end, other_designs)
+        if decided is not None:  # one kind for all angles: this angle's own scores stay beside it
+            choice = replace(choice, chosen=decided.chosen, folds=decided.folds)
     if choice is not None:
         only = f", among {choice.only}" if choice.only else ""
         log(f"inputs by validation ({choice.folds}{only}): {choice.chosen}; mean NRMSE % {choice.scores}")

@@ -69,12 +69,12 @@ def choose_folders(
 
 
 def train_folder(
-    kind: str, params: ModelParams, data_dir: Path, out_dir: Path, log: Log, choice: Choice | None = None
+    kind: str, params: ModelParams, data_dir: Path, out_dir: Path, log: Log, decided: Choice | None = None
 ) -> dict[str, Any]:
     """Fit `kind` on `data_dir/train.parquet`, early-stopping on `val.parquet` (may be empty or
     absent), reading through the circuit its units declare (`data_dir/front_ends.json`) and, with
-    `inputs.kind: auto`, the inputs of `choice` (`choose_folders`; None: chosen on this angle alone),
-    and write the model folder; returns the metrics written."""
+    `inputs.kind: auto`, the inputs `decided` for all angles (`choose_folders`; None: chosen on this
+    angle alone), and write the model folder; returns the metrics written."""
     data = load_angle(data_dir)
     label = f"{kind} on {data_dir}"
     log(f"{label}: {len(data.train)} train rows, {len(data.val)} val rows, {params.model_dump(mode='json')}")
@@ -86,7 +86,7 @@ def train_folder(
         train_data_sha256=data.sha256,
         front_end=data.circuit,
         other_designs=data.other_designs,
-        choice=choice,
+        decided=decided,
         log=lambda m: log(f"{label}: {m}"),
     )
     written = save_model_dir(out_dir, result.checkpoint, result.metrics, result.history)

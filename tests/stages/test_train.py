@@ -78,9 +78,14 @@ def test_the_choose_stage_makes_one_choice_that_every_angle_trains_on(
         args = ["ls", str(root / angle), str(out), "--choice", str(choice_file), "--params", str(params_file)]
         result = invoke(*args)
         assert result.exit_code == 0, result.output
-    # then: both checkpoints read the one kind chosen over both angles, with each angle's scores
+    # then: the file holds the decision, not the scores (new data at one angle must not retrain the
+    # others unless the decision changes); both checkpoints read that kind, each with its own scores
     doc = json.loads(choice_file.read_text())["choice"]
-    assert set(doc["by_angle"]) == {"0", "15"}
+    assert "scores" not in doc and doc["folds"].endswith("at each of 2 angles, scores averaged")
+    own = []
     for angle in ("0", "15"):
         ck = load_checkpoint(tmp_path / "models" / "ls" / angle)
-        assert ck["inputs"]["kind"] == doc["chosen"] and ck["inputs_choice"] == doc
+        assert ck["inputs"]["kind"] == doc["chosen"]
+        assert {k: ck["inputs_choice"][k] for k in doc} == doc
+        own.append(ck["inputs_choice"]["scores"])
+    assert own[0] != own[1] and set(own[0]) == set(own[1])
