@@ -80,6 +80,7 @@ def test_repro_builds_per_angle_datasets_then_reruns_only_what_a_change_touches(
     assert changed_stages(root) == {"choose@lstm", "train@15-lstm", "train@45-lstm"}
     out = run(root, "dvc", "repro")
     assert reran_stages(out) == {
+        "choose@lstm",
         "train@15-lstm",
         "train@45-lstm",
         "calibrate",
