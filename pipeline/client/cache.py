@@ -27,7 +27,7 @@ from typing import Any
 
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import read_unit
-from pipeline.client.folder import open_model
+from pipeline.client.folder import MLMODEL, ONNX_FILE, open_model
 from pipeline.registry import store
 from pipeline.vocab import file_sha256
 
@@ -38,7 +38,7 @@ DEFAULT_CACHE = Path("~/.cache/needlecue/models").expanduser()
 CACHE_ENV = "NEEDLECUE_MODEL_CACHE"
 VERSION_FILE = "version.json"
 # What a simulator runs of a force model: its description and its ONNX (not the environment files)
-MODEL_FILES = ("MLmodel", "model.onnx")
+MODEL_FILES = (MLMODEL, ONNX_FILE)
 # A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
 # gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
 _POLL_HTTP_ENV = {"MLFLOW_HTTP_REQUEST_TIMEOUT": "2", "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
@@ -110,7 +110,7 @@ def fetch(
         alias,
         cache_dir,
         tracking_uri,
-        "model.onnx",
+        ONNX_FILE,
         "onnx_sha256",
         MODEL_HINT,
         _model_info,
@@ -295,7 +295,7 @@ def _model_problem(name: str, angle_deg: float) -> Verify:
     angle and checkpoint."""
 
     def problem(folder: Path, info: dict[str, Any]) -> str | None:
-        if why := _copy_problem(folder, info, name, "model.onnx", "onnx_sha256"):
+        if why := _copy_problem(folder, info, name, ONNX_FILE, "onnx_sha256"):
             return why
         try:
             meta, _ = open_model(folder)  # the graph and its description, as registered
@@ -329,14 +329,11 @@ def _unit_problem(name: str, unit_id: str) -> Verify:
 
 def _model_info(folder: Path, mv: Any) -> dict[str, Any]:
     """What version.json says of a downloaded force model, beyond the version itself."""
-    missing = [f for f in ("MLmodel", "model.onnx") if not (folder / f).is_file()]
+    missing = [f for f in MODEL_FILES if not (folder / f).is_file()]
     if missing:  # a broken registered model is an error, not a reason to go offline
         raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
     meta, _ = open_model(folder)  # ModelRefused (a ValueError): the registered version is broken
-    return {
-        "checkpoint_sha256": meta.get("checkpoint_sha256"),
-        "onnx_sha256": file_sha256([folder / "model.onnx"]),
-    }
+    return {"checkpoint_sha256": meta.get("checkpoint_sha256"), "onnx_sha256": meta["onnx_sha256"]}
 
 
 def _unit_info(unit_id: str) -> Describe:

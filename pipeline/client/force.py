@@ -42,7 +42,7 @@ from pipeline.client.cache import (
     poll_alias,
     read_version,
 )
-from pipeline.client.folder import open_model
+from pipeline.client.folder import ONNX_FILE, open_model
 from pipeline.modelling.features import InputTransform, StreamFeatures, spec_of
 from pipeline.registry import store
 from pipeline.rig.frontend import declared
@@ -171,7 +171,7 @@ class ForceClient:
         if [i.name for i in inputs] != [meta["input"]] or tuple(inputs[0].shape[1:]) != shape:
             found = [(i.name, i.shape) for i in inputs]
             raise ValueError(
-                f"{self.model_dir / 'model.onnx'}: inputs {found} do not match its MLmodel metadata "
+                f"{self.model_dir / ONNX_FILE}: inputs {found} do not match its MLmodel metadata "
                 f"({meta['input']!r} of shape (batch, {', '.join(map(str, shape))}))"
             )
         # Pre-allocated per-frame state: `step` writes into these arrays instead of allocating.

@@ -147,18 +147,19 @@ def drop_repeats(trials: list[Trial]) -> tuple[list[Trial], list[dict[str, str]]
     by_shape: dict[tuple[int, tuple[str, ...]], list[tuple[Trial, np.ndarray]]] = {}
     kept, aside = [], []
     for t in sorted(trials, key=lambda t: t.key):
-        original = first.setdefault(samples_sha256(t), t)
-        values = _values(t)
-        if original is t:
+        sha = samples_sha256(t)
+        original, same = first.get(sha), "the same samples as"
+        if original is None:
+            values = _values(t)
             peers = by_shape.setdefault((len(values), t.channels), [])
             # REPEAT_RTOL: far below any sensor's noise, far above float rounding
             close = (o for o, v in peers if np.allclose(values, v, rtol=REPEAT_RTOL, atol=REPEAT_ATOL))
-            original = next(close, t)
-            if original is t:
+            original, same = next(close, None), "samples equal to"
+            if original is None:
+                first[sha] = t
                 peers.append((t, values))
                 kept.append(t)
                 continue
-        same = "the same samples as" if samples_sha256(original) == samples_sha256(t) else "samples equal to"
         reason = (
             f"{same} {original.batch_id}/{original.trial_id}: a recording is used once "
             "(a batch or trial copied under another name, or with its timestamps shifted?)"

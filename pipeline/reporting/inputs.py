@@ -7,8 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
+from pipeline.modelling.choice import Choice, pool
 from pipeline.modelling.features import KINDS
 from pipeline.reporting.style import table
 from pipeline.vocab import kind_label, sorted_angles
@@ -44,26 +43,23 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
         ]
 
     for kind in models:
-        scored = []  # each angle's own scores, for the mean that chose one kind for all angles
+        scored: dict[str, Choice] = {}  # each angle's own scores: their mean chose one kind for all
         for angle in sorted_angles(models[kind]):
             r = models[kind][angle]
             choice = r.get("inputs_choice") or {}
             if choice:
                 only = f"; candidates: {choice['only']}" if choice.get("only") else ""
                 folds.add(f"{choice.get('folds')}; stand-in: {choice.get('stand_in')}{only}")
-                scored.append((choice["chosen"], choice.get("scores") or {}))
+                scored[angle] = Choice(**choice)
             how = "validation" if choice else "params"
             rows.append(
                 [kind_label(kind), f"{angle}°", f"**{r['inputs']['kind']}**", how, _circuit(r["inputs"])]
             )
             rows[-1] += cells(choice.get("scores") or {})
-        if len(scored) > 1 and len({c for c, _ in scored}) == 1:  # one kind for all angles, by the mean
-            found = [k for k in kinds_seen if all(k in s for _, s in scored)]
-            mean = {
-                k: float(np.mean(v)) if (v := [s[k] for _, s in scored if s[k] is not None]) else None
-                for k in found
-            }
-            rows.append([kind_label(kind), "mean", f"**{scored[0][0]}**", "all angles", "–", *cells(mean)])
+        read = {c.chosen for c in scored.values()}
+        if len(scored) > 1 and len(read) == 1:  # one kind for all angles: the mean that chose it
+            mean = pool(scored).scores
+            rows.append([kind_label(kind), "mean", f"**{read.pop()}**", "all angles", "–", *cells(mean)])
     header = ["model", "angle", "inputs", "chosen by", "read through", *(f"{k} (%)" for k in kinds_seen)]
     lines = [
         "## What the models read",

@@ -209,16 +209,14 @@ def _plausible_fsr(
     channel, no flat top, one insertion."""
     channels = list(meta.sensor.channels)
     if meta.sensor.units == "volts":
-        top = plausible.volts_limit(meta, p)
+        unit, top = "V", plausible.volts_limit(meta, p)
         what = "V (0 to sensor.vref_v, else ingest.max_volts: counts declared as volts?)"
         plausible.check_range(frame, channels, 0.0, top, what, file, probs)
+    else:  # counts declare adc_bits (batch.yaml is refused without)
+        unit, top = "counts", float(2 ** (meta.sensor.adc_bits or 0) - 1)
     plausible.check_flat(frame, channels, "estimator stream", file, probs)
     plausible.check_dead(frame, channels, "estimator", file, probs)
-    if meta.sensor.units == "volts":
-        unit, rails = "V", (0.0, plausible.volts_limit(meta, p))
-    else:
-        unit, rails = "counts", (0.0, float(2**meta.sensor.adc_bits - 1) if meta.sensor.adc_bits else -1.0)
-    plausible.check_clipped(frame, channels, FSR_TIME, 1000.0, p.clip_run_s, unit, file, probs, rails)
+    plausible.check_clipped(frame, channels, FSR_TIME, 1000.0, p.clip_run_s, unit, file, probs, (0.0, top))
     plausible.check_length(frame, FSR_TIME, 1000.0, meta, p, file, probs)
 
 

@@ -105,9 +105,11 @@ def check_response(streams: Streams, channels: tuple[str, ...] | None = None) ->
             f"while the reference force spans {span_n:.2f} N (stuck at rest, dead or unpowered?)"
         )
     names = channels or tuple(f"channel {k + 1}" for k in range(len(moved)))
-    if stuck := [n for n, m in zip(names, moved, strict=True) if m < STILL_V and moved.max() >= 10 * STILL_V]:
+    still = moved < STILL_V
+    if still.any() and moved.max() >= 10 * STILL_V:
+        stuck = [n for n, s in zip(names, still, strict=True) if s]
         raise SetAside(
-            f"{', '.join(stuck)} does not respond: moves at most {1000 * moved.min():.1f} mV while "
+            f"{', '.join(stuck)} does not respond: moves at most {1000 * moved[still].max():.1f} mV while "
             f"another channel moves {1000 * moved.max():.0f} mV and the reference force spans "
             f"{span_n:.2f} N (a stuck channel)"
         )

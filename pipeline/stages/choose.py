@@ -1,9 +1,9 @@
 """`choose` stage: one model kind's inputs, chosen once for all its angles (`inputs.kind: auto`).
 
 Input: `DATA_ROOT/<angle>/` (the split stage's folders) for each of `train.angles`. Output: `OUT_FILE`
-(`pipeline.modelling.choice.save_choice`): the chosen kind, its mean score over the angles and each
-angle's own scores; the train stage reads it. With a kind pinned in params nothing is scored and the
-file says so.
+(`pipeline.modelling.choice.save_choice`): the kind chosen by the mean score over the angles, the
+folds and the stand-in (the scores are logged; each train stage records its own angle's); the train
+stages read it. With a kind pinned in params nothing is scored and the file says so.
 
 Usage: `python -m pipeline.run choose {ls|fnn|lstm} DATA_ROOT OUT_FILE [--params params.yaml]`.
 """
