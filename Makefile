@@ -53,7 +53,8 @@ lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-bench: repro          ## throughput, dvc repro timings, the peer comparison, the client's latency
+bench: repro          ## dvc repro timings (cold per stage, no-op, retrain), throughput, the peer comparison, the client's latency
+	$(BIN)/python benchmarks/bench_pipeline.py
 	$(BIN)/python benchmarks/bench_data.py
 	$(BIN)/python benchmarks/bench_peer.py
 	$(BIN)/python benchmarks/bench_client.py

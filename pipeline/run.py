@@ -7,8 +7,10 @@ round differently in the last bit; training then turns a last-bit difference in 
 different weights. This launcher sets the environment that makes each of them take the code path
 every supported machine has (x86-64-v2, numpy's baseline), with one thread each (a parallel
 reduction's order depends on the thread count), then replaces itself with
-`python -m pipeline.stages.STAGE ARGS...`. The environment is read when those libraries load,
-which is why it is set here, before the stage's interpreter starts, and not from inside it.
+`python -m pipeline.stages.STAGE ARGS...`, or runs it in a warm interpreter that loaded those
+libraries under the same environment (`pipeline.preload`). The environment is read when those
+libraries load, which is why it is set here, before the stage's interpreter starts, and not from
+inside it.
 docs/reproducibility.md says what is guaranteed.
 """
 
@@ -18,6 +20,8 @@ import os
 import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+
+from pipeline import preload
 
 # numpy 2.4's run-time dispatch targets above its x86-64-v2 baseline
 # (`numpy._core._multiarray_umath.__cpu_dispatch__`; tests/test_run.py checks the list is complete).
@@ -67,9 +71,13 @@ def main(argv: list[str]) -> None:
         known = ", ".join(sorted(p.stem for p in STAGES.glob("[!_]*.py")))
         sys.exit(f"usage: python -m pipeline.run STAGE [ARGS...]; STAGE is one of: {known}")
     stage, *args = argv
-    cmd = [sys.executable, "-m", f"pipeline.stages.{stage}", *args]
+    env = pinned_env(os.environ)
+    module = [f"pipeline.stages.{stage}", *args]
     sys.stdout.flush()
-    os.execve(sys.executable, cmd, pinned_env(os.environ))
+    status = preload.run_stage(module, env)  # in a warm interpreter, when one is up
+    if status is not None:
+        sys.exit(status)
+    os.execve(sys.executable, [sys.executable, "-m", *module], env)
 
 
 if __name__ == "__main__":

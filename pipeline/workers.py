@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, TypeVar
 
@@ -27,6 +27,13 @@ def usable_cpus() -> int:
 WORKERS = min(2, usable_cpus())
 
 
+def workers_for(work: float, worth: float, workers: int = WORKERS) -> int:
+    """`workers` when `work` (the jobs' size, in the caller's own measure) reaches `worth`, else 1: a
+    worker is a fresh interpreter, seconds of imports before it does anything, which small jobs do not
+    repay (the project's tests run the stages on a few trials)."""
+    return workers if work >= worth else 1
+
+
 def ordered_map(
     fn: Callable[[J], R],
     jobs: Sequence[J],
@@ -36,12 +43,24 @@ def ordered_map(
 ) -> list[R]:
     """`[fn(job) for job in jobs]`, on up to `workers` processes when there is more than one job.
     `fn` and `initializer` must be module-level functions (they are pickled by name)."""
+    return list(ordered_imap(fn, jobs, workers, initializer, initargs))
+
+
+def ordered_imap(
+    fn: Callable[[J], R],
+    jobs: Sequence[J],
+    workers: int = WORKERS,
+    initializer: Callable[..., None] | None = None,
+    initargs: tuple[Any, ...] = (),
+) -> Iterator[R]:
+    """`ordered_map`, each result given as soon as it and those before it are done (for progress)."""
     if workers < 2 or len(jobs) < 2:
         if initializer is not None:
             initializer(*initargs)
-        return [fn(job) for job in jobs]
+        yield from (fn(job) for job in jobs)
+        return
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(
         min(workers, len(jobs)), mp_context=context, initializer=initializer, initargs=initargs
     ) as pool:
-        return list(pool.map(fn, jobs))
+        yield from pool.map(fn, jobs)

@@ -26,7 +26,9 @@ from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
 from pipeline.modelling.predict import Predictor
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES
+from pipeline.workers import ordered_map, workers_for
 
+WORTH_A_WORKER = 200_000  # rows through the models over all fits (fewer fit faster than a worker starts)
 MIN_FORCE_STD = 1e-3  # N: a flat reference force would otherwise weigh without bound
 
 
@@ -123,6 +125,58 @@ def _held_out_loss(d: AngleData, forward: Any, matrix: np.ndarray, offset: np.nd
         return float(_losses([d], [forward], lambda x: x @ a.T + b)[0])
 
 
+@dataclass(frozen=True)
+class _Fold:
+    """One L-BFGS fit of `fit_transform`, a job for a worker process: on every angle of `angles`
+    (`held_out` None), or on all but `held_out`, which it then scores. Predictors travel as their
+    checkpoints (a network's class is built at run time and does not pickle)."""
+
+    angles: tuple[tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray | None], ...]
+    p: CalibrateParams
+    seed: int
+    held_out: int | None
+
+
+def _fold_of(data: list[AngleData], p: CalibrateParams, seed: int, held_out: int | None) -> _Fold:
+    angles = tuple((d.predictor.checkpoint, d.x, d.y, d.windows) for d in data)
+    return _Fold(angles, p, seed, held_out)
+
+
+def _run_fold(fold: _Fold) -> tuple[np.ndarray, np.ndarray, float, float, float, float]:
+    """(matrix, offset, loss before, loss after) of the fold's fit, then, for a leave-one-angle-out
+    fold, the angle left out's loss through the identity and through the fitted transform."""
+    data = [AngleData(Predictor(c), x, y, w) for c, x, y, w in fold.angles]
+    forwards = [d.predictor.torch_forward() for d in data]
+    i = fold.held_out
+    with deterministic_torch(fold.seed):
+        if i is None:
+            return (*_fit(data, forwards, fold.p), math.nan, math.nan)
+        rest = [x for j, x in enumerate(data) if j != i]
+        m_i, b_i, before, after = _fit(rest, [f for j, f in enumerate(forwards) if j != i], fold.p)
+        n = data[i].x.shape[1]
+        held_before = _held_out_loss(data[i], forwards[i], np.eye(n), np.zeros(n))
+        held_after = _held_out_loss(data[i], forwards[i], m_i, b_i)
+    return m_i, b_i, before, after, held_before, held_after
+
+
+def fit_transforms(
+    data: dict[str, list[AngleData]], p: CalibrateParams, seed: int = 0, workers: int = 1
+) -> dict[str, tuple[InputTransform, dict[str, Any]]]:
+    """`fit_transform` for each model kind of `data` ({kind: its angles' data}), the fits of every
+    kind on up to `workers` processes at once (the same results, in the same order, on any number)."""
+    if any(not d for d in data.values()):
+        raise ValueError("no calibration rows to fit a transform on")
+    folds = {
+        kind: [None, *range(len(d))] if p.validate_by_angle and len(d) >= 2 else [None]
+        for kind, d in data.items()
+    }
+    jobs = [_fold_of(data[kind], p, seed, i) for kind, held in folds.items() for i in held]
+    # the work: rows through the model (an LSTM reads a window of them per row) in every fold
+    work = sum(len(x) * (1 if w is None else w.shape[1]) for fold in jobs for _, x, _, w in fold.angles)
+    results = iter(ordered_map(_run_fold, jobs, workers=workers_for(work, WORTH_A_WORKER, workers)))
+    return {kind: _decide(data[kind], [next(results) for _ in held]) for kind, held in folds.items()}
+
+
 def fit_transform(
     data: list[AngleData], p: CalibrateParams, seed: int = 0
 ) -> tuple[InputTransform, dict[str, Any]]:
@@ -131,22 +185,23 @@ def fit_transform(
     by a transform fitted on the others). The identity is kept, and the report says why, when the fit
     does not lower the loss or does not lower it on held-out angles: a transform that only fits the
     calibration insertions' own noise would make the unit worse."""
-    if not data:
-        raise ValueError("no calibration rows to fit a transform on")
+    return fit_transforms({"": data}, p, seed)[""]
+
+
+def _decide(
+    data: list[AngleData], results: list[tuple[np.ndarray, np.ndarray, float, float, float, float]]
+) -> tuple[InputTransform, dict[str, Any]]:
+    """The transform and report of `fit_transform` from its folds' results (the fit on every angle,
+    then each angle left out in turn)."""
     n = data[0].x.shape[1]
-    forwards = [d.predictor.torch_forward() for d in data]
-    with deterministic_torch(seed):
-        matrix, b, before, after = _fit(data, forwards, p)
-        report: dict[str, Any] = {"loss_before": before, "loss_after": after}
-        if p.validate_by_angle and len(data) >= 2:
-            identity = np.eye(n), np.zeros(n)
-            held_before = held_after = 0.0
-            for i, d in enumerate(data):
-                rest = [x for j, x in enumerate(data) if j != i]
-                m_i, b_i, _, _ = _fit(rest, [f for j, f in enumerate(forwards) if j != i], p)
-                held_before += _held_out_loss(d, forwards[i], *identity) / len(data)
-                held_after += _held_out_loss(d, forwards[i], m_i, b_i) / len(data)
-            report["held_out_loss_before"], report["held_out_loss_after"] = held_before, held_after
+    matrix, b, before, after, _, _ = results[0]
+    report: dict[str, Any] = {"loss_before": before, "loss_after": after}
+    if len(results) > 1:
+        held_before = held_after = 0.0
+        for *_, held_i_before, held_i_after in results[1:]:  # summed in angle order, as always
+            held_before += held_i_before / len(data)
+            held_after += held_i_after / len(data)
+        report["held_out_loss_before"], report["held_out_loss_after"] = held_before, held_after
     if not (math.isfinite(after) and after < before):
         report["identity_kept"] = f"the fit did not lower the loss ({before:.4g} -> {after:.4g})"
     elif (

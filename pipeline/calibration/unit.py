@@ -21,7 +21,7 @@ from typing import Any
 import pandas as pd
 
 from pipeline.calibration.document import DIGITS, FORMAT
-from pipeline.calibration.fit import AngleData, fit_transform
+from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
 from pipeline.cues.units import evidence_of, trial_features
 from pipeline.modelling.checkpoint import checkpoint_sha256
@@ -67,13 +67,15 @@ def calibrate_unit(
     cues: CuesParams | None = None,
     front_end: Circuit | None = None,
     cue_levels: Sequence[float] = (),
+    workers: int = 1,
 ) -> dict[str, Any]:
     """The calibration document of `unit_id` from its calibration `rows` (processed frame, any angles)
     through `models` ({kind: {angle: Predictor}}), for a pipeline trained at `trained_angles`; with
     `cues`, also what its calibration insertions tell the cue packs' angle estimator (its evidence,
     `pipeline.cues.units`, gathered at the angle estimator's loading levels `cue_levels`, from
     `training_levels`). `front_end` is the circuit the unit's batches declare: its rows are read
-    through it, and the document carries it for the simulator's client."""
+    through it, and the document carries it for the simulator's client. The transforms' fits run on
+    up to `workers` processes (the same document on any number)."""
     log = log or (lambda _m: None)
     set_aside = _trial_problems(rows, p)
     bad = {(s["batch_id"], s["trial_id"]) for s in set_aside}
@@ -115,23 +117,24 @@ def calibrate_unit(
             "levels": list(cue_levels),
             "evidence": evidence_of(trials, len(channels or ())).get(unit_id, {}),
         }
-    for kind, predictors in models.items():
-        fit_angles = [a for a in angles if a in predictors]
-        if not fit_angles:
-            continue
-        data = [AngleData.of(predictors[a], by_angle[a], front_end) for a in fit_angles]
-        transform, report = fit_transform(data, p)
+    fit_angles = {kind: [a for a in angles if a in ms] for kind, ms in models.items()}
+    fit_angles = {kind: found for kind, found in fit_angles.items() if found}
+    data = {
+        kind: [AngleData.of(models[kind][a], by_angle[a], front_end) for a in found]
+        for kind, found in fit_angles.items()
+    }
+    for kind, (transform, report) in fit_transforms(data, p, workers=workers).items():
         doc["transforms"][kind] = {
             **transform.to_dict(),
-            "fitted_through": fit_angles,
+            "fitted_through": fit_angles[kind],
             # the models it applies to: those of this kind at every angle, calibrated or not (one
             # transform serves the unit), each named by its checkpoint hash
-            "models": {a: checkpoint_sha256(m.checkpoint) for a, m in sorted(predictors.items())},
+            "models": {a: checkpoint_sha256(m.checkpoint) for a, m in sorted(models[kind].items())},
             **report,
         }
         kept = f", identity kept: {report['identity_kept']}" if "identity_kept" in report else ""
         log(
-            f"{unit_id}: {kind} through {len(fit_angles)} angle(s): loss "
+            f"{unit_id}: {kind} through {len(fit_angles[kind])} angle(s): loss "
             f"{report['loss_before']:.4f} -> {report['loss_after']:.4f}{kept}"
         )
     return jsonable(doc, DIGITS)

@@ -31,9 +31,10 @@ from pipeline.cues.tracker import (
 from pipeline.cues.trials import Trial, trials_of
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
-from pipeline.workers import WORKERS, ordered_map
+from pipeline.workers import ordered_map, workers_for
 
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
+WORTH_A_WORKER = 300_000  # frames replayed: fewer take less than a worker process's start
 DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages
 Log = Callable[[str], None]
 # (kind, preset angle, true angle) -> the preset model's forces on that angle's external frame
@@ -284,7 +285,9 @@ def evaluate_cues(
     runs: list[Run] = []
     angle_conf: dict[tuple[float, float], int] = {}
     n_updates, seconds = 0, 0.0
-    for job, (job_runs, estimates, n, busy) in zip(jobs, ordered_map(_track, jobs), strict=True):
+    frames = sum(len(rows) for job in jobs for _, _, forces in job.on for rows in forces)
+    workers = workers_for(frames, WORTH_A_WORKER)
+    for job, (job_runs, estimates, n, busy) in zip(jobs, ordered_map(_track, jobs, workers), strict=True):
         runs += job_runs
         for key in estimates:
             angle_conf[key] = angle_conf.get(key, 0) + 1
@@ -295,7 +298,7 @@ def evaluate_cues(
     if n_updates:
         log(
             f"{n_updates} tracker updates, {1e6 * seconds / n_updates:.1f} µs each on average "
-            f"(including the evaluation loop; {WORKERS} worker process(es))"
+            f"(including the evaluation loop; {workers} worker process(es))"
         )
     summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg, params.cue_within_s)
     classes = sorted(external)

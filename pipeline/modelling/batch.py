@@ -20,9 +20,10 @@ from pipeline.modelling.predict import Predictor, load_predictor
 from pipeline.modelling.predictions import UNCALIBRATED, prediction_table, write_inputs, write_predictions
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
-from pipeline.workers import WORKERS, ordered_map
+from pipeline.workers import WORKERS, ordered_map, workers_for
 
 Log = Callable[[str], None]
+WORTH_A_WORKER = 500_000  # rows predicted, over all models: fewer take less than a worker's start
 UnitTransforms = Mapping[str, InputTransform]  # {unit_id: its calibration for one model}
 
 
@@ -138,7 +139,7 @@ def predict_all(
     units: Mapping[tuple[str, str], UnitTransforms] | None = None,
 ) -> list[tuple[str, str]]:
     """Predict every (kind, angle) model that has a checkpoint on every split of every angle and
-    write `out_dir/<kind>/<angle>.parquet`, on `workers` processes (each model's forward passes keep
+    write `out_dir/<kind>/<angle>.parquet`, on up to `workers` processes (each model's forward passes keep
     the one thread they were trained with, so the numbers do not depend on it); returns the
     (kind, angle) pairs predicted. `units` gives, per (kind, angle) model, the unit calibrations that
     apply to it."""
@@ -163,6 +164,7 @@ def predict_all(
                 (kind, angle, model_dir, target, dict((units or {}).get((kind, angle), {})), circuits)
             )
     inputs: dict[str, dict[str, Any]] = {}
+    workers = workers_for(len(jobs) * sum(len(f) for f in frames.values()), WORTH_A_WORKER, workers)
     for (kind, angle, *_), (rows, seconds, warnings, reads) in zip(
         jobs, ordered_map(_predict_one, jobs, workers, _set_frames, (frames,)), strict=True
     ):

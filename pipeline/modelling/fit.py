@@ -1,7 +1,7 @@
 """Training the three model kinds, one per insertion angle, on the estimator's voltages only.
 
 - `ls`: the paper's calibration matrix, eq. (1)-(2), F = C x fitted by least squares with no
-  intercept (scikit-learn `LinearRegression(fit_intercept=False)`);
+  intercept (scipy's `lstsq`, as scikit-learn's `LinearRegression(fit_intercept=False)` does);
 - `fnn`: the paper's feed-forward network, channels -> 20 -> 20 -> 3 (Sec. III-B), on the
   inputs of the current sample;
 - `lstm`: an LSTM on the last `window` input samples of the same trial (Sec. VI), the first
@@ -13,8 +13,8 @@ estimator units; the checkpoint records it.
 
 Inputs and targets of the networks are standardised with the training split's statistics only.
 Training is bit-for-bit deterministic: seeded initialisation and shuffling, deterministic
-algorithms, one intra-op thread (`networks.TRAIN_THREADS`). torch and scikit-learn are imported
-inside the functions that need them.
+algorithms, one intra-op thread (`networks.TRAIN_THREADS`). torch and scipy are imported inside the
+functions that need them.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from pipeline.vocab import AXES, KINDS, channels_of, rate_hz
 if TYPE_CHECKING:
     import torch
 
+LSTSQ_CUTOFF = 1e-6  # relative singular-value cutoff: scikit-learn's LinearRegression `tol` default
 LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"
 ModelParams = LSParams | FNNParams | LSTMParams
 Log = Callable[[str], None]
@@ -55,10 +56,27 @@ def _angle_deg(frame: pd.DataFrame) -> float:
     return float(angles[0])
 
 
+def flatten(params: Sequence[torch.nn.Parameter]) -> torch.Tensor:
+    """One buffer holding the values of `params`, each parameter now a view of its own slice (values
+    unchanged). An elementwise update of every parameter (an optimizer step, a running average) is
+    then one op on the buffer rather than one per parameter: the same arithmetic element for element,
+    so the same bits, at a fraction of the per-op overhead that dominates these small networks."""
+    import torch
+
+    with torch.no_grad():
+        flat = torch.cat([p.detach().reshape(-1) for p in params])
+        offset = 0
+        for p in params:
+            p.data = flat[offset : offset + p.numel()].view_as(p)
+            offset += p.numel()
+    return flat
+
+
 class Adam:
     """Adam (Kingma & Ba), the arithmetic of torch.optim.Adam's single-tensor CPU path op for op
     (L2 `weight_decay` added to the gradient, as there) but for an exact square root (`exact_sqrt`:
-    torch's depends on the CPU); a test checks the two agree bit for bit given the same root.
+    torch's depends on the CPU); a test checks the two agree bit for bit given the same root. The
+    parameters are `flatten`ed: each step is a few ops on one buffer, whatever the layer count.
 
     Why not torch.optim.Adam itself: every torch.optim optimizer imports torch._dynamo on first
     use (~1 s measured per process, for torch.compile support unused here), and the 12 network
@@ -76,9 +94,10 @@ class Adam:
         import torch
 
         self.params = list(params)
+        self.flat = flatten(self.params)
         self.lr, (self.beta1, self.beta2), self.eps, self.weight_decay = lr, betas, eps, weight_decay
-        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.exp_avg = torch.zeros_like(self.flat)
+        self.exp_avg_sq = torch.zeros_like(self.flat)
         self.steps = 0
 
     def zero_grad(self) -> None:
@@ -88,19 +107,22 @@ class Adam:
     def step(self) -> None:
         import torch
 
+        grads = [p.grad for p in self.params]
+        if any(g is None for g in grads):  # every parameter of these networks is in the loss
+            missing = [i for i, g in enumerate(grads) if g is None]
+            raise ValueError(f"Adam: parameter(s) {missing} have no gradient; run backward() first")
         self.steps += 1
         bias_correction1 = 1 - self.beta1**self.steps
         bias_correction2_sqrt = (1 - self.beta2**self.steps) ** 0.5
         step_size = self.lr / bias_correction1
         with torch.no_grad():
-            for p, exp_avg, exp_avg_sq in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
-                if p.grad is None:
-                    continue
-                grad = p.grad if self.weight_decay == 0 else p.grad.add(p, alpha=self.weight_decay)
-                exp_avg.lerp_(grad, 1 - self.beta1)
-                exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
-                denom = exact_sqrt(exp_avg_sq).div_(bias_correction2_sqrt).add_(self.eps)
-                p.addcdiv_(exp_avg, denom, value=-step_size)
+            grad = torch.cat([g.reshape(-1) for g in grads])  # type: ignore[union-attr]
+            if self.weight_decay != 0:
+                grad = grad.add(self.flat, alpha=self.weight_decay)
+            self.exp_avg.lerp_(grad, 1 - self.beta1)
+            self.exp_avg_sq.mul_(self.beta2).addcmul_(grad, grad, value=1 - self.beta2)
+            denom = exact_sqrt(self.exp_avg_sq).div_(bias_correction2_sqrt).add_(self.eps)
+            self.flat.addcdiv_(self.exp_avg, denom, value=-step_size)
 
 
 @dataclass
@@ -234,7 +256,7 @@ def _import_backends(kind: str) -> None:
     import torch  # noqa: F401
 
     if kind == "ls":
-        import sklearn.linear_model  # noqa: F401
+        import scipy.linalg  # noqa: F401
 
 
 def _torch_version() -> str:
@@ -252,16 +274,11 @@ def _fit_ls(
 ) -> tuple[dict[str, Any], dict[str, Any], list[dict[str, float]], dict[str, Any]]:
     """Eq. (2) on the unscaled inputs: that is the paper's method, and scaling would add an offset."""
     import torch
-    from sklearn.linear_model import LinearRegression
 
     x = features_of(train, channels, spec)
     y = train[list(AXES)].to_numpy(np.float64)
     _, y_std = column_stats(y)  # only to report a loss on the same scale as the networks'
-
-    reg = LinearRegression(fit_intercept=params.fit_intercept).fit(x, y)
-    # copies: coef_ can be a view into lstsq's n_samples-long work array, which torch.save would store whole
-    weight = np.array(reg.coef_, dtype=np.float64).reshape(len(AXES), len(channels))
-    bias = np.asarray(reg.intercept_, dtype=np.float64) * np.ones(len(AXES))
+    weight, bias = _least_squares(x, y, params.fit_intercept)
     train_loss = _scaled_mse(x @ weight.T + bias, y, y_std)
     if val.empty:
         val_loss = math.nan
@@ -279,6 +296,19 @@ def _fit_ls(
         "early_stopping": False,
     }
     return state, pre, history, summary
+
+
+def _least_squares(x: np.ndarray, y: np.ndarray, intercept: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(weight, bias) of y ~ x @ weight.T + bias: scikit-learn's `LinearRegression(fit_intercept=
+    intercept)`, step for step (centre with an intercept, then LAPACK's gelsd with its default
+    cutoff), so the same bytes; without importing scikit-learn, which took ~1.5 s of each ls stage."""
+    from scipy import linalg
+
+    x_offset = x.mean(axis=0) if intercept else np.zeros(x.shape[1])
+    y_offset = y.mean(axis=0) if intercept else np.zeros(y.shape[1])
+    coef, *_ = linalg.lstsq(x - x_offset, y - y_offset, cond=LSTSQ_CUTOFF)
+    weight = np.array(coef.T, dtype=np.float64)  # a copy: not a view into lstsq's work array
+    return weight, y_offset - x_offset @ weight.T
 
 
 def _preprocessing(x_mean: np.ndarray, x_std: np.ndarray, y_mean: np.ndarray, y_std: np.ndarray) -> dict:
@@ -324,7 +354,7 @@ def _fit_network(
         avg = build_network(cfg) if params.ema > 0 else net
         if params.ema > 0:
             avg.load_state_dict(net.state_dict())
-            pairs = list(zip(avg.parameters(), net.parameters(), strict=True))
+            avg_flat = flatten(list(avg.parameters()))  # in the order of opt.flat (same config)
         best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
         best_val, best_epoch, epoch = math.inf, 0, 0
         for epoch in range(1, params.max_epochs + 1):
@@ -339,8 +369,7 @@ def _fit_network(
                 opt.step()
                 if params.ema > 0:
                     with torch.no_grad():
-                        for a, w in pairs:
-                            a.lerp_(w, 1 - params.ema)
+                        avg_flat.lerp_(opt.flat, 1 - params.ema)
                 total += loss.detach() * len(idx)
             train_loss = float(total) / n
             val_loss = math.nan

@@ -108,13 +108,14 @@ def resistance_of(volts: np.ndarray, fe: Circuit) -> np.ndarray:
     v = np.asarray(volts, dtype=np.float64)
     if isinstance(fe, Divider):
         eps = 1e-6 * fe.supply_v
-        v = np.clip(v, eps, fe.supply_v - eps)
+        v = np.minimum(np.maximum(v, eps), fe.supply_v - eps)  # np.clip, without its ~4 µs wrapper
         ratio = fe.supply_v / v - 1.0  # R_total / fixed (supply side) or fixed / R_total (ground side)
         r = fe.fixed_kohm * ratio if fe.fsr_at == "supply" else fe.fixed_kohm / ratio
     else:
         above = np.maximum(v - fe.offset_v, 1e-9 * fe.drive_v)
         r = fe.drive_v * fe.feedback_kohm / above
-    return np.clip(r - fe.series_kohm, MIN_KOHM, MAX_KOHM)
+    # the cue tracker calls this on every frame: ufuncs rather than np.clip's slower wrapper, same values
+    return np.minimum(np.maximum(r - fe.series_kohm, MIN_KOHM), MAX_KOHM)
 
 
 def conductance_us(volts: np.ndarray, fe: Circuit) -> np.ndarray:

@@ -57,12 +57,14 @@ from pipeline.rig.format import (
     batch_dirs,
 )
 from pipeline.rig.reader import ParsedBatch, parse_batch
+from pipeline.workers import ordered_imap, workers_for
 
 FINGERPRINT = "fingerprint.json"
 PROBLEMS = "problems.json"
 GX_RESULTS = "gx_results.json"
 # Batches are written here first and then renamed into place; never a batch folder itself.
 STAGING = ".staging"
+WORTH_A_WORKER = 8_000_000  # bytes of batches to parse: less parses faster than a worker loads GX
 # Bump when the output layout or meaning changes: every stored batch is then parsed again.
 OUTPUT_VERSION = 2  # 2: batch.json carries `purpose`
 # The modules of pipeline/rig/ that decide a batch's outputs, hashed into its fingerprint so a
@@ -347,14 +349,31 @@ def _log_outcome(log: Log, i: int, n: int, b: BatchOutcome, seconds: float | Non
         log(f"    warning: {w}")
 
 
+_VALIDATOR: list[Validator] = []  # this process's GX context for the batches it parses
+
+
+def _start_validator(params: IngestParams) -> None:
+    _VALIDATOR[:] = [Validator(params)]  # GX itself loads on the first validation
+
+
+def _parse_job(job: tuple[Path, Path, IngestParams, dict[str, Any]]) -> tuple[BatchOutcome, float]:
+    """Parse, validate and write one batch (a job for `ordered_imap`): its outcome and seconds."""
+    out_dir, batch_dir, params, fp = job
+    start = time.perf_counter()
+    outcome = write_batch(out_dir, parse_batch(batch_dir, params, _VALIDATOR[0]), fp)
+    return outcome, time.perf_counter() - start
+
+
 def ingest_batches(
     roots: Sequence[Path],
     out_dir: Path,
     params: IngestParams,
     *,
     log: Log = _stderr,
+    workers: int = 1,
 ) -> IngestResult:
-    """Ingest every batch folder under `roots` into `out_dir`, reusing unchanged batches.
+    """Ingest every batch folder under `roots` into `out_dir`, reusing unchanged batches, parsing the
+    others on up to `workers` processes (the same outputs on any number).
 
     Returns what happened to each batch (`.parsed`, `.reused`, `.accepted`, `.set_aside`, `.problems`).
     """
@@ -364,20 +383,23 @@ def ingest_batches(
     if (out_dir / STAGING).exists():  # unfinished writes of a crashed run
         shutil.rmtree(out_dir / STAGING)
     found, dups = _find_batches(roots)
-    validator: Validator | None = None  # GX only when something must be parsed
+    jobs, reused = [], {}
+    for name, batch_dir in found.items():
+        fp = fingerprint(batch_dir, params)
+        if (outcome := _reuse(out_dir / name, batch_dir, fp)) is not None:
+            reused[name] = outcome
+        else:
+            jobs.append((out_dir, batch_dir, params, fp))
+    size = sum(f.stat().st_size for _, batch_dir, _, _ in jobs for f in batch_dir.rglob("*") if f.is_file())
+    workers = workers_for(size, WORTH_A_WORKER, workers)
+    parsed = ordered_imap(_parse_job, jobs, workers, _start_validator, (params,))
     outcomes: list[BatchOutcome] = []
     n = len(found) + len(dups)
-    for i, (name, batch_dir) in enumerate(found.items(), 1):
-        fp = fingerprint(batch_dir, params)
-        outcome = _reuse(out_dir / name, batch_dir, fp)
-        seconds = None
-        if outcome is None:
-            start = time.perf_counter()
-            validator = validator or Validator(params)
-            outcome = write_batch(out_dir, parse_batch(batch_dir, params, validator), fp)
-            seconds = time.perf_counter() - start
+    for i, name in enumerate(found, 1):
+        outcome, seconds = (reused[name], None) if name in reused else next(parsed)
         outcomes.append(outcome)
         _log_outcome(log, i, n, outcome, seconds)
+    parsed.close()  # the worker processes, if any, end here
     for j, dup in enumerate(dups, len(found) + 1):
         outcomes.append(dup)
         _log_outcome(log, j, n, dup, None)

@@ -26,6 +26,7 @@ from pipeline.dataset.splits import SplitFiles, front_ends
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predict import load_predictor
 from pipeline.vocab import CALIBRATION, angle_name
+from pipeline.workers import WORKERS
 
 
 def _log(msg: str) -> None:
@@ -58,7 +59,9 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
     out_dir.mkdir(parents=True, exist_ok=True)
     written = set()
     for unit_id, rows in by_unit.items():
-        doc = calibrate_unit(unit_id, rows, models, angles, p, _log, cues, circuits.get(unit_id), levels)
+        doc = calibrate_unit(
+            unit_id, rows, models, angles, p, _log, cues, circuits.get(unit_id), levels, workers=WORKERS
+        )
         written.add(write_unit(doc, out_dir).name)
         missing = (
             f"; no calibration insertion at {', '.join(doc['angles_missing'])}°"

@@ -20,6 +20,7 @@ import typer
 from pipeline.config import IngestParams, SimulateParams, load_section
 from pipeline.reporting.ingest import write_reports
 from pipeline.rig.ingest import ingest_batches
+from pipeline.workers import WORKERS
 
 
 def _log(msg: str) -> None:
@@ -35,7 +36,7 @@ def main(
         ingest_params = load_section(IngestParams, "ingest", params)
         simulated = load_section(SimulateParams, "simulate", params).enabled
         roots = [raw_dir, sim_dir] if simulated else [raw_dir]
-        result = ingest_batches(roots, out_dir, ingest_params, log=_log)
+        result = ingest_batches(roots, out_dir, ingest_params, log=_log, workers=WORKERS)
         write_reports(result, report_dir)
     except (OSError, ValueError) as e:  # overlapping folders, bad params: one clear line, not a traceback
         _log(f"ingest: error: {e}")
