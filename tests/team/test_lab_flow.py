@@ -194,10 +194,10 @@ def _version_tags(team, name: str, version: str) -> dict[str, str]:
 
 
 def test_the_server_killed_mid_register_moves_no_alias_and_the_next_run_completes(team, lab):
-    # Given new models to register (the networks retrained on another seed) and the aliases now
+    # Given new versions to register (every model with a new cue pack: only cues, report and register
+    # rerun) and the aliases now
     params = yaml.safe_load((lab / "params.yaml").read_text())
-    params["fnn"]["seed"] = params["fnn"].get("seed", 0) + 1
-    params["lstm"]["seed"] = params["lstm"].get("seed", 0) + 1
+    params["cues"]["min_confidence"] = round(params["cues"]["min_confidence"] + 0.01, 4)
     (lab / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     before = _aliases(team)
     runs_before = _run_count(team)
