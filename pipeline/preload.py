@@ -28,6 +28,7 @@ import os
 import runpy
 import select
 import signal
+import site
 import socket
 import struct
 import subprocess
@@ -65,6 +66,7 @@ DIR_ENV = "NEEDLECUE_PRELOAD_DIR"  # where the sockets live (default: a private 
 # callers of one server (each stage gets the caller's whole environment)
 RUNTIME_PREFIXES = ("MLFLOW_", "AWS_", "PYTEST_", "DVC_", "GIT_", "NEEDLECUE_")
 RUNTIME_NAMES = frozenset({"PWD", "OLDPWD", "SHLVL", "_", "COLUMNS", "LINES"})
+MAX_LOG_BYTES = 1 << 20  # a server's log (a line per stage) starts over past this
 MAX_SOCKET_PATH = 100  # bytes: Linux takes 107 (macOS 103) in a Unix socket's address
 ALLOWED_THREADS = frozenset({"jemalloc_bg_thd"})  # Arrow's allocator; its fork handlers reset it
 
@@ -74,10 +76,13 @@ def enabled(env: Mapping[str, str]) -> bool:
 
 
 def key(env: Mapping[str, str]) -> str:
-    """What a server must share with its callers: this Python, the code of this module, and every
-    environment variable a library could read as it loads."""
+    """What a server must share with its callers: this Python and its installed packages, the code of
+    this module, and every environment variable a library could read as it loads."""
     loading = {k: v for k, v in env.items() if k not in RUNTIME_NAMES and not k.startswith(RUNTIME_PREFIXES)}
-    doc = [PROTOCOL, sys.executable, sys.version, Path(__file__).read_text(), sorted(loading.items())]
+    # an install or upgrade changes its site-packages folder: a new server, never a stale library
+    installed = [os.stat(p).st_mtime_ns for p in site.getsitepackages() if os.path.isdir(p)]
+    code = Path(__file__).read_text()
+    doc = [PROTOCOL, sys.executable, sys.version, installed, code, sorted(loading.items())]
     return hashlib.sha256(json.dumps(doc).encode()).hexdigest()[:32]
 
 
@@ -161,7 +166,9 @@ def _start_server(path: Path, env: Mapping[str, str]) -> None:
     """Start a server for `path` in the background (it detaches itself at once); never fails."""
     cmd = [sys.executable, "-m", "pipeline.preload", str(path)]
     with contextlib.suppress(OSError, subprocess.SubprocessError):
-        log = open(path.with_suffix(".log"), "ab")  # noqa: SIM115 (the server keeps it)
+        log_path = path.with_suffix(".log")
+        big = log_path.is_file() and log_path.stat().st_size > MAX_LOG_BYTES
+        log = open(log_path, "wb" if big else "ab")  # noqa: SIM115 (the server keeps it)
         with log:
             subprocess.run(cmd, env=dict(env), stdin=subprocess.DEVNULL, stdout=log, stderr=log, timeout=30)
 

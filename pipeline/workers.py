@@ -25,12 +25,17 @@ def usable_cpus() -> int:
 
 # The project's machines have 2 cores; more workers than cores only adds start-up time.
 WORKERS = min(2, usable_cpus())
+WORKERS_ENV = "NEEDLECUE_WORKERS"  # a number: worker processes whatever the work (never above WORKERS)
 
 
 def workers_for(work: float, worth: float, workers: int = WORKERS) -> int:
     """`workers` when `work` (the jobs' size, in the caller's own measure) reaches `worth`, else 1: a
     worker is a fresh interpreter, seconds of imports before it does anything, which small jobs do not
-    repay (the project's tests run the stages on a few trials)."""
+    repay (the project's tests run the stages on a few trials). `NEEDLECUE_WORKERS=N` decides instead
+    (at most `workers`): the tests run the worker processes on small data that way."""
+    forced = os.environ.get(WORKERS_ENV, "").strip()
+    if forced:
+        return max(1, min(int(forced), workers))
     return workers if work >= worth else 1
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from pipeline.calibration import fit as calibration_fit
 from pipeline.calibration.fit import AngleData, fit_transform
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, FNNParams, LSParams
@@ -94,3 +95,26 @@ def test_the_document_says_what_was_used_missing_and_set_aside() -> None:
     assert doc["transforms"]["ls"]["fitted_through"] == ["30"]
     # and: the same inputs give the same document
     assert calibrate_unit("u-new", rows, {"ls": {"30": model}}, ["30", "45"], P) == doc
+
+
+def test_the_fits_on_two_worker_processes_give_the_one_process_results(monkeypatch) -> None:
+    # given: an LS and an FNN model at two angles, a unit whose channels read off, and calibration
+    # rows so few that worker processes would not repay their start (the rule, turned off here)
+    train = make_frame(n_trials=4, seed=0)
+    models = {
+        "ls": fit("ls", LSParams(), train).predictor,
+        "fnn": fit("fnn", FNNParams(hidden=(8,), max_epochs=10, patience=10), train).predictor,
+    }
+    unit = {
+        a: _distorted(make_frame(n_trials=2, seed=s), np.diag([1.1, 0.95, 1.0])) for a, s in ((0, 3), (1, 4))
+    }
+    data = {kind: [AngleData.of(m, unit[a]) for a in unit] for kind, m in models.items()}
+    monkeypatch.setattr(calibration_fit, "WORTH_A_WORKER", 0)
+    # when: fitting every kind's transform, leave-one-angle-out included, on one process and on two
+    one = calibration_fit.fit_transforms(data, P, workers=1)
+    two = calibration_fit.fit_transforms(data, P, workers=2)
+    # then: the same transforms and reports, to the bit
+    assert one.keys() == two.keys() == {"ls", "fnn"}
+    for kind in one:
+        assert one[kind][0].to_dict() == two[kind][0].to_dict()
+        assert one[kind][1] == two[kind][1] and "held_out_loss_after" in one[kind][1]
