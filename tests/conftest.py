@@ -18,17 +18,6 @@ from tests.projects import build_tiny_project
 LAB_BENCH_A = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The team tests first. They run one after another on one xdist worker (group "team", minutes in
-    all): started first, they overlap the rest of the suite instead of running last, alone."""
-
-    def group(item: pytest.Item) -> str | None:
-        mark = item.get_closest_marker("xdist_group")
-        return (mark.args[0] if mark.args else mark.kwargs.get("name")) if mark else None
-
-    items.sort(key=lambda item: group(item) != "team")  # stable: the file order otherwise
-
-
 @pytest.fixture
 def lab_bench_a() -> Path:
     """The committed fixture folder (read it, never write it)."""
