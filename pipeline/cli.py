@@ -114,16 +114,11 @@ def check(
 
 
 def _repeats(checked: list[Any]) -> dict[tuple[str, str], str]:
-    """{(batch, trial): the batch/trial it repeats} for trials whose values (both streams, times left
-    out) are those of an earlier one in (batch, trial) order: the split stage keeps the first and sets
-    the others aside."""
-    first: dict[str, str] = {}
-    out = {}
-    for batch, trial, sha in sorted((c.batch_id, t, h) for c in checked for t, h in c.samples_sha256.items()):
-        original = first.setdefault(sha, f"{batch}/{trial}")
-        if original != f"{batch}/{trial}":
-            out[(batch, trial)] = original
-    return out
+    """{(batch, trial): the batch/trial it repeats}: what the split stage will set aside as a copy."""
+    from pipeline.rig.repeats import repeats
+
+    hashes = {(c.batch_id, t): h for c in checked for t, h in c.samples_sha256.items()}
+    return {key: "/".join(original) for key, original in repeats(hashes).items()}
 
 
 def _ledger_places(path: Path) -> dict[tuple[Path, str], dict[str, Any]]:
@@ -175,59 +170,32 @@ def _fail(message: str, code: int = 1) -> typer.Exit:
 def _batch_rows(
     batch_dir: Path, unit_id: str | None, params: Path, purpose: str | None = None
 ) -> tuple[str, Any, list[str], Any]:
-    """Check one rig-log/1 batch like `needlecue check` (its problems printed), ingest and resample it
-    in a temp folder: (its unit, its resampled rows, the trials set aside, the circuit it declares or
-    None). typer.Exit(1) if nothing is usable or another unit than `unit_id` recorded it; a warning if
-    its purpose is not `purpose`."""
-    import tempfile
-
-    import pandas as pd
-
+    """`read_batch` with its problems printed: (its unit, its resampled rows, the trials set aside,
+    the circuit it declares or None). typer.Exit(1) if nothing is usable or another unit than
+    `unit_id` recorded it; a warning if its purpose is not `purpose`."""
     from pipeline.config import IngestParams, ResampleParams
-    from pipeline.rig.expectations import Validator
-    from pipeline.rig.frontend import is_declared
-    from pipeline.rig.ingest import fingerprint, write_batch
-    from pipeline.rig.reader import parse_batch
-    from pipeline.signals import resample
+    from pipeline.signals.one_batch import read_batch
 
-    ingest = _section(IngestParams, "ingest", params)
-    parsed = parse_batch(batch_dir, ingest, Validator(ingest))
-    for problem in parsed.problems:
+    batch = read_batch(
+        batch_dir, _section(IngestParams, "ingest", params), _section(ResampleParams, "resample", params)
+    )
+    for problem in batch.problems:
         typer.echo(str(problem))
-    if not parsed.accepted or parsed.meta is None:
+    if batch.unit_id is None:
+        raise _fail(f"{batch_dir}: nothing usable ({len(batch.problems)} problem(s)); fix them and run again")
+    if unit_id is not None and unit_id != batch.unit_id:
         raise _fail(
-            f"{batch_dir}: nothing usable ({len(parsed.problems)} problem(s)); fix them and run again"
+            f"{batch_dir} was recorded by unit {batch.unit_id!r} (batch.yaml sensor.unit_id), not {unit_id!r}"
         )
-    unit = parsed.meta.sensor.unit_id
-    if unit_id is not None and unit_id != unit:
-        raise _fail(f"{batch_dir} was recorded by unit {unit!r} (batch.yaml sensor.unit_id), not {unit_id!r}")
-    if purpose is not None and parsed.meta.purpose != purpose:
+    if purpose is not None and batch.purpose != purpose:
         typer.echo(
-            f"warning: {batch_dir}: purpose {parsed.meta.purpose!r}, not {purpose!r}: calibrating anyway",
-            err=True,
+            f"warning: {batch_dir}: purpose {batch.purpose!r}, not {purpose!r}: calibrating anyway", err=True
         )
-    aside = [f"{parsed.batch_id}/{t}: see the problems above" for t in parsed.trials_set_aside]
-    with tempfile.TemporaryDirectory(prefix="needlecue-calibrate-") as tmp:
-        work = Path(tmp)
-        write_batch(work / "ingested", parsed, fingerprint(batch_dir, ingest))
-        resampled = resample.run(
-            work / "ingested", work / "resampled", _section(ResampleParams, "resample", params), log=_quiet
-        )
-        aside += [
-            f"{r['batch_id']}/{r['trial_id']}: {r['status']}" for r in resampled.rows if r["status"] != "ok"
-        ]
-        data = work / "resampled" / f"{parsed.batch_id}.parquet"
-        rows = pd.read_parquet(data) if data.is_file() else pd.DataFrame()
-    if rows.empty:
-        for line in aside:
+    if batch.rows.empty:
+        for line in batch.set_aside:
             typer.echo(f"set aside {line}")
         raise _fail(f"{batch_dir}: no trial could be aligned and resampled")
-    front_end = parsed.meta.sensor.front_end
-    return unit, rows, aside, (front_end if is_declared(front_end) else None)
-
-
-def _quiet(_message: str) -> None:
-    pass
+    return batch.unit_id, batch.rows, batch.set_aside, batch.front_end
 
 
 def _print_calibration(doc: dict[str, Any], champions: dict[str, Any], aside: list[str]) -> None:
@@ -291,41 +259,42 @@ def calibrate(
     from pipeline.vocab import CALIBRATION
 
     unit, rows, aside, front_end = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
-    try:
-        client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
-        champions = units.champion_models(client, log=say)
-        if not champions:
-            where = client.tracking_uri
-            raise _fail(f"the registry at {where} has no readable needle-force-<angle>@champion")
-        models = units.champion_predictors(client, champions, say)
-    except store.RegistryUnreachable as e:
-        raise _fail(str(e), 2) from e
-    except MlflowException as e:
-        raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
-    for kind, by_angle in models.items():
-        for angle, predictor in list(by_angle.items()):
-            lacking = [c for c in predictor.channels if c not in rows.columns]
-            if lacking:
-                say(
-                    f"the {kind} champion at {angle}° reads {list(predictor.channels)}: "
-                    f"the batch has no {lacking}"
-                )
-                del by_angle[angle]
-    p = _section(CalibrateParams, "calibrate", params)
-    doc = calibrate_unit(unit, rows, models, list(champions), p, say, front_end=front_end)
-    _print_calibration(doc, champions, aside)
-    if not doc["transforms"]:
-        raise _fail("nothing calibrated: no usable calibration trial at an angle with a champion")
-    name = store.unit_model_name(unit)
-    if dry_run:
-        typer.echo(f"dry run: {name} not registered")
-        return
-    try:
-        entry = units.register_unit(client, doc, units.document_bytes(doc), say)
-    except MlflowException as e:
-        raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
-    state = "registered" if entry["action"] == "registered" else "already registered"
-    typer.echo(f"{state}: {name} version {entry['version']} (@{store.UNIT_ALIAS})")
+    with store.patience(write=True):  # MLflow's HTTP timeouts, for as long as the registry is used
+        try:
+            client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
+            champions = units.champion_models(client, log=say)
+            if not champions:
+                where = client.tracking_uri
+                raise _fail(f"the registry at {where} has no readable needle-force-<angle>@champion")
+            models = units.champion_predictors(client, champions, say)
+        except store.RegistryUnreachable as e:
+            raise _fail(str(e), 2) from e
+        except MlflowException as e:
+            raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
+        for kind, by_angle in models.items():
+            for angle, predictor in list(by_angle.items()):
+                lacking = [c for c in predictor.channels if c not in rows.columns]
+                if lacking:
+                    say(
+                        f"the {kind} champion at {angle}° reads {list(predictor.channels)}: "
+                        f"the batch has no {lacking}"
+                    )
+                    del by_angle[angle]
+        p = _section(CalibrateParams, "calibrate", params)
+        doc = calibrate_unit(unit, rows, models, list(champions), p, say, front_end=front_end)
+        _print_calibration(doc, champions, aside)
+        if not doc["transforms"]:
+            raise _fail("nothing calibrated: no usable calibration trial at an angle with a champion")
+        name = store.unit_model_name(unit)
+        if dry_run:
+            typer.echo(f"dry run: {name} not registered")
+            return
+        try:
+            entry = units.register_unit(client, doc, units.document_bytes(doc), say)
+        except MlflowException as e:
+            raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
+        state = "registered" if entry["action"] == "registered" else "already registered"
+        typer.echo(f"{state}: {name} version {entry['version']} (@{store.UNIT_ALIAS})")
 
 
 @app.command()

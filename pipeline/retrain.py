@@ -26,8 +26,8 @@ from __future__ import annotations
 import datetime as dt
 import fcntl
 import json
+import logging
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -124,96 +124,78 @@ def check_pending(pending: list[Pending], params: IngestParams) -> list[Pending]
     ]
 
 
-def _env() -> dict[str, str]:
-    """Stage commands call `python`: put this interpreter's folder first on PATH."""
-    return dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+class _ToLog(logging.Handler):
+    """DVC's progress messages ("Running stage 'x':", the command) to the retrain's log."""
+
+    def __init__(self, log: Log) -> None:
+        super().__init__(logging.INFO)
+        self.log = log
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if message.strip():
+            self.log(f"dvc: {message}")
 
 
-def clear_dead_dvc_locks(root: Path, log: Log) -> int:
-    """Drop the entries of dead processes from DVC's `.dvc/tmp/rwlock`; returns how many.
+@contextmanager
+def _dvc(root: Path, log: Log) -> Iterator[Any]:
+    """The project's DVC repo, its log records shown on `log` while it is open.
 
-    DVC removes entries whose PID no longer exists, but a killed `dvc repro` whose parent died too
-    stays a zombie where nothing reaps orphans (a container without an init), and DVC then waits
-    for it forever. Only done while no DVC command holds the repo lock, so no live entry is touched.
-    """
-    import psutil
+    DVC runs in this process, not as a `dvc` child: DVC's stage locks name the process holding them,
+    and a killed `dvc` child whose parent died too stays a zombie where nothing reaps orphans (a
+    container without an init), which DVC takes for a live holder and waits for. This process's
+    own parent (cron, systemd, a shell) reaps it."""
+    from dvc.lock import LockError
+    from dvc.repo import Repo
 
-    tmp = root / ".dvc" / "tmp"
-    rwlock = tmp / "rwlock"
-    if not rwlock.is_file():
-        return 0
-
-    def dead(info: dict[str, Any]) -> bool:
-        try:
-            return psutil.Process(int(info["pid"])).status() == psutil.STATUS_ZOMBIE
-        except psutil.NoSuchProcess:
-            return True
-
-    fd = os.open(tmp / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+    handler, dvc_log = _ToLog(log), logging.getLogger("dvc")
+    level = dvc_log.level
+    dvc_log.addHandler(handler)
+    dvc_log.setLevel(logging.INFO)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the lock DVC commands hold (zc.lockfile)
-        except BlockingIOError:
-            return 0  # a DVC command runs: leave its lock file alone
-        try:
-            data = json.loads(rwlock.read_text())
-        except (OSError, ValueError):
-            return 0
-        removed = 0
-        for mode in ("read", "write"):
-            entries = data.get(mode) or {}
-            for path in list(entries):
-                infos = entries[path] if isinstance(entries[path], list) else [entries[path]]
-                keep = [i for i in infos if not dead(i)]
-                removed += len(infos) - len(keep)
-                if not keep:
-                    del entries[path]
-                elif isinstance(entries[path], list):
-                    entries[path] = keep
-        if removed:
-            rwlock.write_text(json.dumps(data))
-            log(f"removed {removed} stale DVC lock entr{'y' if removed == 1 else 'ies'} of a killed run")
-        return removed
+        with Repo(str(root)) as repo:
+            yield repo
+    except LockError as e:
+        raise Busy(
+            f"another DVC command is running in {root}: nothing done ({str(e).splitlines()[0]})"
+        ) from e
     finally:
-        os.close(fd)
+        dvc_log.removeHandler(handler)
+        dvc_log.setLevel(level)
 
 
-def dvc_changed(root: Path) -> list[str]:
-    """Stages `dvc status` reports as out of date."""
-    done = subprocess.run(
-        ["dvc", "status", "--json"], cwd=root, env=_env(), capture_output=True, text=True, check=False
-    )
-    if done.returncode != 0:
-        message = done.stderr.strip() or done.stdout.strip()
-        if "Unable to acquire lock" in message or "is busy" in message:
-            raise Busy(f"another DVC command is running in {root}: nothing done ({message.splitlines()[0]})")
-        raise RuntimeError(f"dvc status failed in {root}: {message}")
-    text = done.stdout
-    return sorted(json.loads(text[text.index("{") :])) if "{" in text else []
+def dvc_changed(root: Path, log: Log = _stderr) -> list[str]:
+    """Stages DVC reports as out of date (`dvc status`)."""
+    with _dvc(root, log) as repo:
+        return sorted(repo.status())
+
+
+def _stage_states(root: Path) -> dict[str, Any]:
+    """dvc.lock's record of every stage (what each last ran on and wrote)."""
+    import yaml
+
+    lock = root / "dvc.lock"
+    return (yaml.safe_load(lock.read_text()) or {}).get("stages", {}) if lock.is_file() else {}
 
 
 def dvc_repro(root: Path, log: Log) -> tuple[int, list[str], list[str]]:
-    """`dvc repro`, its output streamed to `log`: (exit code, stages run, last lines of output)."""
-    proc = subprocess.Popen(
-        ["dvc", "repro"],
-        cwd=root,
-        env=_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        bufsize=1,
-    )
-    ran, tail = [], []
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        line = line.rstrip("\n")
-        if line.startswith("Running stage '"):
-            ran.append(line.split("'")[1])
-            log(f"dvc: {line}")
-        elif line.startswith(("ERROR", "ingest [", "register:")) or ": error:" in line:
-            log(f"dvc: {line}")
-        tail = [*tail[-39:], line]
-    return proc.wait(), ran, tail
+    """`dvc repro` (its progress and the stages' output on this process's): (exit code, stages run,
+    the error's lines). After a failure, the stages run are those whose dvc.lock record changed:
+    the ones that completed before it."""
+    from dvc.exceptions import DvcException
+
+    before = _stage_states(root)
+    python = {"PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    try:
+        with _dvc(root, log) as repo:
+            ran = repo.reproduce(run_env=python)  # stages call `python`: this interpreter's
+        return 0, [stage.addressing for stage in ran], []
+    except DvcException as e:
+        after = _stage_states(root)
+        done = [name for name, state in after.items() if before.get(name) != state]
+        lines = [str(e)] + ([f"caused by: {e.__cause__}"] if e.__cause__ else [])
+        log(f"dvc repro failed: {' '.join(lines)}")
+        return 1, done, lines
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -384,8 +366,7 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
     raw_dir = root / stage_raw_dir
     ingest_params = load_section(IngestParams, "ingest", params_file)
     pending = pending_batches(raw_dir, root / INGESTED, ingest_params, stage_raw_dir)
-    clear_dead_dvc_locks(root, log)
-    changed = dvc_changed(root)
+    changed = dvc_changed(root, log)
     if not changed:  # DVC decides: a batch "changed" only for the ingest cache (a library upgrade) is not new
         if pending:
             log(

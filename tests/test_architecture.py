@@ -13,6 +13,7 @@ from tests.architecture import (
     code_deps,
     imported_modules,
     listed_code_deps,
+    module_file,
     module_name,
     stage_modules,
 )
@@ -87,3 +88,18 @@ def test_the_live_session_imports_no_training_module() -> None:
     training += ("pipeline.rig", "pipeline.signals", "pipeline.sim", "pipeline.dataset")
     shared = SHARED_WITH_CLIENT
     assert sorted(m for m in loaded if m.startswith(training) and m not in shared) == []
+
+
+def test_the_package_import_graph_has_no_cycle() -> None:
+    # given: every module of the package and the project modules each one names in an import (at the
+    # top or inside a function: a lazy import hides a loop from Python, not from a reader)
+    import networkx as nx
+
+    graph = nx.DiGraph()
+    for f in REPO.joinpath(PACKAGE).rglob("*.py"):
+        for module in imported_modules(f):
+            target = module_file(module)
+            if target is not None and target != f:
+                graph.add_edge(module_name(f), module_name(target))
+    # then: no module reaches itself
+    assert list(nx.simple_cycles(graph)) == []

@@ -178,7 +178,7 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tiny_built: Path, tmp_path
     assert sorted(b["batch_id"] for b in report["batches"]) == ["broken", "cast-7"]
     assert report["batches_set_aside"] == ["broken"]
     # only the new batches were parsed; the known ones came from the ingest cache
-    ingest_lines = [line for line in done.stderr.splitlines() if "dvc: ingest [" in line]
+    ingest_lines = [line for line in done.stderr.splitlines() if line.startswith("ingest [")]
     # 7 simulated batches (2 training casts-by-unit, 2 held-out, 2 new-unit held-out, 1 calibration)
     # + the two new ones
     assert len(ingest_lines) == 9, done.stderr

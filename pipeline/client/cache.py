@@ -21,7 +21,7 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -70,24 +70,9 @@ def read_version(folder: Path) -> dict[str, Any] | None:
     return info if isinstance(info, dict) else None
 
 
-@contextlib.contextmanager
-def _env(values: dict[str, str]) -> Iterator[None]:
-    """Set environment variables for the block; each restored (or removed) after it."""
-    before = {key: os.environ.get(key) for key in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for key, value in before.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
-
-
 def _quiet_downloads() -> contextlib.AbstractContextManager[None]:
     """No tqdm progress bar per download (it would spam a simulator's console); env restored after."""
-    return _env({"MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"})
+    return store.environment({"MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"})
 
 
 def fetch(
@@ -123,7 +108,7 @@ def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
     """The ModelVersion `name@alias` points to now, asked quickly (short timeout, no retries over HTTP).
     `RegistryUnreachable` or `ModelNotFound` as for `fetch`.
 
-    A server is asked in one request, without `store.connect`'s checks (three more requests per poll,
+    A server is asked in one request, without `store.connect`'s check (one more request per poll,
     for every simulator): the client that polls fetched from it already, and whatever the answer names
     is fetched, with those checks, before it runs. No answer, or a server error (5xx), is unreachable
     at once: more requests would only load a busy server. A 4xx, or an answer that is not a version,
@@ -133,7 +118,7 @@ def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
 
     hint = UNIT_HINT if name.startswith("needle-unit-") else MODEL_HINT
     uri = tracking_uri or store.tracking_uri()
-    with _env(_POLL_HTTP_ENV):
+    with store.environment(_POLL_HTTP_ENV):
         if uri.startswith(("http://", "https://")):
             try:
                 mv = MlflowClient(tracking_uri=uri, registry_uri=uri).get_model_version_by_alias(name, alias)
@@ -202,8 +187,8 @@ def _fetch_version(
     registry_uri = tracking_uri or store.tracking_uri()
     cached = read_version(target) if not offline_needs_file or (target / file).is_file() else None
     try:
-        client = store.connect(registry_uri, must_exist=True)
-        mv = _resolve(client, name, alias, registry_uri, hint)
+        with store.patience():
+            mv = _resolve(store.connect(registry_uri, must_exist=True), name, alias, registry_uri, hint)
     except store.RegistryUnreachable as e:
         return _offline_copy(target, cached, uri, e, problem)
     if (
@@ -217,7 +202,8 @@ def _fetch_version(
     ):
         return target  # already that version, intact: no download
     try:
-        return _download(mv, alias, target, registry_uri, describe, only)
+        with store.patience():
+            return _download(mv, alias, target, registry_uri, describe, only)
     except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
         return _offline_copy(target, cached, uri, e, problem)
 
@@ -381,7 +367,7 @@ def _download(
     tmp = Path(tempfile.mkdtemp(prefix=f".{alias}-download-", dir=target.parent))
     tmp.chmod(0o755)  # mkdtemp's 0700 would hide a shared cache's copy from other users
     try:
-        with _quiet_downloads():
+        with _quiet_downloads(), store.fluent(registry_uri):  # models:/ URIs resolve in the registry
             # by version, not alias: the alias may move between resolving it and downloading
             try:
                 if only is None:

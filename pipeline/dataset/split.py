@@ -38,7 +38,7 @@ import math
 import sys
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import Any
@@ -51,7 +51,8 @@ from pipeline.config import SplitParams
 from pipeline.dataset.splits import FRONT_ENDS
 from pipeline.dataset.tables import columns_for, table_schema, write_table
 from pipeline.rig.frontend import circuit_key, declared
-from pipeline.vocab import AXES, CALIBRATION, SPLITS, angle_name, sorted_angles
+from pipeline.rig.repeats import SAMPLES_KEY, reason, repeats
+from pipeline.vocab import CALIBRATION, SPLITS, angle_name, sorted_angles
 
 MANIFEST = "manifest.json"
 
@@ -76,6 +77,7 @@ class Trial:
     unit_id: str = ""  # the estimator unit that recorded the batch
     purpose: str = "training"  # the batch's purpose: training | calibration
     front_end: dict[str, Any] | None = None  # the batch's batch.yaml sensor.front_end, as declared
+    samples_sha256: str = ""  # its samples' hash from ingest (`pipeline.rig.repeats`)
 
     @property
     def key(self) -> TrialKey:
@@ -98,8 +100,14 @@ def load_trials(in_dir: Path) -> tuple[list[Trial], float | None]:
         if missing:
             raise ValueError(f"{data_path}: columns {missing} missing (channels from {meta_path.name})")
         table = table.select(columns_for(channels))
+        if not isinstance(meta.get(SAMPLES_KEY), dict):
+            raise ValueError(f"{meta_path}: no {SAMPLES_KEY} (written by an older resample: run dvc repro)")
         purpose = str(meta.get("purpose") or "training")
-        trials += _split_by_trial(str(meta["batch_id"]), channels, table, purpose, meta.get("front_end"))
+        batch = _split_by_trial(str(meta["batch_id"]), channels, table, purpose, meta.get("front_end"))
+        missing_hash = sorted(t.trial_id for t in batch if t.trial_id not in meta[SAMPLES_KEY])
+        if missing_hash:
+            raise ValueError(f"{meta_path}: trials {missing_hash} have no {SAMPLES_KEY} entry")
+        trials += [replace(t, samples_sha256=str(meta[SAMPLES_KEY][t.trial_id])) for t in batch]
     if len(rates) > 1:
         raise ValueError(f"resampled batches disagree on the grid rate: {sorted(rates)} Hz")
     return sorted(trials, key=lambda t: t.key), (rates.pop() if rates else None)
@@ -123,48 +131,16 @@ def _split_by_trial(
     return out
 
 
-REPEAT_RTOL, REPEAT_ATOL = 1e-9, 1e-12  # two recordings of one insertion never agree this closely
-
-
-def samples_sha256(t: Trial) -> str:
-    """SHA-256 of a trial's samples: its channels' and forces' values in order, not their names."""
-    h = hashlib.sha256()
-    for column in [*t.channels, *AXES]:
-        h.update(np.ascontiguousarray(t.table.column(column).to_numpy(), dtype="<f8").tobytes())
-        h.update(b"|")
-    return h.hexdigest()
-
-
-def _values(t: Trial) -> np.ndarray:
-    return np.column_stack([t.table.column(c).to_numpy() for c in [*t.channels, *AXES]]).astype(np.float64)
-
-
 def drop_repeats(trials: list[Trial]) -> tuple[list[Trial], list[dict[str, str]]]:
     """The trials with each recording once (the first in (batch, trial) order), and the set-aside
-    record of every repeat: the same samples (`samples_sha256`), or the same to within rounding
-    (a copy whose timestamps were shifted lands on another grid phase: equal to about 1e-14)."""
-    first: dict[str, Trial] = {}
-    by_shape: dict[tuple[int, tuple[str, ...]], list[tuple[Trial, np.ndarray]]] = {}
-    kept, aside = [], []
-    for t in sorted(trials, key=lambda t: t.key):
-        sha = samples_sha256(t)
-        original, same = first.get(sha), "the same samples as"
-        if original is None:
-            values = _values(t)
-            peers = by_shape.setdefault((len(values), t.channels), [])
-            # REPEAT_RTOL: far below any sensor's noise, far above float rounding
-            close = (o for o, v in peers if np.allclose(values, v, rtol=REPEAT_RTOL, atol=REPEAT_ATOL))
-            original, same = next(close, None), "samples equal to"
-            if original is None:
-                first[sha] = t
-                peers.append((t, values))
-                kept.append(t)
-                continue
-        reason = (
-            f"{same} {original.batch_id}/{original.trial_id}: a recording is used once "
-            "(a batch or trial copied under another name, or with its timestamps shifted?)"
-        )
-        aside.append({"angle": t.angle, "batch_id": t.batch_id, "trial_id": t.trial_id, "reason": reason})
+    record of every repeat (`pipeline.rig.repeats`, as `needlecue check` finds them)."""
+    found = repeats({t.key: t.samples_sha256 for t in trials})
+    kept = [t for t in sorted(trials, key=lambda t: t.key) if t.key not in found]
+    aside = [
+        {"angle": t.angle, "batch_id": t.batch_id, "trial_id": t.trial_id, "reason": reason(found[t.key])}
+        for t in sorted(trials, key=lambda t: t.key)
+        if t.key in found
+    ]
     return kept, aside
 
 
@@ -326,7 +302,7 @@ def run(
     one of them has no training trial (`untrainable`)."""
     trials, rate_hz = load_trials(in_dir)
     circuits = unit_front_ends(trials)  # ValueError before anything is written if a unit's disagree
-    trials, repeats = drop_repeats(trials)
+    trials, copies = drop_repeats(trials)
     angles = plan([t for t in trials if t.purpose != CALIBRATION], p)
     if trained is not None and (why := untrainable(angles, trained)):
         raise ValueError(why)
@@ -334,7 +310,7 @@ def run(
         [t for t in trials if t.purpose == CALIBRATION], {a.angle: a.channels for a in angles}
     )
     out_dir.mkdir(parents=True, exist_ok=True)
-    manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": list(repeats)}
+    manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": list(copies)}
     schemas: dict[str, pa.Schema] = {}
     for a in angles:
         schema = schemas[a.angle] = _schema([t for ts in a.splits.values() for t in ts], a.channels)

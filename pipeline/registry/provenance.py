@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.registry.store import TAG, connect, model_name
+from pipeline.registry.store import TAG, connect, model_name, patience, tracking_uri
 from pipeline.registry.tracking import LOCK_ARTIFACT
 
 
@@ -23,9 +23,9 @@ class ProvenanceError(RuntimeError):
 
 def version_provenance(angle_deg: float, version: int, uri: str | None = None) -> dict[str, Any]:
     """{model, version, run_id, git_commit, dvc_lock_sha256} of `needle-force-<angle>` version `version`."""
-    client = connect(uri, must_exist=True)
+    with patience():
+        mv = connect(uri, must_exist=True).get_model_version(model_name(angle_deg), str(version))
     name = model_name(angle_deg)
-    mv = client.get_model_version(name, str(version))
     tags = mv.tags or {}
     if f"{TAG}dvc_lock_sha256" not in tags:
         raise ProvenanceError(f"{name} v{version}: registered without a dvc.lock record (an older needlecue)")
@@ -62,7 +62,10 @@ def restore_lock(angle_deg: float, version: int, root: Path, uri: str | None = N
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(
             mlflow.artifacts.download_artifacts(
-                run_id=found["run_id"], artifact_path=LOCK_ARTIFACT, dst_path=tmp
+                run_id=found["run_id"],
+                artifact_path=LOCK_ARTIFACT,
+                dst_path=tmp,
+                tracking_uri=uri or tracking_uri(),
             )
         )
         digest = hashlib.sha256(path.read_bytes()).hexdigest()

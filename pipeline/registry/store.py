@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import sqlite3
-from contextlib import closing
+from collections.abc import Iterator
+from contextlib import closing, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -31,6 +31,9 @@ TAG = "needlecue."  # prefix of our own tags on runs and model versions
 CALIBRATION_SHA_TAG = f"{TAG}calibration_sha256"
 UNIT_EXPERIMENT = "needle-units"  # one run per registered unit calibration document
 UNIT_ALIAS = "current"  # needle-unit-<unit_id>@current: the calibration a simulator applies
+# MLflow 3's UI opens an experiment without this tag on its GenAI view (traces, latency); ours are
+# model training, so it opens on the runs and their metrics
+KIND_TAG, KIND = "mlflow.experimentKind", "custom_model_development"
 ABOUT = """One run per trained model: `<angle>°-<kind>` (ls, fnn, lstm), tagged `angle_deg` and `model_type`.
 
 Metrics are named `<split>_<measure>_<axis>`: split `val`, `test` or `external` (the held-out tissue
@@ -48,16 +51,16 @@ the standardised force error of the frozen shared models on the unit's calibrati
 with its input transform. Tags: `unit_id`, `batches`, `angles_used`, `angles_missing` and
 `needlecue.calibration_sha256` (of the document's bytes). The document is the artifact
 `calibration/calibration.json`, registered as `needle-unit-<unit_id>`, alias `current`."""
-# Fail fast on an unreachable HTTP store instead of MLflow's default minutes of retries.
-_HTTP_DEFAULTS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
-# A writer waits longer for each answer (unless told otherwise): a server busy with many clients can
-# take over 10 s for one request (seen in CI, just after a restart), and a register given up half way
-# has to be run again. An unreachable server still fails at once: no retries.
-_WRITE_TIMEOUT_S = "60"
+# Fail fast on an unreachable HTTP store instead of MLflow's default minutes of retries (`patience`).
+HTTP_SETTINGS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
+# A writer waits longer for each answer: a server busy with many clients can take over 10 s for one
+# request (seen in CI, just after a restart), and a register given up half way has to be run again.
+# An unreachable server still fails at once: no retries.
+WRITE_TIMEOUT_S = "60"
+# What an MLflow 3 tracking server answers, with no login, about itself (MLflow's own client asks it)
+SERVER_INFO = "/api/3.0/mlflow/server-info"
+SERVER_INFO_KEYS = {"store_type", "workspaces_enabled"}
 
-
-# A registered-model name nobody registers: asked for, a real MLflow store says it does not exist.
-PROBE_MODEL = "needlecue-probe-no-such-model"
 # The experiment tag a writer sets to "ok" to learn the store takes writes (a no-op once set).
 WRITE_CHECK_TAG = "needlecue.write_check"
 
@@ -138,19 +141,21 @@ def sqlite_file(uri: str) -> Path | None:
 
 
 def experiment_id(client: MlflowClient, name: str = EXPERIMENT, about: str = ABOUT) -> str:
-    """The experiment's id, creating it (described by `about`) if needed. With a sqlite store its
-    artifacts go to `mlartifacts/` beside the database file: MLflow's own default is `./mlruns` under
-    the cwd, which under `dvc exp run --temp` is a throwaway copy. A server decides for itself."""
+    """The experiment's id, creating it (described by `about`, of MLflow's kind "model training") if
+    needed. With a sqlite store its artifacts go to `mlartifacts/` beside the database file: MLflow's
+    own default is `./mlruns` under the cwd, which under `dvc exp run --temp` is a throwaway copy. A
+    server decides for itself."""
     found = client.get_experiment_by_name(name)
     if found is not None:
+        if found.tags.get(KIND_TAG) != KIND:  # made by an older needlecue, or changed in the UI
+            client.set_experiment_tag(found.experiment_id, KIND_TAG, KIND)
         return str(found.experiment_id)
     location = None
     db = sqlite_file(client.tracking_uri)
     if db is not None:
         location = (db.parent / "mlartifacts").as_uri()
-    return str(
-        client.create_experiment(name, artifact_location=location, tags={"mlflow.note.content": about})
-    )
+    tags = {"mlflow.note.content": about, KIND_TAG: KIND}
+    return str(client.create_experiment(name, artifact_location=location, tags=tags))
 
 
 def create_registered_model(client: MlflowClient, name: str, description: str) -> None:
@@ -164,22 +169,70 @@ def create_registered_model(client: MlflowClient, name: str, description: str) -
             raise
 
 
+@contextmanager
+def patience(write: bool = False) -> Iterator[None]:
+    """MLflow's HTTP settings for the block, restored after it: no retries and 10 s per answer (60 s
+    for a writer), each unless the environment sets it. MLflow reads them from the environment at
+    every request; there is no per-client setting."""
+    wanted = {**HTTP_SETTINGS, **({"MLFLOW_HTTP_REQUEST_TIMEOUT": WRITE_TIMEOUT_S} if write else {})}
+    with environment({k: os.environ.get(k, v) for k, v in wanted.items()}):
+        yield
+
+
+@contextmanager
+def environment(values: dict[str, str]) -> Iterator[None]:
+    """Set environment variables for the block; each restored (or removed) after it. An empty value
+    is a variable that is not set."""
+    before = {key: os.environ.get(key) for key in values}
+    try:
+        for key, value in values.items():
+            if value:
+                os.environ[key] = value
+            else:
+                os.environ.pop(key, None)
+        yield
+    finally:
+        for key, value in before.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+@contextmanager
+def fluent(uri: str) -> Iterator[None]:
+    """MLflow's fluent API (`mlflow.start_run`, `mlflow.register_model`, `models:/` downloads) on the
+    store at `uri`, tracking and registry, for the block. After it, MLflow's process-wide URIs and the
+    environment variables `set_tracking_uri` writes are as they were: set, or unset."""
+    import mlflow
+    from mlflow.tracking._model_registry import utils as registry_state
+    from mlflow.tracking._tracking_service import utils as tracking_state
+
+    # MLflow keeps "not set" (fall back to the environment) only in these module variables
+    before = (tracking_state._tracking_uri, registry_state._registry_uri)
+    with environment({k: os.environ.get(k, "") for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI")}):
+        mlflow.set_tracking_uri(uri)
+        mlflow.set_registry_uri(uri)
+        try:
+            yield
+        finally:
+            mlflow.set_tracking_uri(before[0])
+            mlflow.set_registry_uri(before[1])
+
+
 def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = False) -> MlflowClient:
-    """A client on `uri` (default `tracking_uri()`), checked to answer as MLflow does; before anything
-    changes, `RegistryUnreachable` if it does not answer, `NotMlflow` if what answers is not MLflow
-    (a web server answering `{}` to everything, say), and with `write`, `ReadOnlyStore` if it refuses
-    writes (a read-only database or a simulator's read-only credentials).
+    """A client on `uri` (default `tracking_uri()`), checked before anything changes:
+    `RegistryUnreachable` if nothing answers, `NotMlflow` if what answers is not MLflow (a web server
+    answering `{}` to everything, another program's sqlite file), and with `write`, `ReadOnlyStore` if
+    it refuses writes (a read-only database or a simulator's read-only credentials).
+
+    An HTTP server is asked what it is once, by MLflow's server-info endpoint; a store MLflow opens
+    itself (sqlite, PostgreSQL) answers a search. A writer then sets one experiment tag.
 
     `must_exist`: a sqlite store that is not there yet is unreachable too, instead of being created
     empty (a reader, like the simulator's client run outside the project, wants the real one).
-
-    Also sets the fluent API's tracking and registry URI, so `mlflow.start_run` goes to the same store.
+    Nothing global changes: HTTP timeouts are `patience`'s, the fluent API's URIs `fluent`'s.
     """
-    for key, value in _HTTP_DEFAULTS.items():
-        os.environ.setdefault(key, value)
-    if write and os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == _HTTP_DEFAULTS["MLFLOW_HTTP_REQUEST_TIMEOUT"]:
-        os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] = _WRITE_TIMEOUT_S
-    import mlflow
     from mlflow import MlflowClient
 
     uri = uri or tracking_uri()
@@ -190,21 +243,62 @@ def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = F
         if must_exist and not db.is_file():
             raise RegistryUnreachable(f"MLflow store {uri}: no such database (run `make repro` to create it)")
         _is_mlflow_sqlite(db, uri, must_exist)
-    try:
-        # Inside the try: MLflow opens (and for sqlite, migrates) the store here, and an unknown
-        # scheme, a missing database driver or a bad URI raise here too.
-        mlflow.set_tracking_uri(uri)
-        mlflow.set_registry_uri(uri)
+    if uri.startswith(("http://", "https://")):
+        _is_mlflow_server(uri)
         client = MlflowClient(tracking_uri=uri, registry_uri=uri)
-        client.search_registered_models(max_results=1)
-    except Exception as e:
-        if (why := _not_mlflow(e)) is not None:
-            raise NotMlflow(f"{uri} answers, but not as an MLflow tracking server: {why}") from e
-        raise RegistryUnreachable(f"cannot reach the MLflow registry at {uri}: {_said(e)}") from e
-    _speaks_mlflow(client, uri)
+    else:
+        try:
+            # MLflow opens (and for sqlite, migrates) the store here; an unknown scheme, a missing
+            # database driver or a bad URI raise here too
+            client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+            client.search_experiments(max_results=1)
+        except Exception as e:
+            raise RegistryUnreachable(f"cannot reach the MLflow registry at {uri}: {_said(e)}") from e
     if write:
         _takes_writes(client, uri)
     return client
+
+
+def _is_mlflow_server(uri: str) -> None:
+    """Ask the server what it is: `RegistryUnreachable` if it does not answer, `NotMlflow` unless it
+    answers as an MLflow 3 tracking server does (its server-info JSON)."""
+    from mlflow.environment_variables import MLFLOW_TRACKING_INSECURE_TLS, MLFLOW_TRACKING_SERVER_CERT_PATH
+    from mlflow.utils.rest_utils import MlflowHostCreds, http_request
+
+    creds = MlflowHostCreds(
+        uri,
+        ignore_tls_verification=MLFLOW_TRACKING_INSECURE_TLS.get(),
+        server_cert_path=MLFLOW_TRACKING_SERVER_CERT_PATH.get(),
+    )
+    try:
+        # asked once: no retries, whatever the environment says (a server that is down says so now)
+        timeout = int(
+            os.environ.get("MLFLOW_HTTP_REQUEST_TIMEOUT") or HTTP_SETTINGS["MLFLOW_HTTP_REQUEST_TIMEOUT"]
+        )
+        answer = http_request(
+            creds, SERVER_INFO, "GET", max_retries=0, timeout=timeout, raise_on_status=False
+        )
+    except Exception as e:
+        raise RegistryUnreachable(f"cannot reach the MLflow registry at {uri}: {_said(e)}") from e
+    if answer.status_code >= 500 or answer.status_code in (401, 403):  # down, or a login in front of it
+        login = (
+            " (a login: set MLFLOW_TRACKING_USERNAME and MLFLOW_TRACKING_PASSWORD)"
+            if answer.status_code < 500
+            else ""
+        )
+        said = f"HTTP {answer.status_code} to GET {SERVER_INFO}{login}"
+        raise RegistryUnreachable(f"cannot reach the MLflow registry at {uri}: {said}")
+    try:
+        info = answer.json() if answer.status_code == 200 else None
+    except ValueError:
+        info = None
+    if not isinstance(info, dict) or not set(info) >= SERVER_INFO_KEYS:
+        said = " ".join(answer.text.split())[:120]
+        raise NotMlflow(
+            f"{uri} answers, but not as an MLflow tracking server: HTTP {answer.status_code} to "
+            f"GET {SERVER_INFO}, {said!r}. Is MLFLOW_TRACKING_URI the MLflow server's address (not "
+            "another service's)?"
+        )
 
 
 def _is_mlflow_sqlite(db: Path, uri: str, must_exist: bool) -> None:
@@ -227,53 +321,12 @@ def _is_mlflow_sqlite(db: Path, uri: str, must_exist: bool) -> None:
         )
 
 
-def _not_mlflow(e: Exception) -> str | None:
-    """Why the error of a plain search says something other than MLflow answered (a web page, or an
-    HTTP error MLflow gives to no search), else None (unreachable, refused credentials, a server error)."""
-    from mlflow.exceptions import RestException
-
-    text = str(e)
-    if "not in a valid JSON format" in text:  # it answered 200, with a web page or the like
-        return _said(e)
-    status = re.search(r"failed with error code (\d{3})", text)
-    code = getattr(e, "error_code", "")
-    if status is not None:  # an HTTP error with a body that is not MLflow's JSON
-        http = int(status.group(1))
-        return None if http in (401, 403) or http >= 500 else f"HTTP {http} to a search: {_said(e)}"
-    if isinstance(e, RestException) and code in ("RESOURCE_DOES_NOT_EXIST", "ENDPOINT_NOT_FOUND"):
-        return f"{code} to a search of registered models, which MLflow always answers"
-    return None
-
-
 def _said(e: Exception) -> str:
     """The error's first line, its start and end when long (a connection error's cause comes last)."""
     line = (str(e).splitlines() or [""])[0]
     if len(line) > 400:
         line = f"{line[:200]} ... {line[-200:]}"
     return f"{type(e).__name__}: {line}"
-
-
-def _speaks_mlflow(client: MlflowClient, uri: str) -> None:
-    """Ask for a model nobody registers: MLflow answers "does not exist"; anything else is not MLflow
-    (a server answering `{}` or an HTML page to every request passes a plain search, which finds
-    nothing)."""
-    from mlflow.exceptions import MlflowException
-
-    try:
-        got = client.get_registered_model(PROBE_MODEL)
-    except MlflowException as e:
-        # a server with workspaces on refuses (403) to say that a model it cannot place does not exist
-        if e.error_code in ("RESOURCE_DOES_NOT_EXIST", "INVALID_PARAMETER_VALUE", "PERMISSION_DENIED"):
-            return
-        answer = f"{e.error_code}: {(e.message.splitlines() or [''])[0][:200]}"
-    except Exception as e:  # a dropped connection, or an answer MLflow's client cannot parse
-        answer = _said(e)
-    else:
-        answer = f"a model named {got.name!r}"
-    raise NotMlflow(
-        f"{uri} answers, but not as an MLflow tracking server: asked for a model that does not exist, "
-        f"it gave {answer}. Is MLFLOW_TRACKING_URI the MLflow server's address (not another service's)?"
-    )
 
 
 def _takes_writes(client: MlflowClient, uri: str) -> None:
@@ -308,6 +361,19 @@ def versions(client: MlflowClient, name: str) -> list[Any]:
     """Every version of `name` ([] for an unknown name); any other registry error propagates, so a
     hiccup of the store is never read as "no versions"."""
     return list(client.search_model_versions(f"name = '{name}'"))
+
+
+def finished_run(client: MlflowClient, exp_id: str, tag: str, value: str) -> Any | None:
+    """The latest FINISHED run of the experiment tagged `tag` = `value`: what a registration reuses
+    instead of logging the same thing again. A run still RUNNING, or FAILED or KILLED, was cut short
+    (its artifacts may be partial) and is never reused."""
+    runs = client.search_runs(
+        [exp_id],
+        filter_string=f"tags.`{tag}` = '{value}' and attributes.status = 'FINISHED'",
+        max_results=1,
+        order_by=["attributes.start_time DESC"],
+    )
+    return runs[0] if runs else None
 
 
 def alias_version(client: MlflowClient, name: str, alias: str) -> Any | None:

@@ -21,7 +21,7 @@ from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
 from pipeline.registry.candidates import Trained
-from pipeline.registry.store import TAG
+from pipeline.registry.store import TAG, finished_run
 from pipeline.reporting.loss import loss_curve_png
 from pipeline.vocab import AXES
 
@@ -134,17 +134,6 @@ def deploy_sha256(model_sha256: str, cue_pack: Mapping[str, Any] | None) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def find_run(client: MlflowClient, exp_id: str, deploy_sha: str) -> Any | None:
-    """The latest run of the deployable with this `deploy_sha256`, if any."""
-    runs = client.search_runs(
-        [exp_id],
-        filter_string=f"tags.`{TAG}deploy_sha256` = '{deploy_sha}'",
-        max_results=1,
-        order_by=["attributes.start_time DESC"],
-    )
-    return runs[0] if runs else None
-
-
 def track(
     client: MlflowClient,
     t: Trained,
@@ -157,14 +146,14 @@ def track(
     commit: str,
     log: Log,
 ) -> tuple[str, str, bool]:
-    """Log `t` with `cue_pack` as a run, unless a run of the same deployable (`deploy`, its
+    """Log `t` with `cue_pack` as a run, unless a finished run of the same deployable (`deploy`, its
     `deploy_sha256`) exists: (run_id, model_uri, newly_logged)."""
     import mlflow
     from mlflow.entities import Metric
 
     from pipeline.modelling.export import log_onnx_model
 
-    existing = find_run(client, exp_id, deploy)
+    existing = finished_run(client, exp_id, f"{TAG}deploy_sha256", deploy)
     if existing is not None and existing.data.tags.get(f"{TAG}model_uri"):
         return existing.info.run_id, existing.data.tags[f"{TAG}model_uri"], False
 

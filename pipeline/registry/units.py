@@ -29,6 +29,7 @@ from pipeline.registry.store import (
     alias_version,
     create_registered_model,
     experiment_id,
+    finished_run,
     mlmodel_metadata,
     unit_model_name,
     versions,
@@ -161,7 +162,10 @@ def champion_predictors(
         with tempfile.TemporaryDirectory() as tmp:
             try:
                 path = mlflow.artifacts.download_artifacts(
-                    run_id=c["run_id"], artifact_path=f"checkpoint/{CHECKPOINT_FILE}", dst_path=tmp
+                    run_id=c["run_id"],
+                    artifact_path=f"checkpoint/{CHECKPOINT_FILE}",
+                    dst_path=tmp,
+                    tracking_uri=client.tracking_uri,
                 )
                 checkpoint = load_checkpoint(Path(path))
             except (MlflowException, OSError) as e:
@@ -184,17 +188,6 @@ def _describe(name: str, unit_id: str) -> str:
         f"`@{UNIT_ALIAS}` is what the simulator applies (models:/{name}@{UNIT_ALIAS}); a "
         "transform applies only to the models it was fitted through (their checkpoint sha256)."
     )
-
-
-def _run_with(client: MlflowClient, exp_id: str, sha: str) -> Any | None:
-    """A finished run that already logged the document with this sha (an interrupted registration)."""
-    runs = client.search_runs(
-        [exp_id],
-        filter_string=f"tags.`{SHA_TAG}` = '{sha}' and attributes.status = 'FINISHED'",
-        max_results=1,
-        order_by=["attributes.start_time DESC"],
-    )
-    return runs[0] if runs else None
 
 
 def _log_run(client: MlflowClient, exp_id: str, doc: Mapping[str, Any], data: bytes, sha: str) -> Any:
@@ -265,7 +258,7 @@ def register_unit(client: MlflowClient, doc: Mapping[str, Any], data: bytes, log
     if not known:
         create_registered_model(client, name, _describe(name, unit_id))
     exp_id = experiment_id(client, UNIT_EXPERIMENT, UNIT_ABOUT)
-    run = _run_with(client, exp_id, sha) or _log_run(client, exp_id, doc, data, sha)
+    run = finished_run(client, exp_id, SHA_TAG, sha) or _log_run(client, exp_id, doc, data, sha)
     losses = ", ".join(
         f"{kind} {t['loss_before']:.4g} -> {t['loss_after']:.4g}"
         for kind, t in sorted((doc.get("transforms") or {}).items())

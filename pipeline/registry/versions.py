@@ -31,7 +31,9 @@ from pipeline.registry.store import (
     connect,
     create_registered_model,
     experiment_id,
+    fluent,
     model_name,
+    patience,
     versions,
 )
 from pipeline.registry.tracking import TAG, Datasets, deploy_sha256, git_commit, track
@@ -59,7 +61,10 @@ def rescore_version(
         return known[sha]
     with tempfile.TemporaryDirectory() as tmp:
         path = mlflow.artifacts.download_artifacts(
-            run_id=version.run_id, artifact_path=f"checkpoint/{CHECKPOINT_FILE}", dst_path=tmp
+            run_id=version.run_id,
+            artifact_path=f"checkpoint/{CHECKPOINT_FILE}",
+            dst_path=tmp,
+            tracking_uri=client.tracking_uri,
         )
         predictor = Predictor(load_checkpoint(Path(path)))
     try:
@@ -169,7 +174,11 @@ def rollback(
 ) -> tuple[int | None, int]:
     """Move `needle-force-<angle>@champion` to `to_version` (default: the version the current champion
     replaced). Returns (old champion version, new champion version)."""
-    client = connect(uri, write=True)  # a read-only store is refused before the alias moves
+    with patience(write=True):
+        return _rollback(connect(uri, write=True), angle_deg, to_version)  # read-only: refused first
+
+
+def _rollback(client: MlflowClient, angle_deg: float, to_version: int | None) -> tuple[int | None, int]:
     name = model_name(angle_deg)
     champion = alias_version(client, name, CHAMPION)
     if to_version is None:
@@ -198,10 +207,29 @@ def register_all(
 ) -> dict[str, Any]:
     """Track all models, register the best per angle, then every unit calibration in `cal_dir`
     (`<unit_id>.json`; none if None), write `out_json`; returns its content."""
-    try:
-        client = connect(write=True)  # first: an unreachable, non-MLflow or read-only store changes nothing
-    except RegistryUnreachable as e:
-        raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
+    with patience(write=True):
+        try:
+            client = connect(
+                write=True
+            )  # first: an unreachable, non-MLflow or read-only store changes nothing
+        except RegistryUnreachable as e:
+            raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
+        with fluent(client.tracking_uri):
+            args = (models_dir, data_dir, pred_dir, reports_dir, out_json, params, log, cal_dir)
+            return _register_all(client, *args)
+
+
+def _register_all(
+    client: MlflowClient,
+    models_dir: Path,
+    data_dir: Path,
+    pred_dir: Path,
+    reports_dir: Path,
+    out_json: Path,
+    params: RegisterParams,
+    log: Log,
+    cal_dir: Path | None,
+) -> dict[str, Any]:
     documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change
     metrics_path = reports_dir / "metrics.json"
     metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}

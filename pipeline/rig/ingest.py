@@ -4,7 +4,8 @@
 already seen name is set aside), parses each with `pipeline.rig.reader.parse_batch` and writes,
 in OUT_DIR/<batch_id>/ (values in raw units: counts or volts, N or mN; no conversion):
 
-- ``batch.json``      batch.yaml as validated (unknown keys kept) plus ``source_dir``
+- ``batch.json``      batch.yaml as validated (unknown keys kept) plus ``source_dir`` and
+  ``samples_sha256``: each accepted trial's samples hash (`pipeline.rig.repeats`)
 - ``trials.parquet``  accepted trials: trial_id, angle_deg (float64), tissue_point, extra columns (str)
 - ``fsr.parquet``     trial_id, t_ms, one float64 column per ``sensor.channels`` entry, in that order
 - ``ref.parquet``     trial_id, t_s, fx, fy, fz (+ tx, ty, tz when every accepted trial has them)
@@ -57,6 +58,7 @@ from pipeline.rig.format import (
     batch_dirs,
 )
 from pipeline.rig.reader import ParsedBatch, parse_batch
+from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
 from pipeline.workers import ordered_imap, workers_for
 
 FINGERPRINT = "fingerprint.json"
@@ -66,7 +68,7 @@ GX_RESULTS = "gx_results.json"
 STAGING = ".staging"
 WORTH_A_WORKER = 8_000_000  # bytes of batches to parse: less parses faster than a worker loads GX
 # Bump when the output layout or meaning changes: every stored batch is then parsed again.
-OUTPUT_VERSION = 2  # 2: batch.json carries `purpose`
+OUTPUT_VERSION = 3  # 2: batch.json carries `purpose`; 3: and `samples_sha256`
 # The modules of pipeline/rig/ that decide a batch's outputs, hashed into its fingerprint so a
 # code change parses every batch again (datadocs.py only renders the reports: not here).
 CODE_FILES = (
@@ -76,6 +78,7 @@ CODE_FILES = (
     "csvfile.py",
     "expectations.py",
     "reader.py",
+    "repeats.py",
     "plausible.py",
     "tdmsfile.py",
     "ingest.py",
@@ -211,9 +214,8 @@ def write_batch(out_dir: Path, parsed: ParsedBatch, fp: dict[str, Any]) -> Batch
     if parsed.accepted:
         assert parsed.meta is not None and parsed.trials is not None
         assert parsed.fsr is not None and parsed.ref is not None
-        write_json(
-            {**parsed.meta.model_dump(mode="json"), "source_dir": str(parsed.source_dir)}, tmp / "batch.json"
-        )
+        meta = {**parsed.meta.model_dump(mode="json"), "source_dir": str(parsed.source_dir)}
+        write_json({**meta, SAMPLES_KEY: trial_hashes(parsed)}, tmp / "batch.json")
         extras = [c for c in parsed.trials.columns if c not in TRIAL_COLUMNS]
         _write_parquet(parsed.trials, tmp / "trials.parquet", ["trial_id", "tissue_point", *extras])
         _write_parquet(parsed.fsr, tmp / "fsr.parquet", ["trial_id"])
@@ -423,22 +425,15 @@ class CheckedBatch:
     trials_accepted: list[str]
     trials_set_aside: list[str]
     problems: list[Problem]
-    samples_sha256: dict[str, str] = field(default_factory=dict)  # accepted trial -> its values' hash
+    samples_sha256: dict[str, str] = field(default_factory=dict)  # accepted trial -> `repeats` hash
 
 
-def _samples_sha256(parsed: ParsedBatch, trial_id: str) -> str:
-    """SHA-256 of a trial's parsed values, both streams, without their times: the same recording
-    read from a gzip or TDMS copy, or copied with its timestamps shifted, hashes the same (as the
-    split stage, which compares the samples, sets it aside)."""
-    h = hashlib.sha256()
-    for frame, time_col in ((parsed.fsr, FSR_TIME), (parsed.ref, REF_COLUMNS[0])):
-        if frame is None:
-            continue
-        rows = frame[frame["trial_id"].astype(str) == trial_id]
-        values = rows.drop(columns=["trial_id", "line", time_col], errors="ignore")
-        h.update(np.ascontiguousarray(values.to_numpy(dtype=np.float64)).tobytes())
-        h.update(b"\0")
-    return h.hexdigest()
+def trial_hashes(parsed: ParsedBatch) -> dict[str, str]:
+    """{accepted trial: its samples' sha256} (`pipeline.rig.repeats`)."""
+    if not parsed.accepted or parsed.trials is None or parsed.fsr is None or parsed.ref is None:
+        return {}
+    streams = [(parsed.fsr, FSR_TIME), (parsed.ref, REF_COLUMNS[0])]
+    return {str(t): samples_sha256(streams, str(t)) for t in parsed.trials["trial_id"]}
 
 
 def check_batches(dirs: Sequence[Path], params: IngestParams) -> list[CheckedBatch]:
@@ -464,7 +459,7 @@ def check_batches(dirs: Sequence[Path], params: IngestParams) -> list[CheckedBat
             accepted = (
                 list(parsed.trials["trial_id"]) if parsed.accepted and parsed.trials is not None else []
             )
-            hashes = {t: _samples_sha256(parsed, t) for t in accepted}
+            hashes = trial_hashes(parsed)
             out.append(CheckedBatch(b.name, b, accepted, parsed.trials_set_aside, parsed.problems, hashes))
     return out
 

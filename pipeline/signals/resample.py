@@ -7,9 +7,9 @@ overlap (`pipeline.signals.filters`) and every grid sample given a phase
 Input: the ingest stage's accepted batches, `IN_DIR/<batch_id>/{batch.json, trials.parquet,
 fsr.parquet, ref.parquet}` (folders without `trials.parquet` were set aside by ingest and are
 skipped). Output: `OUT_DIR/<batch_id>.parquet` (every row carries the batch's `unit_id`) + `.json`
-(channels, rate, unit_id, the batch's `purpose` and its declared `front_end`), and one offsets.csv
-row per trial. A trial
-that cannot be aligned is set aside with its reason in that row.
+(channels, rate, unit_id, the batch's `purpose`, its declared `front_end` and each trial's samples
+hash from ingest), and one offsets.csv row per trial. A trial that cannot be aligned is set aside
+with its reason in that row.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ import pyarrow as pa
 
 from pipeline.config import ResampleParams
 from pipeline.dataset.tables import table_schema, write_table
+from pipeline.rig.repeats import SAMPLES_KEY
 from pipeline.signals import pairing
 from pipeline.signals.clock import OffsetEstimate, estimate_offset
 from pipeline.signals.filters import SetAside, gap_mask, median_rate, resample_stream
@@ -211,6 +212,7 @@ class BatchInfo:
     ref_units: str
     shared_clock: bool = False  # batch.yaml reference.clock: shared
     front_end: dict[str, Any] | None = None  # batch.yaml sensor.front_end, as declared (None: absent)
+    samples_sha256: dict[str, str] = field(default_factory=dict)  # trial -> its samples' hash (ingest)
 
     @classmethod
     def from_json(cls, meta: dict[str, Any]) -> BatchInfo:
@@ -226,6 +228,7 @@ class BatchInfo:
             adc_bits=None if s.get("adc_bits") is None else int(s["adc_bits"]),
             vref_v=None if s.get("vref_v") is None else float(s["vref_v"]),
             ref_units=str(r["units"]),
+            samples_sha256={str(k): str(v) for k, v in (meta.get(SAMPLES_KEY) or {}).items()},
         )
 
 
@@ -405,6 +408,7 @@ def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = _stderr) -
     durations: list[pd.DataFrame] = []
     for batch_dir in ingested_batch_dirs(in_dir):
         info, table, rows = process_batch(batch_dir, p)
+        ok = set(table.column("trial_id").to_pylist())
         write_table(table, out_dir / f"{info.batch_id}.parquet")
         meta = {
             "batch_id": info.batch_id,
@@ -413,6 +417,8 @@ def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = _stderr) -
             "unit_id": info.unit_id,
             "purpose": info.purpose,
             "front_end": info.front_end,
+            # the trials resampled: a trial set aside here is in no split, so in no repeat check
+            SAMPLES_KEY: {t: h for t, h in info.samples_sha256.items() if t in ok},
         }
         (out_dir / f"{info.batch_id}.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         written |= {f"{info.batch_id}.parquet", f"{info.batch_id}.json"}

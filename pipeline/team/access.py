@@ -16,10 +16,20 @@ import contextlib
 import os
 import secrets
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-if TYPE_CHECKING:
-    from pipeline.team.stack import Stack
+
+class Server(Protocol):
+    """What granting access needs of a team's MLflow server (`pipeline.team.stack.Stack` is one)."""
+
+    @property
+    def tracking_uri(self) -> str: ...
+
+    @property
+    def settings(self) -> dict[str, Any]: ...  # "passwords" per role, "webhook_secret"
+
+    def role_env(self, role: str) -> dict[str, str]: ...  # MLFLOW_TRACKING_USERNAME/_PASSWORD
+
 
 WORKSPACE = "default"
 GRANTS: dict[str, list[tuple[str, str]]] = {
@@ -34,7 +44,7 @@ ALIAS_EVENTS = ["model_version_alias.created", "model_version_alias.deleted"]
 
 
 @contextlib.contextmanager
-def _as_admin(stack: Stack) -> Iterator[Any]:
+def _as_admin(stack: Server) -> Iterator[Any]:
     """MLflow's auth client, with the admin's credentials in the environment while it is used (the
     client reads them from there)."""
     from mlflow.server import get_app_client
@@ -78,7 +88,7 @@ def ensure_roles(auth: Any) -> dict[str, Any]:
     return roles
 
 
-def add_user(stack: Stack, username: str, role: str, password: str | None = None) -> str:
+def add_user(stack: Server, username: str, role: str, password: str | None = None) -> str:
     """Create `username` with `role` (`lab` or `simulator`); returns the password (generated unless
     given). A user that exists keeps its password and gets the role."""
     if role not in GRANTS:
@@ -93,14 +103,14 @@ def add_user(stack: Stack, username: str, role: str, password: str | None = None
     return password
 
 
-def ensure_users(stack: Stack) -> None:
+def ensure_users(stack: Server) -> None:
     """The stack's own `lab` and `simulator` users, with the passwords in its team.json."""
     passwords = stack.settings["passwords"]
     for role in GRANTS:
         add_user(stack, role, role, passwords[role])
 
 
-def add_webhook(stack: Stack, url: str, name: str = "needlecue-alias") -> str:
+def add_webhook(stack: Server, url: str, name: str = "needlecue-alias") -> str:
     """Have the server call `url` (a simulator's listener, `pipeline.client.webhook`) on every alias
     change, signed with the stack's webhook secret; returns the webhook's id. Needs the admin."""
     from mlflow import MlflowClient

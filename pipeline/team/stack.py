@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline.team import access
+
 FORMAT = "needlecue-team/1"
 DIR_ENV = "NEEDLECUE_TEAM_DIR"
 DEFAULT_DIR = "~/.local/state/needlecue/team"
@@ -224,8 +226,6 @@ class Stack:
     def start(self, progress: Any = print) -> None:
         """Start whatever of the three servers is not running (each waited for until it answers), then
         make sure the `lab` and `simulator` users exist with their permissions."""
-        from pipeline.team import access
-
         self.dir.joinpath("logs").mkdir(parents=True, exist_ok=True)
         self.dir.joinpath("run").mkdir(exist_ok=True)
         for server in SERVERS:

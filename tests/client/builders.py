@@ -106,19 +106,20 @@ def register(
 
     client = store.connect(uri)
     name = store.model_name(angle)
-    exp = mlflow.get_experiment_by_name(store.EXPERIMENT)
-    exp_id = (
-        exp.experiment_id
-        if exp
-        else mlflow.create_experiment(store.EXPERIMENT, artifact_location=(root / "artifacts").as_uri())
-    )
-    with mlflow.start_run(experiment_id=exp_id):
-        info = export.log_onnx_model(checkpoint, pack)
-        if with_checkpoint:
-            path = root / "checkpoints" / checkpoint_sha256(checkpoint) / CHECKPOINT_FILE
-            save_checkpoint(checkpoint, path)
-            mlflow.log_artifact(str(path), artifact_path="checkpoint")
-    version = mlflow.register_model(info.model_uri, name).version
+    with store.fluent(client.tracking_uri):
+        exp = mlflow.get_experiment_by_name(store.EXPERIMENT)
+        exp_id = (
+            exp.experiment_id
+            if exp
+            else mlflow.create_experiment(store.EXPERIMENT, artifact_location=(root / "artifacts").as_uri())
+        )
+        with mlflow.start_run(experiment_id=exp_id):
+            info = export.log_onnx_model(checkpoint, pack)
+            if with_checkpoint:
+                path = root / "checkpoints" / checkpoint_sha256(checkpoint) / CHECKPOINT_FILE
+                save_checkpoint(checkpoint, path)
+                mlflow.log_artifact(str(path), artifact_path="checkpoint")
+        version = mlflow.register_model(info.model_uri, name).version
     client.set_registered_model_alias(name, store.CHAMPION, version)
     return str(version)
 

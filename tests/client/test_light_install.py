@@ -136,10 +136,11 @@ def _register_through(uri: str) -> tuple[dict, dict, str]:
     pack = build_cue_pack({30: train}, 30, CuesParams(), cue_predictions(checkpoint, {30: train}))
     client = store.connect(uri)
     exp_id = store.experiment_id(client)  # over HTTP the server picks the location: its artifact proxy
-    with mlflow.start_run(experiment_id=exp_id):
-        info = export.log_onnx_model(checkpoint, pack)
     name = store.model_name(30)
-    version = mlflow.register_model(info.model_uri, name).version
+    with store.fluent(client.tracking_uri):
+        with mlflow.start_run(experiment_id=exp_id):
+            info = export.log_onnx_model(checkpoint, pack)
+        version = mlflow.register_model(info.model_uri, name).version
     client.set_registered_model_alias(name, store.CHAMPION, version)
     doc = unit_document(UNIT, {30: checkpoint}, MIX)
     units.register_unit(client, doc, units.document_bytes(doc), lambda _m: None)

@@ -7,10 +7,12 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.dataset.tables import table_schema, write_table
+from pipeline.rig.repeats import samples_sha256
 from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -44,7 +46,10 @@ def write_resampled(
         pa.table({f.name: pa.array(cols[f.name], f.type) for f in schema}, schema=schema),
         root / f"{batch_id}.parquet",
     )
+    frame = pd.DataFrame(cols)  # ingest's hash of each trial's samples, as if these were its values
+    streams = [(frame[["trial_id", "t_s", *channels]], "t_s"), (frame[["trial_id", "t_s", *AXES]], "t_s")]
     meta = {
+        "samples_sha256": {tid: samples_sha256(streams, tid) for tid in trials},
         "batch_id": batch_id,
         "channels": channels,
         "rate_hz": rate_hz,

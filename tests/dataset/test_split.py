@@ -118,13 +118,12 @@ def test_a_batch_copied_under_a_held_out_name_is_used_once(tmp_path):
 
 
 def test_a_trial_repeated_under_another_id_is_set_aside():
-    # Given two trials with the same samples under different ids, and a third of its own
-    base = {"batch_id": ["b"] * 3, "trial_id": ["t1"] * 3, "fsr1": [1.0, 2.0, 3.0]}
-    forces = {a: [0.0, 0.5, 1.0] for a in AXES}
-    t1 = sp.Trial("b", "t1", "30", ("fsr1",), pa.table({**base, **forces}))
-    t2 = sp.Trial("b", "t2", "30", ("fsr1",), pa.table({**base, "trial_id": ["t2"] * 3, **forces}))
-    other = {**forces, "fx": [0.0, 0.5, 1.5]}
-    t3 = sp.Trial("b", "t3", "30", ("fsr1",), pa.table({**base, "trial_id": ["t3"] * 3, **other}))
+    # Given two trials with the same samples (ingest's hash of them) under different ids, and a third
+    table = pa.table({"fsr1": [1.0, 2.0, 3.0]})
+    t1, t2, t3 = (
+        sp.Trial("b", t, "30", ("fsr1",), table, samples_sha256=h)
+        for t, h in [("t1", "h"), ("t2", "h"), ("t3", "k")]
+    )
     # When repeats are dropped
     kept, aside = sp.drop_repeats([t3, t2, t1])
     # Then the first in (batch, trial) order stays
@@ -132,35 +131,15 @@ def test_a_trial_repeated_under_another_id_is_set_aside():
     assert [(s["trial_id"], s["reason"].split(":")[0]) for s in aside] == [("t2", "the same samples as b/t1")]
 
 
-def test_a_copy_with_its_timestamps_shifted_is_set_aside():
-    # Given one trial resampled as recorded and again with every timestamp 1 s later (its samples
-    # then differ from the original's by float rounding, about 1e-15), and another trial
-    from pipeline.signals.resample import resample_trial
-    from tests.signals.fabricate import PARAMS, fabricate, volts_of
-
-    def trial(tid: str, fab, shift_s: float = 0.0) -> sp.Trial:
-        res = resample_trial(fab.t_ms / 1e3 + shift_s, volts_of(fab), fab.t_s + shift_s, fab.force, PARAMS)
-        cols = {"fsr1": res.volts[:, 0], "fsr2": res.volts[:, 1], "fsr3": res.volts[:, 2]}
-        return sp.Trial(
-            "b",
-            tid,
-            "30",
-            ("fsr1", "fsr2", "fsr3"),
-            pa.table({**cols, **dict(zip(AXES, res.force_n.T, strict=True))}),
-        )
-
-    fab = fabricate(seed=5, offset_s=0.1)
-    original, shifted, other = (
-        trial("t1", fab),
-        trial("t2", fab, 1.0),
-        trial("t3", fabricate(seed=6, offset_s=0.1)),
-    )
-    assert sp.samples_sha256(original) != sp.samples_sha256(shifted)
-    # When repeats are dropped
-    kept, aside = sp.drop_repeats([other, shifted, original])
-    # Then the copy is set aside, naming the original; the other trial stays
-    assert [t.trial_id for t in kept] == ["t1", "t3"]
-    assert [(s["trial_id"], s["reason"].split(":")[0]) for s in aside] == [("t2", "samples equal to b/t1")]
+def test_resampled_batches_without_sample_hashes_are_refused_by_name(tmp_path):
+    # Given a resampled batch written before the samples' hashes were carried
+    src = make_input(tmp_path / "in")
+    meta = json.loads((src / "sim-tissue-1.json").read_text())
+    del meta["samples_sha256"]
+    (src / "sim-tissue-1.json").write_text(json.dumps(meta))
+    # When split, then the file is named
+    with pytest.raises(ValueError, match=r"sim-tissue-1\.json: no samples_sha256"):
+        sp.run(src, tmp_path / "out", SplitParams())
 
 
 def test_empty_splits_are_written_with_the_schema(tmp_path):

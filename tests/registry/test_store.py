@@ -141,3 +141,54 @@ def test_a_tracking_uri_mlflow_cannot_use_is_unreachable_with_its_reason(uri: st
         store.connect(uri)
     # then: one error naming the URI and why, not MLflow's or SQLAlchemy's own exception
     assert uri in str(failed.value) and says in str(failed.value)
+
+
+def test_only_a_finished_run_is_reused(mlflow_store: str) -> None:
+    # given: three runs with the same tag, one left running, one failed, one finished in between
+    client = MlflowClient(tracking_uri=mlflow_store)
+    exp_id = store.experiment_id(client)
+    tag = f"{TAG}deploy_sha256"
+    runs = [client.create_run(exp_id, tags={tag: "abc"}) for _ in range(3)]
+    client.set_terminated(runs[0].info.run_id, "FAILED")
+    client.set_terminated(runs[1].info.run_id, "FINISHED")
+    # when / then: the finished one is the answer, not the later running one
+    assert store.finished_run(client, exp_id, tag, "abc").info.run_id == runs[1].info.run_id
+    # and: nothing finished with another value
+    assert store.finished_run(client, exp_id, tag, "other") is None
+
+
+def test_connecting_and_using_the_fluent_api_leave_mlflows_globals_as_they_were(
+    mlflow_store: str, tmp_path: Path
+) -> None:
+    # given: MLflow's URIs from the environment (the autouse store), not set in the process
+    import os
+
+    import mlflow
+
+    other = f"sqlite:///{tmp_path / 'other.db'}"
+    env = {k: os.environ.get(k) for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", *store.HTTP_SETTINGS)}
+    # when: a writer connects to another store and logs a run there through the fluent API
+    client = store.connect(other, write=True)
+    with store.patience(write=True), store.fluent(client.tracking_uri):
+        assert os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == store.WRITE_TIMEOUT_S
+        with mlflow.start_run(experiment_id=store.experiment_id(client)) as run:
+            mlflow.log_metric("m", 1.0)
+    # then: the run is in the other store, and the environment and MLflow's URIs are as before
+    assert client.get_run(run.info.run_id).data.metrics == {"m": 1.0}
+    assert {k: os.environ.get(k) for k in env} == env
+    assert mlflow.get_tracking_uri() == mlflow_store
+    os.environ["MLFLOW_TRACKING_URI"] = other  # still read from the environment: nothing pinned
+    assert mlflow.get_tracking_uri() == other
+    os.environ["MLFLOW_TRACKING_URI"] = mlflow_store
+
+
+def test_the_experiments_open_on_model_training_in_the_ui(mlflow_store: str) -> None:
+    # given: an experiment made before needlecue tagged its kind
+    client = MlflowClient(tracking_uri=mlflow_store)
+    client.create_experiment(store.EXPERIMENT)
+    # when: a writer uses it
+    exp_id = store.experiment_id(client)
+    # then: it carries MLflow's experiment kind for model training, as a new one does
+    assert client.get_experiment(exp_id).tags[store.KIND_TAG] == "custom_model_development"
+    new = store.experiment_id(client, store.UNIT_EXPERIMENT, store.UNIT_ABOUT)
+    assert client.get_experiment(new).tags[store.KIND_TAG] == "custom_model_development"

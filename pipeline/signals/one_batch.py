@@ -1,0 +1,61 @@
+"""One rig-log/1 batch from its folder to resampled rows, in memory, as ingest and resample would
+make them in the pipeline: what `needlecue calibrate` fits a new unit on and `needlecue replay`
+plays. Nothing is written beside the batch; the pipeline's folders are not touched."""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from pipeline.config import IngestParams, ResampleParams
+from pipeline.rig.expectations import Validator
+from pipeline.rig.format import Problem
+from pipeline.rig.frontend import is_declared
+from pipeline.rig.ingest import fingerprint, write_batch
+from pipeline.rig.reader import parse_batch
+from pipeline.signals import resample
+
+
+@dataclass(frozen=True)
+class OneBatch:
+    """A batch read and resampled: empty `rows` when nothing could be (the problems and `set_aside`
+    say why)."""
+
+    batch_id: str
+    unit_id: str | None  # batch.yaml sensor.unit_id (None: the batch could not be read)
+    purpose: str | None  # batch.yaml purpose
+    problems: list[Problem]
+    set_aside: list[str]  # "<batch>/<trial>: why", for every trial not in `rows`
+    rows: pd.DataFrame  # the resampled rows, as the resample stage writes them
+    front_end: dict[str, Any] | None  # the circuit the batch declares (None: not declared)
+
+
+def read_batch(batch_dir: Path, ingest: IngestParams, params: ResampleParams) -> OneBatch:
+    """Parse and validate `batch_dir` as ingest does, then resample its accepted trials."""
+    parsed = parse_batch(batch_dir, ingest, Validator(ingest))
+    if not parsed.accepted or parsed.meta is None:
+        return OneBatch(parsed.batch_id, None, None, parsed.problems, [], pd.DataFrame(), None)
+    aside = [f"{parsed.batch_id}/{t}: see the problems above" for t in parsed.trials_set_aside]
+    with tempfile.TemporaryDirectory(prefix="needlecue-batch-") as tmp:
+        work = Path(tmp)
+        write_batch(work / "ingested", parsed, fingerprint(batch_dir, ingest))
+        resampled = resample.run(work / "ingested", work / "resampled", params, log=lambda _m: None)
+        aside += [
+            f"{r['batch_id']}/{r['trial_id']}: {r['status']}" for r in resampled.rows if r["status"] != "ok"
+        ]
+        data = work / "resampled" / f"{parsed.batch_id}.parquet"
+        rows = pd.read_parquet(data) if data.is_file() else pd.DataFrame()
+    front_end = parsed.meta.sensor.front_end
+    return OneBatch(
+        parsed.batch_id,
+        parsed.meta.sensor.unit_id,
+        parsed.meta.purpose,
+        parsed.problems,
+        aside,
+        rows,
+        front_end if is_declared(front_end) else None,
+    )
