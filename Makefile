@@ -59,9 +59,8 @@ bench: repro          ## dvc repro timings (cold per stage, no-op, retrain), thr
 	$(BIN)/python benchmarks/bench_peer.py
 	$(BIN)/python benchmarks/bench_client.py
 
-ui: setup             ## the MLflow UI on http://127.0.0.1:5000: runs side by side, registered models, aliases
-	$(BIN)/mlflow ui --backend-store-uri $${MLFLOW_TRACKING_URI:-sqlite:///$(CURDIR)/mlflow.db} \
-		--host 127.0.0.1 --port $${PORT:-5000}
+ui: setup             ## the MLflow UI on the runs of every angle and kind, best first (prints the link)
+	$(BIN)/needlecue ui --port $${PORT:-5000}
 
 clean:                ## generated data and reports (never data/raw)
 	rm -rf data/simulated data/interim data/processed data/predictions reports/ingest reports/resample

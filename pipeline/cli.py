@@ -480,6 +480,52 @@ def rollback(
     typer.echo(f"{model_name(angle)}@champion: version {old} -> {new}")
 
 
+@app.command()
+def ui(
+    port: Annotated[int, typer.Option(help="port of the UI (the project's sqlite store)")] = 5000,
+    host: Annotated[str, typer.Option(help="address to bind (127.0.0.1: this machine only)")] = "127.0.0.1",
+) -> None:
+    """MLflow's UI on the registry, on the runs of every angle and model kind with their external and
+    test NRMSE, best first. The project's sqlite store is served here until Ctrl-C; a tracking server
+    (MLFLOW_TRACKING_URI) serves its own UI, and the link to it is printed. Exit 2: no registry."""
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    from pipeline.registry import store
+    from pipeline.registry.ui import is_server, runs_link, server_command
+
+    uri = store.tracking_uri()
+    try:
+        with store.patience():
+            client = store.connect(uri, must_exist=True)
+            if is_server(uri):
+                typer.echo(runs_link(client, uri))
+                return
+            link = runs_link(client, f"http://{host}:{port}")
+    except store.RegistryUnreachable as e:
+        raise _fail(str(e), 2) from e
+    server = subprocess.Popen(server_command(uri, host, port), stdout=sys.stderr)  # stdout: the link
+    try:
+        deadline = time.monotonic() + 120
+        while server.poll() is None and time.monotonic() < deadline:
+            try:
+                urllib.request.urlopen(f"http://{host}:{port}/health", timeout=2).close()
+                break
+            except OSError:
+                time.sleep(0.5)
+        if server.poll() is not None:
+            raise _fail(f"mlflow server exited with {server.returncode} (is port {port} taken?)")
+        typer.echo(f"MLflow UI on {uri}, Ctrl-C to stop:\n{link}", err=True)
+        typer.echo(link)
+        server.wait()
+    finally:
+        if server.poll() is None:
+            server.terminate()
+            server.wait(timeout=30)
+
+
 @app.command("data-of")
 def data_of(
     angle: Annotated[float, typer.Argument(help="insertion angle (deg) of the registered model")],

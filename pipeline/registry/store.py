@@ -10,6 +10,7 @@ mlflow is imported inside the functions, so importing this module is cheap.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sqlite3
@@ -34,6 +35,23 @@ UNIT_ALIAS = "current"  # needle-unit-<unit_id>@current: the calibration a simul
 # MLflow 3's UI opens an experiment without this tag on its GenAI view (traces, latency); ours are
 # model training, so it opens on the runs and their metrics
 KIND_TAG, KIND = "mlflow.experimentKind", "custom_model_development"
+# A view of the runs table saved on the experiment (MLflow's "share view"): the runs with the columns
+# the lab compares models by, best first. `ui_link` opens it.
+VIEW_KEY = "needlecue"
+VIEW_TAG = f"mlflow.sharedViewState.{VIEW_KEY}"
+VIEW_COLUMNS = {
+    EXPERIMENT: [
+        "metrics.`external_nrmse_pct_mean`",
+        "metrics.`test_nrmse_pct_mean`",
+        "tags.`angle_deg`",
+        "tags.`model_type`",
+    ],
+    UNIT_EXPERIMENT: ["tags.`unit_id`", "tags.`angles_used`", "tags.`angles_missing`", "tags.`kinds`"],
+}
+VIEW_ORDER = {
+    EXPERIMENT: ("metrics.`external_nrmse_pct_mean`", True),
+    UNIT_EXPERIMENT: ("attributes.start_time", False),
+}
 ABOUT = """One run per trained model: `<angle>°-<kind>` (ls, fnn, lstm), tagged `angle_deg` and `model_type`.
 
 Metrics are named `<split>_<measure>_<axis>`: split `val`, `test` or `external` (the held-out tissue
@@ -141,21 +159,36 @@ def sqlite_file(uri: str) -> Path | None:
 
 
 def experiment_id(client: MlflowClient, name: str = EXPERIMENT, about: str = ABOUT) -> str:
-    """The experiment's id, creating it (described by `about`, of MLflow's kind "model training") if
-    needed. With a sqlite store its artifacts go to `mlartifacts/` beside the database file: MLflow's
-    own default is `./mlruns` under the cwd, which under `dvc exp run --temp` is a throwaway copy. A
-    server decides for itself."""
+    """The experiment's id, creating it (described by `about`) if needed, of MLflow's kind "model
+    training" and with needlecue's view of its runs (`ui_link`). With a sqlite store its artifacts go
+    to `mlartifacts/` beside the database file: MLflow's own default is `./mlruns` under the cwd, which
+    under `dvc exp run --temp` is a throwaway copy. A server decides for itself."""
+    tags = {KIND_TAG: KIND, **({VIEW_TAG: view_state(name)} if name in VIEW_COLUMNS else {})}
     found = client.get_experiment_by_name(name)
     if found is not None:
-        if found.tags.get(KIND_TAG) != KIND:  # made by an older needlecue, or changed in the UI
-            client.set_experiment_tag(found.experiment_id, KIND_TAG, KIND)
+        for key, value in tags.items():  # made by an older needlecue, or changed in the UI
+            if found.tags.get(key) != value:
+                client.set_experiment_tag(found.experiment_id, key, value)
         return str(found.experiment_id)
     location = None
     db = sqlite_file(client.tracking_uri)
     if db is not None:
         location = (db.parent / "mlartifacts").as_uri()
-    tags = {"mlflow.note.content": about, KIND_TAG: KIND}
+    tags["mlflow.note.content"] = about
     return str(client.create_experiment(name, artifact_location=location, tags=tags))
+
+
+def view_state(name: str) -> str:
+    """The saved view of experiment `name`'s runs table, as MLflow's UI stores a shared view."""
+    order_by, ascending = VIEW_ORDER[name]
+    state = {"selectedColumns": VIEW_COLUMNS[name], "orderByKey": order_by, "orderByAsc": ascending}
+    return json.dumps(state, sort_keys=True)
+
+
+def ui_link(ui_url: str, exp_id: str) -> str:
+    """The MLflow UI page of the experiment's runs, as model training, in needlecue's view."""
+    query = f"workflowType=machine_learning&viewStateShareKey={VIEW_KEY}"
+    return f"{ui_url.rstrip('/')}/#/experiments/{exp_id}/runs?{query}"
 
 
 def create_registered_model(client: MlflowClient, name: str, description: str) -> None:
@@ -218,6 +251,16 @@ def fluent(uri: str) -> Iterator[None]:
         finally:
             mlflow.set_tracking_uri(before[0])
             mlflow.set_registry_uri(before[1])
+
+
+@contextmanager
+def writing(uri: str | None = None) -> Iterator[MlflowClient]:
+    """A writer's session on the store at `uri`: `connect(write=True)` (refused before anything
+    changes), the writer's `patience` and the fluent API on the same store, for the block."""
+    with patience(write=True):
+        client = connect(uri, write=True)
+        with fluent(client.tracking_uri):
+            yield client
 
 
 def connect(uri: str | None = None, *, must_exist: bool = False, write: bool = False) -> MlflowClient:

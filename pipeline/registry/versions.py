@@ -4,6 +4,7 @@ also registers the estimator units' calibrations (`pipeline.registry.units`)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import tempfile
 from collections.abc import Callable, Mapping
@@ -28,13 +29,11 @@ from pipeline.registry.store import (
     EXPERIMENT,
     RegistryUnreachable,
     alias_version,
-    connect,
     create_registered_model,
     experiment_id,
-    fluent,
     model_name,
-    patience,
     versions,
+    writing,
 )
 from pipeline.registry.tracking import TAG, Datasets, deploy_sha256, git_commit, track
 from pipeline.registry.units import load_documents, register_units
@@ -174,25 +173,21 @@ def rollback(
 ) -> tuple[int | None, int]:
     """Move `needle-force-<angle>@champion` to `to_version` (default: the version the current champion
     replaced). Returns (old champion version, new champion version)."""
-    with patience(write=True):
-        return _rollback(connect(uri, write=True), angle_deg, to_version)  # read-only: refused first
-
-
-def _rollback(client: MlflowClient, angle_deg: float, to_version: int | None) -> tuple[int | None, int]:
-    name = model_name(angle_deg)
-    champion = alias_version(client, name, CHAMPION)
-    if to_version is None:
-        if champion is None or not champion.tags.get(f"{TAG}previous_champion"):
-            raise ValueError(f"{name}: no earlier champion on record; pass the version to roll back to")
-        to_version = int(champion.tags[f"{TAG}previous_champion"])
-    known = {int(v.version) for v in versions(client, name)}
-    if to_version not in known:
-        raise ValueError(f"{name} has no version {to_version} (versions: {sorted(known) or 'none'})")
-    client.set_registered_model_alias(name, CHAMPION, str(to_version))
-    client.set_model_version_tag(
-        name, str(to_version), f"{TAG}rolled_back_from", "" if champion is None else str(champion.version)
-    )
-    return (None if champion is None else int(champion.version)), to_version
+    with writing(uri) as client:  # a read-only store is refused before the alias moves
+        name = model_name(angle_deg)
+        champion = alias_version(client, name, CHAMPION)
+        if to_version is None:
+            if champion is None or not champion.tags.get(f"{TAG}previous_champion"):
+                raise ValueError(f"{name}: no earlier champion on record; pass the version to roll back to")
+            to_version = int(champion.tags[f"{TAG}previous_champion"])
+        known = {int(v.version) for v in versions(client, name)}
+        if to_version not in known:
+            raise ValueError(f"{name} has no version {to_version} (versions: {sorted(known) or 'none'})")
+        client.set_registered_model_alias(name, CHAMPION, str(to_version))
+        client.set_model_version_tag(
+            name, str(to_version), f"{TAG}rolled_back_from", "" if champion is None else str(champion.version)
+        )
+        return (None if champion is None else int(champion.version)), to_version
 
 
 def register_all(
@@ -207,91 +202,76 @@ def register_all(
 ) -> dict[str, Any]:
     """Track all models, register the best per angle, then every unit calibration in `cal_dir`
     (`<unit_id>.json`; none if None), write `out_json`; returns its content."""
-    with patience(write=True):
-        try:
-            client = connect(
-                write=True
-            )  # first: an unreachable, non-MLflow or read-only store changes nothing
+    with contextlib.ExitStack() as scope:
+        try:  # first: an unreachable, non-MLflow or read-only store changes nothing
+            client = scope.enter_context(writing())
         except RegistryUnreachable as e:
             raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
-        with fluent(client.tracking_uri):
-            args = (models_dir, data_dir, pred_dir, reports_dir, out_json, params, log, cal_dir)
-            return _register_all(client, *args)
+        documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change
+        metrics_path = reports_dir / "metrics.json"
+        metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+        figures = sorted((reports_dir / "figures").glob("*.png"))
+        files = SplitFiles(data_dir)
+        trained = collect(models_dir, files, Predictions(pred_dir), params.candidates, log)
+        datasets = Datasets(files)
+        commit = git_commit(Path.cwd())
 
+        logged: dict[tuple[str, str], tuple[str, str, str]] = {}
+        n_new = 0
+        # Logged from the last angle and kind to the first, so the UI's newest-first list reads 0°-ls,
+        # 0°-fnn, 0°-lstm, 15°-ls, ... from the top.
+        trained.sort(key=lambda t: (float(t.angle), kind_rank(t.kind), t.kind), reverse=True)
+        exp_id = experiment_id(client)
+        for i, t in enumerate(trained, start=1):
+            pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
+            pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
+            deploy = deploy_sha256(t.model_sha256, pack)
+            run_id, uri, new = track(client, t, exp_id, datasets, metrics, pack, deploy, figures, commit, log)
+            logged[(t.kind, t.angle)] = (run_id, uri, deploy)
+            n_new += new
+            if not new:
+                log(f"[{i}/{len(trained)}] {t.angle}° {t.kind}: already tracked (run {run_id})")
+        log(
+            f"tracked {n_new} new run(s) of {len(trained)} model(s) in experiment {EXPERIMENT!r} "
+            "(compare them: `needlecue ui`)"
+        )
 
-def _register_all(
-    client: MlflowClient,
-    models_dir: Path,
-    data_dir: Path,
-    pred_dir: Path,
-    reports_dir: Path,
-    out_json: Path,
-    params: RegisterParams,
-    log: Log,
-    cal_dir: Path | None,
-) -> dict[str, Any]:
-    documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change
-    metrics_path = reports_dir / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    figures = sorted((reports_dir / "figures").glob("*.png"))
-    files = SplitFiles(data_dir)
-    trained = collect(models_dir, files, Predictions(pred_dir), params.candidates, log)
-    datasets = Datasets(files)
-    commit = git_commit(Path.cwd())
-
-    logged: dict[tuple[str, str], tuple[str, str, str]] = {}
-    n_new = 0
-    # Logged from the last angle and kind to the first, so the UI's newest-first list reads 0°-ls,
-    # 0°-fnn, 0°-lstm, 15°-ls, ... from the top.
-    trained.sort(key=lambda t: (float(t.angle), kind_rank(t.kind), t.kind), reverse=True)
-    exp_id = experiment_id(client)
-    for i, t in enumerate(trained, start=1):
-        pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
-        pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
-        deploy = deploy_sha256(t.model_sha256, pack)
-        run_id, uri, new = track(client, t, exp_id, datasets, metrics, pack, deploy, figures, commit, log)
-        logged[(t.kind, t.angle)] = (run_id, uri, deploy)
-        n_new += new
-        if not new:
-            log(f"[{i}/{len(trained)}] {t.angle}° {t.kind}: already tracked (run {run_id})")
-    log(f"tracked {n_new} new run(s) of {len(trained)} model(s) in experiment {EXPERIMENT!r}")
-
-    angles: dict[str, Any] = {}
-    best = best_per_angle(trained, params.candidates)
-    for angle in sorted({t.angle for t in trained} - set(best), key=float):
-        reason = "no external or test rows to score a candidate on: nothing registered"
-        log(f"{model_name(float(angle))}: {reason}")
-        angles[angle] = {
-            "model": model_name(float(angle)),
-            "action": "skipped",
-            "aliases": [],
-            "reason": reason,
+        angles: dict[str, Any] = {}
+        best = best_per_angle(trained, params.candidates)
+        for angle in sorted({t.angle for t in trained} - set(best), key=float):
+            reason = "no external or test rows to score a candidate on: nothing registered"
+            log(f"{model_name(float(angle))}: {reason}")
+            angles[angle] = {
+                "model": model_name(float(angle)),
+                "action": "skipped",
+                "aliases": [],
+                "reason": reason,
+            }
+        for angle, t in best.items():
+            run_id, uri, deploy = logged[(t.kind, t.angle)]
+            split = t.judged_on
+            known = {c.model_sha256: c.mean_nrmse(split) for c in trained if c.angle == angle}
+            external = files.frame(angle, split)
+            angles[angle] = register_angle(client, t, uri, run_id, deploy, external, known, params, log)
+        angles = dict(sorted(angles.items(), key=lambda kv: float(kv[0])))
+        units = register_units(client, documents, list(angles), log)
+        record = {
+            "experiment": EXPERIMENT,
+            "rule": {
+                "candidates": list(params.candidates),
+                "best": "lowest external_nrmse_pct_mean (mean of fx, fy, fz NRMSE on the external set)",
+                "promote": "beats the champion, re-scored on the same external set, "
+                f"by > {params.min_improvement_pct:g} NRMSE points",
+            },
+            "angles": angles,
+            "registered": sorted((a for a, e in angles.items() if e["action"] == "registered"), key=float),
+            "promoted": sorted(
+                (a for a, e in angles.items() if CHAMPION in e["aliases"] and e["action"] == "registered"),
+                key=float,
+            ),
+            "units": units["units"],
+            "stale_units": units["stale_units"],
         }
-    for angle, t in best.items():
-        run_id, uri, deploy = logged[(t.kind, t.angle)]
-        split = t.judged_on
-        known = {c.model_sha256: c.mean_nrmse(split) for c in trained if c.angle == angle}
-        external = files.frame(angle, split)
-        angles[angle] = register_angle(client, t, uri, run_id, deploy, external, known, params, log)
-    angles = dict(sorted(angles.items(), key=lambda kv: float(kv[0])))
-    units = register_units(client, documents, list(angles), log)
-    record = {
-        "experiment": EXPERIMENT,
-        "rule": {
-            "candidates": list(params.candidates),
-            "best": "lowest external_nrmse_pct_mean (mean of fx, fy, fz NRMSE on the external set)",
-            "promote": "beats the champion, re-scored on the same external set, "
-            f"by > {params.min_improvement_pct:g} NRMSE points",
-        },
-        "angles": angles,
-        "registered": sorted((a for a, e in angles.items() if e["action"] == "registered"), key=float),
-        "promoted": sorted(
-            (a for a, e in angles.items() if CHAMPION in e["aliases"] and e["action"] == "registered"),
-            key=float,
-        ),
-        "units": units["units"],
-        "stale_units": units["stale_units"],
-    }
-    out_json.parent.mkdir(parents=True, exist_ok=True)
-    out_json.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
-    return record
+        out_json.parent.mkdir(parents=True, exist_ok=True)
+        out_json.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
+        return record

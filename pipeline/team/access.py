@@ -13,10 +13,11 @@ grants on every resource (`*`) of the `default` workspace, so a model registered
 from __future__ import annotations
 
 import contextlib
-import os
 import secrets
 from collections.abc import Iterator
 from typing import Any, Protocol
+
+from pipeline.registry.store import environment
 
 
 class Server(Protocol):
@@ -50,17 +51,8 @@ def _as_admin(stack: Server) -> Iterator[Any]:
     from mlflow.server import get_app_client
 
     env = stack.role_env("admin")
-    keys = ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD")
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: env[k] for k in keys})
-    try:
+    with environment({k: env[k] for k in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD")}):
         yield get_app_client("basic-auth", tracking_uri=stack.tracking_uri)
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def _exists(call: Any) -> bool:

@@ -17,6 +17,7 @@ import pandas as pd
 from scipy.signal import lfilter
 
 from pipeline.config import ResampleParams
+from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
 from pipeline.signals.resample import ResampledTrial, resample_trial
 from pipeline.signals.units import to_volts
 
@@ -172,7 +173,6 @@ def write_ingested(
         meta["purpose"] = purpose
     if clock is not None:
         meta["reference"]["clock"] = clock
-    (folder / "batch.json").write_text(json.dumps(meta))
     rows = {
         "trial_id": list(trials),
         "angle_deg": [angle] * len(trials),
@@ -197,8 +197,12 @@ def write_ingested(
                 }
             )
         )
-    pd.concat(fsr).to_parquet(folder / "fsr.parquet")
-    pd.concat(ref).to_parquet(folder / "ref.parquet")
+    fsr_frame, ref_frame = pd.concat(fsr), pd.concat(ref)
+    fsr_frame.to_parquet(folder / "fsr.parquet")
+    ref_frame.to_parquet(folder / "ref.parquet")
+    streams = [(fsr_frame, "t_ms"), (ref_frame, "t_s")]  # each trial's samples hash, as ingest keeps it
+    meta[SAMPLES_KEY] = {tid: samples_sha256(streams, tid) for tid in trials}
+    (folder / "batch.json").write_text(json.dumps(meta))
     return folder
 
 

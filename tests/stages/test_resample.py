@@ -75,6 +75,7 @@ def test_stage_writes_deterministic_outputs_and_reports(tmp_path):
         "unit_id": "unit-bench-b",
         "front_end": None,
         "purpose": "calibration",
+        "samples_sha256": json.loads((ingested / "bench-b" / "batch.json").read_text())["samples_sha256"],
     }
     assert json.loads((out1 / "bench-a.json").read_text())["purpose"] == "training"
 

@@ -1,0 +1,79 @@
+"""`needlecue ui`: MLflow's UI, in a real headless Chromium, opens on the runs of every angle and model
+kind with their external NRMSE, best first (the lab's place to compare models)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from mlflow import MlflowClient
+
+from pipeline.registry import store
+from tests.projects import copy_project, run
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ROWS = """() => {
+  const rows = {};
+  for (const cell of document.querySelectorAll('[role=row][row-index] [col-id]')) {
+    const i = Number(cell.closest('[role=row]').getAttribute('row-index'));
+    (rows[i] = rows[i] || {})[cell.getAttribute('col-id')] = cell.innerText.trim();
+  }
+  return Object.keys(rows).sort((a, b) => a - b).map(i => rows[i]);
+}"""
+NAME, NRMSE = "attributes.`Run Name`", "metrics.`external_nrmse_pct_mean`"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.slow
+def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
+    tiny_built: Path, tmp_path: Path
+) -> None:
+    from playwright.sync_api import sync_playwright
+
+    # given: the small project registered (two angles, three kinds)
+    root, params = copy_project(tiny_built, tmp_path / "proj")
+    run(root, "dvc", "repro", "register")
+    client = MlflowClient()
+    runs = client.search_runs([client.get_experiment_by_name(store.EXPERIMENT).experiment_id])
+    expected = {r.info.run_name: r.data.metrics["external_nrmse_pct_mean"] for r in runs}
+    angles, kinds = params["train"]["angles"], params["train"]["models"]
+    assert set(expected) == {f"{a:g}°-{k}" for a in angles for k in kinds}
+    # when: `needlecue ui` serves the store and a browser opens the link it prints
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    cmd = [sys.executable, "-m", "pipeline.cli", "ui", "--port", str(_free_port())]
+    ui = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert ui.stdout is not None
+        link = ui.stdout.readline().strip()
+        assert link.startswith("http://127.0.0.1:"), link
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=["--disable-gpu"], timeout=30_000)
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(link)
+            page.wait_for_function(f"() => ({ROWS})().length >= {len(expected)}", timeout=60_000)
+            rows = page.evaluate(ROWS)
+            shown = page.locator("body").inner_text()
+            page.screenshot(path=str(tmp_path / "ui.png"))
+            browser.close()
+    finally:
+        ui.terminate()
+        ui.wait(timeout=60)
+    # then: the page is the model-training view of needle-force's runs, one row per angle and kind,
+    # each with its run's external NRMSE, best first
+    assert "Model training" in shown and "needle-force" in shown
+    seen = {row[NAME].splitlines()[-1]: float(row[NRMSE]) for row in rows}
+    assert seen.keys() == expected.keys()
+    assert all(abs(seen[name] - value) < 1e-9 for name, value in expected.items()), (seen, expected)
+    order = [row[NAME].splitlines()[-1] for row in rows]
+    assert order == sorted(expected, key=expected.get)
