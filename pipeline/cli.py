@@ -75,8 +75,10 @@ def retrain(
 
     Exit 0 nothing new, 1 failed, 2 retrained, 3 retrained with batches set aside, 4 another retrain runs.
     """
+    from pipeline.logs import setup
     from pipeline.retrain import retrain as run
 
+    setup("retrain")
     code, _report = run(project.resolve(), params)
     raise typer.Exit(code)
 

@@ -30,7 +30,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,6 +38,7 @@ from typing import Any
 
 from pipeline.config import DataParams, IngestParams, load_section
 from pipeline.ledger import USED, of_batches
+from pipeline.logs import Log
 from pipeline.reporting.ledger import entry_text
 
 EXIT_NOTHING, EXIT_FAILED, EXIT_RETRAINED, EXIT_SET_ASIDE, EXIT_BUSY = 0, 1, 2, 3, 4
@@ -46,11 +47,7 @@ INGESTED = Path("data/interim/ingested")
 REPORT_DIR = Path("reports/retrain")
 LEDGER = Path("reports/ledger/ledger.json")  # the ledger stage's output (dvc.yaml)
 MAX_LISTED = 50  # trials listed per batch in the report; the ledger has them all
-Log = Callable[[str], None]
-
-
-def _stderr(msg: str) -> None:
-    print(f"retrain: {msg}", file=sys.stderr, flush=True)
+logger = logging.getLogger(__name__)
 
 
 class Busy(RuntimeError):
@@ -164,7 +161,7 @@ def _dvc(root: Path, log: Log) -> Iterator[Any]:
         dvc_log.setLevel(level)
 
 
-def dvc_changed(root: Path, log: Log = _stderr) -> list[str]:
+def dvc_changed(root: Path, log: Log = logger.info) -> list[str]:
     """Stages DVC reports as out of date (`dvc status`)."""
     with _dvc(root, log) as repo:
         return sorted(repo.status())
@@ -339,7 +336,7 @@ def write_report(root: Path, report: dict[str, Any]) -> Path:
 
 
 def retrain(
-    root: Path, params_path: Path = Path("params.yaml"), log: Log = _stderr
+    root: Path, params_path: Path = Path("params.yaml"), log: Log = logger.info
 ) -> tuple[int, dict[str, Any]]:
     """One retrain of the project at `root`: (exit code, report). See the module docstring."""
     started = _now()

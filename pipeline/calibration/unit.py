@@ -15,7 +15,7 @@ The stage and `needlecue calibrate` both build it here; `pipeline.calibration.do
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import pandas as pd
@@ -24,12 +24,11 @@ from pipeline.calibration.document import DIGITS, FORMAT
 from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
 from pipeline.cues.units import evidence_of, trial_features
+from pipeline.logs import Log
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.predict import Predictor
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, jsonable, sorted_angles
-
-Log = Callable[[str], None]
 
 
 def _set_aside(batch: Any, trial: Any, angle: str, reason: str) -> dict[str, str]:

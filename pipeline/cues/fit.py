@@ -24,12 +24,12 @@ from pipeline.config import CuesParams
 from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, class_means, cue_for_deviation, discriminant
 from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
 from pipeline.cues.units import average_unit, evidence_of, trial_features
+from pipeline.logs import Log
 from pipeline.rig.frontend import Circuit, circuit_key
 from pipeline.vocab import AXES, angle_name, channels_of
 
 Circuits = Mapping[str, Circuit | None]  # {unit_id: its declared circuit (processed front_ends.json)}
 
-Log = Callable[[str], None]
 Predicted = Mapping[str, Mapping[float, np.ndarray]]  # {kind: {angle: forces on its training frame}}
 
 

@@ -29,6 +29,7 @@ from pipeline.cues.tracker import (
     unit_evidence,
 )
 from pipeline.cues.trials import Trial, trials_of
+from pipeline.logs import Log
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
 from pipeline.workers import ordered_map, workers_for
@@ -36,7 +37,6 @@ from pipeline.workers import ordered_map, workers_for
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
 WORTH_A_WORKER = 300_000  # frames replayed: fewer take less than a worker process's start
 DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages
-Log = Callable[[str], None]
 # (kind, preset angle, true angle) -> the preset model's forces on that angle's external frame
 ForcesOf = Callable[[str, float, float], np.ndarray | None]
 

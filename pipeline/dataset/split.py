@@ -34,10 +34,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
-import sys
 from collections import Counter
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from fnmatch import fnmatchcase
 from pathlib import Path
@@ -50,6 +50,7 @@ import pyarrow.parquet as pq
 from pipeline.config import SplitParams
 from pipeline.dataset.splits import FRONT_ENDS
 from pipeline.dataset.tables import columns_for, table_schema, write_table
+from pipeline.logs import Log
 from pipeline.rig.frontend import circuit_key, declared
 from pipeline.rig.repeats import SAMPLES_KEY, reason, repeats
 from pipeline.vocab import CALIBRATION, SPLITS, angle_name, sorted_angles
@@ -58,11 +59,7 @@ MANIFEST = "manifest.json"
 
 TrialKey = tuple[str, str]  # (batch_id, trial_id)
 
-Log = Callable[[str], None]
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr)
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -295,7 +292,7 @@ def run(
     p: SplitParams,
     *,
     trained: Sequence[float] | None = None,
-    log: Log = _stderr,
+    log: Log = logger.info,
 ) -> dict[str, Any]:
     """Write every angle's four split files, the calibration files and the manifest; returns the
     manifest. With `trained` (the angles models are trained at), ValueError before writing anything if

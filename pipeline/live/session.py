@@ -47,7 +47,7 @@ class StreamSettings:
         return 2**self.adc_bits - 1
 
     def volts(self, counts: tuple[int, ...]) -> np.ndarray:
-        """ADC counts to volts, as ingest converts them (`signals.units.to_volts`)."""
+        """ADC counts to volts, as ingest converts them (`signals.scaling.to_volts`)."""
         return np.asarray(counts, dtype=np.float64) * (self.vref_v / self.adc_max)
 
 

@@ -12,7 +12,7 @@ Per axis fx, fy, fz, over all samples of the evaluated set with its trials conca
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -21,12 +21,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores, gap_summary, gaps_present, mean_known, mean_over_axes
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import AXES, TRIAL_KEY, dump_json, sorted_angles
 
 DIGITS = 4  # metrics.json precision: 0.1 mN for RMSE, 0.0001 % for NRMSE
-Log = Callable[[str], None]
 
 
 @dataclass(frozen=True)

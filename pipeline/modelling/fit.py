@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import PARAMS_MODELS, FNNParams, LSParams, LSTMParams
+from pipeline.logs import Log
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, data_sha256
 from pipeline.modelling.choice import Choice, choose_inputs
 from pipeline.modelling.features import ModelInputs, inputs_for
@@ -44,7 +45,6 @@ if TYPE_CHECKING:
 LSTSQ_CUTOFF = 1e-6  # relative singular-value cutoff: scikit-learn's LinearRegression `tol` default
 LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"
 ModelParams = LSParams | FNNParams | LSTMParams
-Log = Callable[[str], None]
 
 
 def _angle_deg(frame: pd.DataFrame) -> float:

@@ -4,7 +4,7 @@ and the benchmarks)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -12,13 +12,12 @@ from typing import Any
 import pandas as pd
 
 from pipeline.dataset.splits import common_front_end, front_ends
+from pipeline.logs import Log
 from pipeline.modelling.checkpoint import save_model_dir
 from pipeline.modelling.choice import Choice, pool
 from pipeline.modelling.fit import ModelParams, choose, fit
 from pipeline.rig.frontend import Circuit, circuit_key
 from pipeline.vocab import angle_name, file_sha256
-
-Log = Callable[[str], None]
 
 
 @dataclass(frozen=True)

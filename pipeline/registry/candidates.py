@@ -3,7 +3,6 @@ validation, test and external sets, computed from the stored predictions (nothin
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -12,12 +11,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.dataset.splits import SplitFiles
+from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.checkpoint import checkpoint_sha256, load_checkpoint, read_train_metrics
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import AXES, KINDS
 
-Log = Callable[[str], None]
 SPLITS = ("val", "test", "external")  # what each model is scored on
 
 

@@ -10,7 +10,7 @@ import json
 import subprocess
 import tempfile
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.dataset.splits import SplitFiles
+from pipeline.logs import Log
 from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
 from pipeline.registry.candidates import Trained
@@ -27,8 +28,6 @@ from pipeline.vocab import AXES
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient
-
-Log = Callable[[str], None]
 
 
 def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:

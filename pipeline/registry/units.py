@@ -15,11 +15,12 @@ from __future__ import annotations
 import hashlib
 import json
 import tempfile
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pipeline.calibration.document import FILE, read_unit, transform_for
+from pipeline.logs import Log
 from pipeline.registry.store import (
     CALIBRATION_SHA_TAG,
     CHAMPION,
@@ -41,7 +42,6 @@ if TYPE_CHECKING:
 
     from pipeline.modelling.predict import Predictor
 
-Log = Callable[[str], None]
 SHA_TAG = CALIBRATION_SHA_TAG
 ARTIFACT_DIR = "calibration"  # the run's artifact folder that a unit version is made from
 ADVICE = "run needlecue calibrate"

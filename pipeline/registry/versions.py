@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -16,10 +16,11 @@ import pandas as pd
 
 from pipeline.config import RegisterParams
 from pipeline.dataset.splits import SplitFiles
+from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores, mean_nrmse
-from pipeline.modelling.batch import predict_frame
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predict_splits import predict_frame
 from pipeline.modelling.predictions import Predictions
 from pipeline.registry.candidates import Trained, collect, kind_rank
 from pipeline.registry.champion import best_per_angle, decide
@@ -41,8 +42,6 @@ from pipeline.vocab import AXES
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient
-
-Log = Callable[[str], None]
 
 
 def rescore_version(

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import shutil
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -46,6 +46,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.config import IngestParams
+from pipeline.logs import Log
 from pipeline.rig.expectations import Validator
 from pipeline.rig.format import (
     BATCH_FILE,
@@ -84,11 +85,7 @@ CODE_FILES = (
     "ingest.py",
 )
 
-Log = Callable[[str], None]
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+logger = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- fingerprint
@@ -371,7 +368,7 @@ def ingest_batches(
     out_dir: Path,
     params: IngestParams,
     *,
-    log: Log = _stderr,
+    log: Log = logger.info,
     workers: int = 1,
 ) -> IngestResult:
     """Ingest every batch folder under `roots` into `out_dir`, reusing unchanged batches, parsing the

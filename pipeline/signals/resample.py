@@ -15,9 +15,8 @@ with its reason in that row.
 from __future__ import annotations
 
 import json
+import logging
 import math
-import sys
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,12 +27,13 @@ import pyarrow as pa
 
 from pipeline.config import ResampleParams
 from pipeline.dataset.tables import table_schema, write_table
+from pipeline.logs import Log
 from pipeline.rig.repeats import SAMPLES_KEY
 from pipeline.signals import pairing
 from pipeline.signals.clock import OffsetEstimate, estimate_offset
 from pipeline.signals.filters import SetAside, gap_mask, median_rate, resample_stream
 from pipeline.signals.phases import label_phases, phase_durations
-from pipeline.signals.units import to_newtons, to_volts
+from pipeline.signals.scaling import to_newtons, to_volts
 from pipeline.vocab import AXES, PHASES, angle_name
 
 TRUTH_COLUMN = "sim_clock_offset_s"  # written by the simulator only; a lab's data has no truth
@@ -53,11 +53,7 @@ OFFSET_CSV_COLUMNS = (
     "status",
 )
 
-Log = Callable[[str], None]
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr)
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -400,7 +396,7 @@ class Resampled:
     durations: pd.DataFrame
 
 
-def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = _stderr) -> Resampled:
+def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = logger.info) -> Resampled:
     """Resample every accepted batch of `in_dir` into `out_dir/<batch_id>.{parquet,json}`."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written: set[str] = set()

@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 import shutil
-import sys
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import date, timedelta
 from pathlib import Path
@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 
 from pipeline.config import EffectScales, SimulateParams
+from pipeline.logs import Log
 from pipeline.rig.format import (
     BATCH_FILE,
     FORMAT,
@@ -56,11 +57,7 @@ CHANNELS = ("fsr1", "fsr2", "fsr3")
 TRAINING = "training"
 PURPOSES = (TRAINING, CALIBRATION)  # batch.yaml `purpose` (rig.format.BatchMeta)
 
-Log = Callable[[str], None]
-
-
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr)
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -265,7 +262,7 @@ def prepare_out_dir(out_dir: Path) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
 
 
-def run(p: SimulateParams, out_dir: Path, *, log: Log = _stderr) -> list[str]:
+def run(p: SimulateParams, out_dir: Path, *, log: Log = logger.info) -> list[str]:
     """Write all planned batches (or none when disabled) and the manifest; return batch ids."""
     rigs.rig(p.rig)  # an unknown rig fails before anything is cleared
     plans = plan_batches(p) if p.enabled else []  # a bad layout fails before anything is cleared

@@ -11,7 +11,7 @@ Usage: `python -m pipeline.run calibrate DATA_DIR MODELS_DIR OUT_DIR [--params p
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -23,18 +23,18 @@ from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
 from pipeline.cues.units import training_levels
 from pipeline.dataset.splits import SplitFiles, front_ends
+from pipeline.logs import setup
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predict import load_predictor
 from pipeline.vocab import CALIBRATION, angle_name
 from pipeline.workers import WORKERS
 
-
-def _log(msg: str) -> None:
-    print(f"calibrate: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Fit and write the calibration of every unit that has calibration rows."""
+    setup("calibrate")
     p = load_section(CalibrateParams, "calibrate", params)
     train = load_section(TrainParams, "train", params)
     cues = load_section(CuesParams, "cues", params)

@@ -10,25 +10,25 @@ Usage: `python -m pipeline.run choose {ls|fnn|lstm} DATA_ROOT OUT_FILE [--params
 
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 from typing import cast
 
 import typer
 
 from pipeline.config import PARAMS_MODELS, TrainParams, load_section
+from pipeline.logs import setup
 from pipeline.modelling.choice import save_choice
 from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.train import choose_folders
 from pipeline.vocab import KINDS
 
-
-def _log(msg: str) -> None:
-    print(f"choose: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(model: str, data_root: Path, out_file: Path, params: Path = Path("params.yaml")) -> None:
     """Choose one model kind's inputs on all the trained angles' processed folders."""
+    setup("choose")
     if model not in KINDS:
         raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
     try:

@@ -14,7 +14,7 @@ Usage: `python -m pipeline.run cues DATA_DIR PRED_DIR CAL_DIR OUT_DIR [--params 
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -26,18 +26,18 @@ from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
 from pipeline.cues.tracker import calibration_evidence
 from pipeline.dataset.splits import SplitFiles, unit_roles
+from pipeline.logs import setup
 from pipeline.modelling.predictions import UNCALIBRATED, Predictions
 from pipeline.vocab import angle_name
 
-
-def _log(msg: str) -> None:
-    print(f"cues: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(
     data_dir: Path, pred_dir: Path, cal_dir: Path, out_dir: Path, params: Path = Path("params.yaml")
 ) -> None:
     """Build the cue packs (one per preset angle) and score the cues on the external trials."""
+    setup("cues")
     started = time.perf_counter()
     try:
         if not params.is_file():

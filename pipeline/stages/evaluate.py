@@ -10,7 +10,7 @@ Usage: `python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR METRICS_JSON [
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -19,20 +19,20 @@ import typer
 from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.dataset.splits import unit_roles
+from pipeline.logs import setup
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
 from pipeline.metrics.units import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import angle_name
 
-
-def _log(msg: str) -> None:
-    print(f"evaluate: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(
     data_dir: Path, pred_dir: Path, cal_dir: Path, metrics_json_path: Path, params: Path = Path("params.yaml")
 ) -> None:
     """Score the stored predictions as in the paper's sections V-VI, and per unit, into metrics.json."""
+    setup("evaluate")
     start = time.perf_counter()
     train = load_section(TrainParams, "train", params)
     p = load_section(EvaluateParams, "evaluate", params)

@@ -11,26 +11,26 @@ Usage: `python -m pipeline.run ingest RAW_DIR SIM_DIR OUT_DIR REPORT_DIR [--para
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from pathlib import Path
 
 import typer
 
 from pipeline.config import IngestParams, SimulateParams, load_section
+from pipeline.logs import setup
 from pipeline.reporting.ingest import write_reports
 from pipeline.rig.ingest import ingest_batches
 from pipeline.workers import WORKERS
 
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(
     raw_dir: Path, sim_dir: Path, out_dir: Path, report_dir: Path, params: Path = Path("params.yaml")
 ) -> None:
     """Ingest rig-log/1 batches from RAW_DIR (and SIM_DIR if simulate.enabled) into OUT_DIR."""
+    setup()
     start = time.perf_counter()
     try:
         ingest_params = load_section(IngestParams, "ingest", params)

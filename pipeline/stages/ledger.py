@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import csv
 import json
-import sys
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +21,10 @@ import typer
 
 from pipeline import ledger
 from pipeline.config import TrainParams, load_section
+from pipeline.logs import setup
 from pipeline.reporting.ledger import markdown
 
-
-def _log(msg: str) -> None:
-    print(f"ledger: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def _json(path: Path, kind: type) -> Any:
@@ -46,6 +45,7 @@ def main(
     params: Path = Path("params.yaml"),
 ) -> None:
     """Account for every trial: used in which split of which angle, or set aside where and why."""
+    setup("ledger")
     try:
         trained = load_section(TrainParams, "train", params).angles
         with offsets.open(newline="") as f:

@@ -12,7 +12,7 @@ Usage: `python -m pipeline.run predict DATA_DIR MODELS_DIR CAL_DIR OUT_DIR [--pa
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -20,17 +20,17 @@ import typer
 
 from pipeline.calibration.apply import unit_transforms
 from pipeline.config import TrainParams, load_section
-from pipeline.modelling.batch import predict_all
+from pipeline.logs import setup
+from pipeline.modelling.predict_splits import predict_all
 
-
-def _log(msg: str) -> None:
-    print(f"predict: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(
     data_dir: Path, models_dir: Path, cal_dir: Path, out_dir: Path, params: Path = Path("params.yaml")
 ) -> None:
     """Predict every model on every split and write the predictions as Parquet."""
+    setup("predict")
     train = load_section(TrainParams, "train", params)
     started = time.perf_counter()
     try:

@@ -20,18 +20,17 @@ Usage: `python -m pipeline.run register MODELS_DIR DATA_DIR PRED_DIR CAL_DIR REP
 
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 
 import typer
 
 from pipeline.config import RegisterParams, load_section
+from pipeline.logs import setup
 from pipeline.registry.store import RegistryUnreachable
 from pipeline.registry.versions import register_all
 
-
-def _log(msg: str) -> None:
-    print(f"register: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(
@@ -45,6 +44,7 @@ def main(
 ) -> None:
     """Track every trained model in MLflow, register the best per angle (champion / challenger) and
     every unit calibration in CAL_DIR (@current)."""
+    setup("register")
     from mlflow.exceptions import MlflowException
 
     p = load_section(RegisterParams, "register", params)

@@ -14,25 +14,25 @@ Usage: `python -m pipeline.run report DATA_DIR PRED_DIR REPORTS_DIR [--params pa
 from __future__ import annotations
 
 import json
-import sys
+import logging
 from pathlib import Path
 
 import typer
 
 from pipeline.config import EvaluateParams, TrainParams, load_section
+from pipeline.logs import setup
 from pipeline.metrics.evaluation import gather, load_eval_sets
 from pipeline.modelling.predictions import Predictions, read_inputs
 from pipeline.reporting import cues, figures, report, units
 from pipeline.reporting.inputs import inputs_section
 from pipeline.vocab import angle_name
 
-
-def _log(msg: str) -> None:
-    print(f"report: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Write report.md, its figures and DVC's plot data from metrics, predictions and cue results."""
+    setup("report")
     train = load_section(TrainParams, "train", params)
     gaps = [float(g) for g in load_section(EvaluateParams, "evaluate", params).gaps_deg]
     angles, models = [angle_name(a) for a in train.angles], list(train.models)

@@ -10,22 +10,22 @@ Usage: `python -m pipeline.run resample IN_DIR OUT_DIR REPORT_DIR [--params para
 
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 
 import typer
 
 from pipeline.config import ResampleParams, load_section
+from pipeline.logs import setup
 from pipeline.reporting.resample import write_reports
 from pipeline.signals.resample import run
 
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(in_dir: Path, out_dir: Path, report_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Align the clocks and resample every ingested batch onto the common grid."""
+    setup()
     try:
         p = load_section(ResampleParams, "resample", params)
         write_reports(run(in_dir, out_dir, p, log=_log), out_dir, report_dir, p)

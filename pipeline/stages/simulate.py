@@ -7,21 +7,21 @@ empty or written by the simulator before (it is then cleared).
 
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 
 import typer
 
 from pipeline.config import SimulateParams, load_section
+from pipeline.logs import setup
 from pipeline.sim.rig import run
 
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(out_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Write the simulated rig-log/1 batches configured in params.yaml's `simulate` section."""
+    setup()
     try:
         run(load_section(SimulateParams, "simulate", params), out_dir, log=_log)
     except (OSError, ValueError) as e:  # a foreign OUT_DIR, bad params: one clear line, not a traceback

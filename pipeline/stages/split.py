@@ -11,21 +11,21 @@ Usage: `python -m pipeline.run split IN_DIR OUT_DIR [--params params.yaml]`.
 
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 
 import typer
 
 from pipeline.config import SplitParams, TrainParams, load_section
 from pipeline.dataset.split import run
+from pipeline.logs import setup
 
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(in_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:
     """Split the resampled trials per angle into train/val/test/external files."""
+    setup()
     try:
         trained = load_section(TrainParams, "train", params).angles
         run(in_dir, out_dir, load_section(SplitParams, "split", params), trained=trained, log=_log)

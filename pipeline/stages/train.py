@@ -12,27 +12,27 @@ Usage: `python -m pipeline.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--choice FI
 
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 from typing import cast
 
 import typer
 
 from pipeline.config import PARAMS_MODELS, load_section
+from pipeline.logs import setup
 from pipeline.modelling.choice import load_choice
 from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.train import train_folder
 from pipeline.vocab import KINDS
 
-
-def _log(msg: str) -> None:
-    print(f"train: {msg}", file=sys.stderr, flush=True)
+_log = logging.getLogger(__name__).info
 
 
 def main(
     model: str, data_dir: Path, out_dir: Path, choice: Path | None = None, params: Path = Path("params.yaml")
 ) -> None:
     """Train one model (ls, fnn or lstm) on one angle's processed data folder."""
+    setup("train")
     if model not in KINDS:
         raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
     try:

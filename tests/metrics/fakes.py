@@ -11,8 +11,8 @@ import pandas as pd
 
 from pipeline.metrics.evaluation import EvalSet, Scored, compute_metrics
 from pipeline.modelling import predictions
-from pipeline.modelling.batch import predict_model
 from pipeline.modelling.features import ModelInputs
+from pipeline.modelling.predict_splits import predict_model
 from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]

@@ -19,7 +19,7 @@ from scipy.signal import lfilter
 from pipeline.config import ResampleParams
 from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
 from pipeline.signals.resample import ResampledTrial, resample_trial
-from pipeline.signals.units import to_volts
+from pipeline.signals.scaling import to_volts
 
 FSR_HZ = 30.0
 REF_HZ = 100.0

@@ -12,9 +12,9 @@ import typer
 from typer.testing import CliRunner
 
 from pipeline.config import LSParams
-from pipeline.modelling.batch import predict_all
 from pipeline.modelling.checkpoint import save_checkpoint
 from pipeline.modelling.fit import fit
+from pipeline.modelling.predict_splits import predict_all
 from pipeline.reporting import cues as cue_report
 from pipeline.stages import cues
 from tests.cues.synthetic import ANGLES, make_split, write_processed

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.signals.units import to_newtons, to_volts
+from pipeline.signals.scaling import to_newtons, to_volts
 
 
 def test_counts_become_volts_and_millinewtons_become_newtons():

@@ -1,11 +1,11 @@
-"""Batch prediction: every model on every processed split of every angle, computed once and
+"""Prediction on the splits: every model on every processed split of every angle, computed once and
 written to the predictions store (`pipeline.modelling.predictions`) that evaluation, the cue packs,
 the report and the registry read."""
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +14,7 @@ import pandas as pd
 import pyarrow as pa
 
 from pipeline.dataset.splits import SplitFiles
+from pipeline.logs import Log
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.predict import Predictor, load_predictor
@@ -22,7 +23,6 @@ from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
 from pipeline.workers import WORKERS, ordered_map, workers_for
 
-Log = Callable[[str], None]
 WORTH_A_WORKER = 500_000  # rows predicted, over all models: fewer take less than a worker's start
 UnitTransforms = Mapping[str, InputTransform]  # {unit_id: its calibration for one model}
 
