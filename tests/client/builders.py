@@ -35,7 +35,7 @@ class Registered:
 
 
 class Clock:
-    """The client's poll clock (`force._monotonic`), moved by hand instead of sleeping."""
+    """The client's poll clock (`follow._monotonic`), moved by hand instead of sleeping."""
 
     def __init__(self) -> None:
         self.now = 1000.0

@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.client import fetch, force
+from pipeline.client import fetch, follow
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
 from pipeline.modelling.fit import fit
@@ -40,7 +40,7 @@ def fetched(registered: Registered, tmp_path_factory: pytest.TempPathFactory) ->
 @pytest.fixture
 def clock(monkeypatch: pytest.MonkeyPatch) -> Clock:
     c = Clock()
-    monkeypatch.setattr(force, "_monotonic", c)
+    monkeypatch.setattr(follow, "_monotonic", c)
     return c
 
 

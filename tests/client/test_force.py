@@ -161,7 +161,7 @@ def test_refresh_with_force_ignores_the_interval(
     # then: a plain refresh waits for the interval, a forced one loads v2 at once (and the interval
     # restarts); nothing new is no swap; a client without a registry has nothing to refresh
     assert fixed.version["version"] == "1"
-    polling._follow.next_poll = clock.now + 30  # 30 s left of the polling client's interval
+    polling._follower.next_poll = clock.now + 30  # 30 s left of the polling client's interval
     assert polling.refresh() is False and polling.version["version"] == "1"
     assert polling.refresh(force=True) is True and polling.version["version"] == "2"
     assert polling.refresh(force=True) is False
