@@ -94,29 +94,23 @@ class ForceClient:
 
     def __init__(
         self,
-        model_dir: Path,
+        model: Model,
+        source: Source,
         *,
-        calibration: Path | str | Mapping[str, Any] | None = None,
         unit_id: str | None = None,
         cues_uncalibrated: bool = False,
-        unverified: bool = False,
+        follower: Follower | None = None,
     ) -> None:
-        """The model of a folder (see `from_dir`, which this is)."""
-        model = Model.open(Path(model_dir), unverified)
-        source, unit_id = given(calibration, unit_id)
-        self._start(model, unit_id, cues_uncalibrated, None)
-        self._decide_unit(source)
-
-    def _start(
-        self, model: Model, unit_id: str | None, cues_uncalibrated: bool, follower: Follower | None
-    ) -> None:
+        """`model` run for estimator unit `unit_id` with the calibration in `source` if it applies;
+        `follower`: the alias it follows (`from_registry`). Made by `from_dir` and `from_registry`."""
         self._follower = follower
         self._stream: tuple[tuple[str, ...], float, float] | None = None  # the last stream checked
         self.unit_id = unit_id
         self._cues_uncalibrated = bool(cues_uncalibrated)
         self._decision: Decision | None = None  # None: the unit is not decided yet
-        self._unit_seen: tuple[str, Any] | None = None  # the registered document last fetched
+        self._unit_seen = source.seen  # the registered document last fetched
         self._use(model)
+        self._decide_unit(source)
 
     def _use(self, model: Model) -> None:
         """Run `model` from now on: its cue tracker and per-frame state, made afresh."""
@@ -150,13 +144,9 @@ class ForceClient:
         itself); its unit is the client's `unit_id` (a different `unit_id` is a ValueError). Without
         one, or when it was made with other models, the client is uncalibrated: an `UncalibratedUnit`
         warning, and no cues unless `cues_uncalibrated`."""
-        return cls(
-            Path(model_dir),
-            calibration=calibration,
-            unit_id=unit_id,
-            cues_uncalibrated=cues_uncalibrated,
-            unverified=unverified,
-        )
+        model = Model.open(Path(model_dir), unverified)
+        source, unit_id = given(calibration, unit_id)
+        return cls(model, source, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated)
 
     @classmethod
     def from_registry(
@@ -187,10 +177,9 @@ class ForceClient:
         follower = Follower.start(angle_deg, alias, fetch_kwargs, poll_s)
         if unit_id is not None:
             store.unit_model_name(unit_id)  # a malformed id is the caller's error, not "unregistered"
-        client = cls.__new__(cls)
-        client._start(follower.fetch(), unit_id, cues_uncalibrated, follower)
-        client._decide_unit(client._registered_unit())
-        return client
+        model = follower.fetch()
+        source = registered(unit_id, follower.fetch_kwargs)
+        return cls(model, source, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated, follower=follower)
 
     # --- the model -------------------------------------------------------------------------------------
 

@@ -188,7 +188,7 @@ def test_a_malformed_mlmodel_is_a_clear_error(registered: Registered, tmp_path: 
     (broken / "MLmodel").write_bytes(b"\xff\xfe{{{not yaml")
     # when / then: a ValueError naming the file, not a traceback from deep in a parser
     with pytest.raises(ValueError, match="MLmodel: not valid YAML"):
-        fc.ForceClient(broken)
+        fc.ForceClient.from_dir(broken)
 
 
 @pytest.mark.parametrize(
