@@ -1,7 +1,7 @@
 """The simulator's live force model: `ForceClient` runs one fetched model sample by sample.
 
 A client holds one `Model` (`pipeline.client.model`: a checked folder, its ONNX graph run by
-onnxruntime, nothing unpickled), the unit's calibration decided for it (`pipeline.client.unit`) and
+onnxruntime, nothing unpickled), the unit's calibration decided for it (`pipeline.client.calibration`) and
 the per-insertion state `step` writes into (pre-allocated arrays, the cue tracker when the model
 carries a cue pack). A client made by `from_registry` follows its alias (`pipeline.client.follow`):
 `reset()` asks the registry where the alias points at most once every `poll_s` seconds and, if it
@@ -30,9 +30,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.client.cache import ModelNotFound, poll_alias
+from pipeline.client.calibration import (
+    CALIBRATE_FIX,
+    NO_UNIT,
+    Decision,
+    Source,
+    about,
+    decide,
+    given,
+    registered,
+)
 from pipeline.client.follow import Follower
 from pipeline.client.model import Model, StreamMismatch, log
-from pipeline.client.unit import CALIBRATE_FIX, NO_UNIT, Decision, Source, about, decide, given, registered
 from pipeline.modelling.features import ModelInputs, StreamFeatures
 from pipeline.registry import store
 
