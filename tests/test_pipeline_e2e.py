@@ -98,17 +98,19 @@ def reran_stages(dvc_output: str) -> set[str]:
     return {line.split("'")[1] for line in dvc_output.splitlines() if line.startswith("Running stage")}
 
 
-def _recording(share: Path, name: str, *, angle: int, later: int) -> Path:
+def _recording(share: Path, name: str, *, angle: int, variant: int) -> Path:
     """The hand-written lab batch as batch `name` in `share`, every trial at `angle`°, each estimator
-    stream's first sample `later` hundredths of a millisecond later (another recording for each
-    `later`, not a copy, which split would set aside)."""
+    stream's first voltage with the digit `variant` appended (another recording for each `variant`, not
+    a copy, which split would set aside: a copy has the same samples, whatever its timestamps)."""
     batch = copy_batch(LAB_BATCH, share, name)
     trials = pd.read_csv(batch / "trials.csv")
     trials["angle_deg"] = angle
     trials.to_csv(batch / "trials.csv", index=False)
     for fsr in batch.glob("*.fsr.csv"):
         rows = fsr.read_text().splitlines()
-        rows[1] = rows[1].replace(",", f"{later},", 1)
+        cells = rows[1].split(",")
+        cells[1] += str(variant)
+        rows[1] = ",".join(cells)
         fsr.write_text("\n".join(rows) + "\n")
     return batch
 
@@ -119,8 +121,8 @@ def test_a_single_angle_lab_follows_the_readme_with_params_only(tmp_path):
     # its held-out batch named in `split.external_batches`
     root = make_project(tmp_path / "proj", {"enabled": False})
     share = tmp_path / "lab-share"
-    _recording(share, "lab-bench-a", angle=30, later=1)
-    _recording(share, "lab-heldout-a", angle=30, later=2)
+    _recording(share, "lab-bench-a", angle=30, variant=1)
+    _recording(share, "lab-heldout-a", angle=30, variant=2)
     params = yaml.safe_load((root / "params.yaml").read_text())
     params["data"]["raw_dir"] = str(share)
     params["train"]["angles"] = [30]
@@ -145,7 +147,7 @@ def test_a_single_angle_lab_follows_the_readme_with_params_only(tmp_path):
     assert tree_hash(share) == before
 
     # When a second batch arrives
-    _recording(share, "lab-bench-b", angle=30, later=3)
+    _recording(share, "lab-bench-b", angle=30, variant=3)
     out = run(root, "dvc", "repro")
     # Then only the new batch is parsed; the first ones are reused from the ingest cache
     assert "lab-bench-b: parsed" in out, out

@@ -29,7 +29,7 @@ from pipeline.modelling.predict import load_predictor
 from pipeline.vocab import CALIBRATION, angle_name
 from pipeline.workers import WORKERS
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:

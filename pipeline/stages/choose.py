@@ -23,7 +23,7 @@ from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.train import choose_folders
 from pipeline.vocab import KINDS
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(model: str, data_root: Path, out_file: Path, params: Path = Path("params.yaml")) -> None:

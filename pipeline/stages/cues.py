@@ -30,7 +30,7 @@ from pipeline.logs import setup
 from pipeline.modelling.predictions import UNCALIBRATED, Predictions
 from pipeline.vocab import angle_name
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(

@@ -25,7 +25,7 @@ from pipeline.metrics.units import by_unit, calibration_summary, champions_by_an
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import angle_name
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(

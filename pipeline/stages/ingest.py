@@ -23,7 +23,7 @@ from pipeline.reporting.ingest import write_reports
 from pipeline.rig.ingest import ingest_batches
 from pipeline.workers import WORKERS
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(

@@ -24,7 +24,7 @@ from pipeline.config import TrainParams, load_section
 from pipeline.logs import setup
 from pipeline.reporting.ledger import markdown
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def _json(path: Path, kind: type) -> Any:

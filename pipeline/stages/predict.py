@@ -23,7 +23,7 @@ from pipeline.config import TrainParams, load_section
 from pipeline.logs import setup
 from pipeline.modelling.predict_splits import predict_all
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(

@@ -30,7 +30,7 @@ from pipeline.logs import setup
 from pipeline.registry.store import RegistryUnreachable
 from pipeline.registry.versions import register_all
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(

@@ -27,7 +27,7 @@ from pipeline.reporting import cues, figures, report, units
 from pipeline.reporting.inputs import inputs_section
 from pipeline.vocab import angle_name
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path("params.yaml")) -> None:

@@ -20,7 +20,7 @@ from pipeline.logs import setup
 from pipeline.reporting.resample import write_reports
 from pipeline.signals.resample import run
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(in_dir: Path, out_dir: Path, report_dir: Path, params: Path = Path("params.yaml")) -> None:

@@ -16,7 +16,7 @@ from pipeline.config import SimulateParams, load_section
 from pipeline.logs import setup
 from pipeline.sim.rig import run
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(out_dir: Path, params: Path = Path("params.yaml")) -> None:

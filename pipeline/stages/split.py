@@ -20,7 +20,7 @@ from pipeline.config import SplitParams, TrainParams, load_section
 from pipeline.dataset.split import run
 from pipeline.logs import setup
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(in_dir: Path, out_dir: Path, params: Path = Path("params.yaml")) -> None:

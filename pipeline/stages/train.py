@@ -25,7 +25,7 @@ from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.train import train_folder
 from pipeline.vocab import KINDS
 
-_log = logging.getLogger(__name__).info
+_log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
 def main(
