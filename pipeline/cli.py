@@ -558,8 +558,8 @@ def data_of(
 
 team = typer.Typer(
     no_args_is_help=True,
-    help="The team stack on this machine: PostgreSQL, S3 (SeaweedFS) and MLflow with basic auth "
-    "(README, Team setup).",
+    help="The team stack on this machine: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth and the "
+    "publisher of champions to simulators (README, Team setup).",
 )
 app.add_typer(team, name="team")
 TeamDir = Annotated[
@@ -585,8 +585,8 @@ def team_start(
     ] = 5480,
     host: Annotated[str, typer.Option(help="address every server binds to (first start only)")] = "127.0.0.1",
 ) -> None:
-    """Start PostgreSQL, SeaweedFS and the MLflow server (generating credentials on the first start),
-    and print how to use them."""
+    """Start PostgreSQL, SeaweedFS, the MLflow server and the publisher (generating credentials and the
+    lab's signing key on the first start), and print how to use them."""
     from pipeline.team.stack import StackError
 
     stack = _stack(folder)
@@ -597,6 +597,7 @@ def team_start(
     except (StackError, ValueError) as e:
         raise _fail(str(e)) from e
     typer.echo(f"MLflow: {stack.tracking_uri} (users admin, lab, simulator)   S3: {stack.s3_endpoint}")
+    typer.echo(f"simulators read {stack.published_url} (published on every alias change, signed)")
     typer.echo(f"as the lab:   set -a; . {stack.dir / 'lab.env'}; set +a")
     typer.echo(f"a simulator:  set -a; . {stack.dir / 'simulator.env'}; set +a")
 
@@ -624,7 +625,7 @@ def team_stop(
 
 @team.command("status")
 def team_status(folder: TeamDir = None) -> None:
-    """Each server: running or not, address, log (exit 1 unless all three run)."""
+    """Each server: running or not, address, log (exit 1 unless all of them run)."""
     from pipeline.team.stack import StackError
 
     try:
@@ -685,6 +686,34 @@ def team_webhook(
     except Exception as e:
         raise _fail(str(e)) from e
     typer.echo(f"webhook {hook}: alias changes -> {url}")
+
+
+@team.command("publish")
+def team_publish(
+    check: Annotated[
+        bool, typer.Option("--check", help="only say what is out of date (exit 1 if anything is)")
+    ] = False,
+    folder: TeamDir = None,
+) -> None:
+    """Publish every alias of the registry to the bucket simulators read (signed manifests, objects by
+    hash); the stack's publisher does it on every alias change by itself."""
+    from pipeline.registry import store
+    from pipeline.team import publish
+
+    stack = _stack(folder)
+    try:
+        lab = stack.role_env("lab")
+        with store.environment({k: v for k, v in lab.items() if k.startswith("MLFLOW_TRACKING_")}):
+            changes = publish.publish(stack.tracking_uri, publish.Target.of(stack), check_only=check)
+    except Exception as e:  # a stopped stack, refused credentials
+        raise _fail(f"publish: {type(e).__name__}: {e}") from e
+    for change in changes:
+        typer.echo(("out of date: " if check else "published: ") + str(change))
+    where = f"{stack.published_url}"
+    if not changes:
+        typer.echo(f"{where}: up to date with {stack.tracking_uri}")
+    elif check:
+        raise typer.Exit(1)
 
 
 app.command("live")(live_commands.live)

@@ -25,6 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pipeline.client.published as published
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import read_unit
 from pipeline.client.folder import MLMODEL, ONNX_FILE, open_model
@@ -43,6 +44,7 @@ MODEL_FILES = (MLMODEL, ONNX_FILE)
 # gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
 _POLL_HTTP_ENV = {"MLFLOW_HTTP_REQUEST_TIMEOUT": "2", "MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0"}
 MODEL_HINT = "run `make repro` to train and register the models"
+UNIT_PREFIX = "needle-unit-"  # store.unit_model_name's
 UNIT_HINT = "record a calibration batch with that unit and run `needlecue calibrate BATCH_DIR`"
 
 
@@ -59,6 +61,12 @@ def default_cache_dir() -> Path:
     """`$NEEDLECUE_MODEL_CACHE` if set, else `~/.cache/needlecue/models` (read at call time)."""
     env = os.environ.get(CACHE_ENV)
     return Path(env).expanduser() if env else DEFAULT_CACHE
+
+
+def source_uri(tracking_uri: str | None = None) -> str:
+    """Where a client fetches from: `tracking_uri` if given, else the published bucket of
+    `$NEEDLECUE_PUBLISHED_URL` if set, else MLflow's tracking URI (read at call time)."""
+    return tracking_uri or published.default_location() or store.tracking_uri()
 
 
 def read_version(folder: Path) -> dict[str, Any] | None:
@@ -116,8 +124,11 @@ def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
     from mlflow import MlflowClient
     from mlflow.exceptions import MlflowException
 
-    hint = UNIT_HINT if name.startswith("needle-unit-") else MODEL_HINT
-    uri = tracking_uri or store.tracking_uri()
+    hint = UNIT_HINT if name.startswith(UNIT_PREFIX) else MODEL_HINT
+    uri = source_uri(tracking_uri)
+    if published.is_published(uri):
+        found, _ = _published_manifest(uri, name, alias, hint)
+        return _Version(found)
     with store.environment(_POLL_HTTP_ENV):
         if uri.startswith(("http://", "https://")):
             try:
@@ -184,8 +195,12 @@ def _fetch_version(
     the version (default: all of it)."""
     uri = f"models:/{name}@{alias}"
     target = Path(cache_dir or default_cache_dir()).expanduser() / name / alias
-    registry_uri = tracking_uri or store.tracking_uri()
+    registry_uri = source_uri(tracking_uri)
     cached = read_version(target) if not offline_needs_file or (target / file).is_file() else None
+    if published.is_published(registry_uri):
+        return _fetch_published(
+            name, alias, target, cached, registry_uri, (file, sha_key), hint, describe, problem
+        )
     try:
         with store.patience():
             mv = _resolve(store.connect(registry_uri, must_exist=True), name, alias, registry_uri, hint)
@@ -194,11 +209,7 @@ def _fetch_version(
     if (
         cached is not None
         and cached.get("name") == name
-        and str(cached.get("version")) == str(mv.version)
-        # version numbers restart in every store: the source (models:/m-<id>) tells two stores' "v1" apart
-        and cached.get("source") == mv.source
-        and (target / file).is_file()
-        and file_sha256([target / file]) == cached.get(sha_key)
+        and _is_copy_of(cached, mv.version, mv.source, target, file, sha_key)
     ):
         return target  # already that version, intact: no download
     try:
@@ -206,6 +217,138 @@ def _fetch_version(
             return _download(mv, alias, target, registry_uri, describe, only)
     except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
         return _offline_copy(target, cached, uri, e, problem)
+
+
+def _is_copy_of(
+    cached: dict[str, Any] | None, version: Any, source: Any, target: Path, file: str, sha_key: str
+) -> bool:
+    """Whether the cached copy is that very version with `file` intact (version numbers restart in every
+    store: the source, models:/m-<id>, tells two stores' "v1" apart)."""
+    return (
+        cached is not None
+        and str(cached.get("version")) == str(version)
+        and cached.get("source") == source
+        and (target / file).is_file()
+        and file_sha256([target / file]) == cached.get(sha_key)
+    )
+
+
+class _Version:
+    """What a client reads of a model version (as MLflow's ModelVersion), from a verified manifest."""
+
+    def __init__(self, manifest: dict[str, Any]) -> None:
+        self.name, self.version, self.source = manifest["name"], str(manifest["version"]), manifest["source"]
+        self.run_id = manifest.get("run_id")
+        sha = (manifest.get("describe") or {}).get("calibration_sha256")
+        self.tags = {store.CALIBRATION_SHA_TAG: sha} if sha else {}
+
+
+def _published_manifest(uri: str, name: str, alias: str, hint: str) -> tuple[dict[str, Any], bytes | None]:
+    """The verified manifest of `name@alias` in the published bucket, and its signed bytes (None when
+    the poll was answered 304); `ModelNotFound` if nothing is published under it."""
+    bucket = published.bucket(uri)
+    found = bucket.manifest(name, alias)
+    if found is None:
+        raise ModelNotFound(
+            f"the published bucket {bucket.where} has no {name}@{alias}; {hint}, and have the lab publish "
+            "it (`needlecue team publish`)"
+        )
+    return found[0], found[1]
+
+
+MANIFEST_FILE = "manifest.json"  # a published copy's signed manifest, kept beside its files
+
+
+def _fetch_published(
+    name: str,
+    alias: str,
+    target: Path,
+    cached: dict[str, Any] | None,
+    uri: str,
+    file_key: tuple[str, str],
+    hint: str,
+    describe: Describe,
+    problem: Verify,
+) -> Path:
+    """`_fetch_version` from a published bucket: the manifest by conditional GET (its cached copy's ETag
+    first), the files by hash, everything verified before it is written; the checked cached copy when
+    the bucket cannot be used or refuses what it holds."""
+    file, sha_key = file_key
+    bucket = published.bucket(uri)
+    known = bucket.etag(name, alias) is not None
+    if not known and cached and cached.get("manifest_etag") and (target / MANIFEST_FILE).is_file():
+        with contextlib.suppress(ValueError, OSError):  # an unreadable one is simply fetched again
+            bucket.remember(name, alias, cached["manifest_etag"], (target / MANIFEST_FILE).read_bytes())
+    try:
+        found, document = _published_manifest(uri, name, alias, hint)
+        if _is_copy_of(cached, found["version"], found["source"], target, file, sha_key):
+            return target  # already that version, intact (the client checks the folder as it opens it)
+        return _download_published(bucket, found, document, alias, target, describe)
+    except store.RegistryUnreachable as e:  # PublishedRefused too: the verified cached copy runs
+        return _offline_copy(target, cached, f"{bucket.where} {name}@{alias}", e, problem)
+
+
+def _download_published(
+    bucket: published.Bucket,
+    found: dict[str, Any],
+    document: bytes | None,
+    alias: str,
+    target: Path,
+    describe: Describe,
+) -> Path:
+    """The manifest's files, each checked against its hash, into a temp sibling of `target`, described
+    and swapped in as `_download` does."""
+    if document is None:  # answered 304 for a manifest whose cached files are gone: fetch it whole
+        bucket.forget(found["name"], alias)
+        found, document = _published_manifest(bucket.uri, found["name"], alias, "")
+        assert document is not None
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{alias}-download-", dir=target.parent))
+    tmp.chmod(0o755)
+    try:
+        for fname, entry in sorted(found["files"].items()):
+            if (
+                fname in ("", ".", "..")
+                or "/" in fname
+                or "\\" in fname
+                or fname in (VERSION_FILE, MANIFEST_FILE)
+            ):
+                raise published.PublishedRefused(
+                    f"{bucket.where}: refused, the manifest names a file {fname!r}"
+                )
+            (tmp / fname).write_bytes(bucket.object(entry))
+        mv = _Version(found)
+        try:
+            described = describe(tmp, mv)
+        except ValueError as e:  # signed, but not a version a simulator may run
+            raise published.PublishedRefused(f"{bucket.where} {mv.name} v{mv.version}: {e}") from e
+        if any(found["describe"].get(k) != v for k, v in described.items()):
+            raise published.PublishedRefused(
+                f"{bucket.where} {mv.name} v{mv.version}: refused, its files are not what the manifest says"
+            )
+        info = {
+            "name": mv.name, "version": mv.version, "alias": alias, "run_id": mv.run_id, "source": mv.source,
+            **described, "tracking_uri": bucket.uri,
+            "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "published_utc": found["published_utc"], "key_id": found.get("key_id"),
+            "manifest_etag": bucket.etag(found["name"], alias),
+        }  # fmt: skip
+        (tmp / MANIFEST_FILE).write_bytes(document)
+        (tmp / VERSION_FILE).write_text(json.dumps(info, indent=2) + "\n")
+        _swap_in(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+def download_checked(mv: Any, alias: str, target: Path, registry_uri: str) -> Path:
+    """A model version's files a simulator runs, downloaded from the registry into `target` and checked
+    as a client checks them (a broken version raises ValueError): what the lab publishes."""
+    if mv.name.startswith(UNIT_PREFIX):
+        unit_id = mv.name[len(UNIT_PREFIX) :]
+        return _download(mv, alias, target, registry_uri, _unit_info(unit_id), (UNIT_FILE,))
+    return _download(mv, alias, target, registry_uri, _model_info, MODEL_FILES)
 
 
 def _resolve(client: Any, name: str, alias: str, registry_uri: str, hint: str = MODEL_HINT) -> Any:
@@ -239,17 +382,23 @@ def _offline_copy(
             "unreadable (not a JSON object: damaged?), so what it holds is unknown. Reconnect to the "
             "registry to fetch it again, or delete that folder"
         ) from error
-    if cached is None:
-        raise store.RegistryUnreachable(
-            f"cannot fetch {uri}: {error}; and there is no local copy at {target}"
-        ) from error
+    if cached is None:  # a refusal stays one: the caller learns the copy is not the lab's
+        kind = (
+            published.PublishedRefused
+            if isinstance(error, published.PublishedRefused)
+            else store.RegistryUnreachable
+        )
+        raise kind(f"cannot fetch {uri}: {error}; and there is no local copy at {target}") from error
     if why := problem(target, cached):
         raise CachedCopyRefused(
             f"cannot fetch {uri}: {error}; the local copy at {target} is refused: {why}. Reconnect to "
             "the registry to fetch it again, or delete that folder"
         ) from error
-    log.warning(
-        "offline: %s; using the local copy of %s (version %s, fetched %s) at %s",
+    refused = isinstance(error, published.PublishedRefused)  # not the lab's: said loudly, not run
+    log.log(
+        logging.ERROR if refused else logging.WARNING,
+        "%s: %s; using the verified local copy of %s (version %s, fetched %s) at %s",
+        "refused" if refused else "offline",
         error,
         uri,
         cached.get("version"),

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.cache import default_cache_dir, fetch, poll_alias
+from pipeline.client.cache import default_cache_dir, fetch, poll_alias, source_uri
 from pipeline.client.model import Model
 from pipeline.registry import store
 
@@ -44,7 +44,7 @@ class Follower:
         if poll_s is not None and not poll_s >= 0:
             raise ValueError(f"poll_s is seconds >= 0 or None, got {poll_s!r}")
         kwargs = dict(fetch_kwargs)
-        kwargs["tracking_uri"] = kwargs.get("tracking_uri") or store.tracking_uri()
+        kwargs["tracking_uri"] = source_uri(kwargs.get("tracking_uri"))  # or the published bucket
         kwargs["cache_dir"] = Path(kwargs.get("cache_dir") or default_cache_dir()).expanduser()
         return cls(angle_deg, alias, kwargs, poll_s or None, _monotonic() + poll_s if poll_s else math.inf)
 

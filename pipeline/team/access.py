@@ -113,3 +113,17 @@ def add_webhook(stack: Server, url: str, name: str = "needlecue-alias") -> str:
             name=name, url=url, events=list(ALIAS_EVENTS), secret=stack.settings["webhook_secret"]
         )
     return str(hook.webhook_id)
+
+
+def ensure_webhook(stack: Server, url: str, name: str) -> str:
+    """The webhook `name` calling `url` on every alias change (created, or its URL updated); its id."""
+    from mlflow import MlflowClient
+
+    with _as_admin(stack):
+        client = MlflowClient(tracking_uri=stack.tracking_uri)
+        for hook in client.list_webhooks(max_results=1000):
+            if hook.name == name:
+                if hook.url != url:
+                    client.update_webhook(hook.webhook_id, url=url)
+                return str(hook.webhook_id)
+    return add_webhook(stack, url, name)

@@ -1,13 +1,15 @@
 """Start, stop and check the team stack on one machine: PostgreSQL (MLflow's backend and auth stores),
-SeaweedFS (`weed mini`, the S3 store behind MLflow's proxied artifacts and the DVC remote) and an MLflow
-tracking server with basic auth.
+SeaweedFS (`weed mini`, the S3 store behind MLflow's proxied artifacts, the DVC remote and the bucket
+simulators fetch published champions from), an MLflow tracking server with basic auth, and the publisher
+(`pipeline.team.publisher`: on every alias change, MLflow's webhook has it publish the new version).
 
 Everything lives in one state folder outside git (`$NEEDLECUE_TEAM_DIR`, default
 `~/.local/state/needlecue/team`): `team.json` (ports and generated credentials, mode 0600), the
 servers' data, logs and pid files, and `<role>.env` files to source. PostgreSQL refuses to run as
 root, so under root its data folder is `/var/lib/postgresql/needlecue-team/<id>`, owned by `postgres`.
 Every server binds to `host` (127.0.0.1 unless told otherwise); the ports are `base_port` + 0..8
-(MLflow, S3, PostgreSQL, then SeaweedFS's internal ones, whose gRPC ports are 10000 higher).
+(MLflow, S3, PostgreSQL, then SeaweedFS's internal ones, whose gRPC ports are 10000 higher), and + 9
+for the publisher's webhook listener.
 """
 
 from __future__ import annotations
@@ -38,9 +40,10 @@ DEFAULT_DIR = "~/.local/state/needlecue/team"
 DEFAULT_BASE_PORT = 5480
 PG_USER = "needlecue"  # the database role MLflow connects as
 DATABASES = ("mlflow", "mlflow_auth")  # tracking + registry, and basic auth's users and permissions
-BUCKETS = ("mlflow", "dvc")
+BUCKETS = ("mlflow", "dvc", "published")
+PUBLISHED = "published"  # what simulators read (pipeline.team.publish), and all their S3 keys may read
 ROLES = ("admin", "lab", "simulator")
-SERVERS = ("postgres", "s3", "mlflow")  # in start order; stopped in reverse
+SERVERS = ("postgres", "s3", "mlflow", "publisher")  # in start order; stopped in reverse
 START_TIMEOUT_S = 120.0
 # uvicorn kills a worker that leaves its health ping unanswered for 5 s (its default), and a worker busy
 # on a loaded machine can: the kill drops every request it holds, a register's upload among them (seen
@@ -75,6 +78,10 @@ class Ports:
     def postgres(self) -> int:
         return self.base + 2
 
+    @property
+    def publisher(self) -> int:
+        return self.base + 9
+
     def weed(self) -> dict[str, int]:
         """SeaweedFS's internal servers (each also takes its port + 10000 for gRPC)."""
         b = self.base
@@ -88,7 +95,7 @@ class Ports:
         }
 
     def all(self) -> list[int]:
-        ports = [self.mlflow, self.s3, self.postgres, *self.weed().values()]
+        ports = [self.mlflow, self.s3, self.postgres, *self.weed().values(), self.publisher]
         return ports + [p + 10000 for p in (self.s3, *self.weed().values())]
 
 
@@ -96,7 +103,12 @@ def _token(n: int = 24) -> str:
     return secrets.token_urlsafe(n)
 
 
-def new_settings(base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", workers: int = 2) -> dict:
+def new_settings(
+    base_port: int = DEFAULT_BASE_PORT,
+    host: str = "127.0.0.1",
+    workers: int = 2,
+    publish_every_s: float = 60.0,
+) -> dict:
     """A new stack's settings: ports and freshly generated credentials."""
     if not 1024 <= base_port <= 65535 - 10008:
         raise ValueError(
@@ -107,13 +119,25 @@ def new_settings(base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", wo
         "host": host,
         "base_port": base_port,
         "workers": workers,
+        "publish_every_s": publish_every_s,  # the publisher's round without a webhook call (a missed one)
         "passwords": {role: _token() for role in ROLES},
         "postgres_password": _token(),
         "s3": {"access_key": "needlecue" + secrets.token_hex(6), "secret_key": _token(30)},
+        **publish_settings(),
         "flask_secret": _token(32),
         # Fernet key: MLflow encrypts the webhooks' signing secrets with it (one per process if unset)
         "webhook_encryption_key": base64.urlsafe_b64encode(os.urandom(32)).decode(),
         "webhook_secret": _token(),  # what MLflow signs alias webhooks with, and the simulators check
+    }
+
+
+def publish_settings() -> dict[str, Any]:
+    """A simulator's read-only S3 keys and the lab's signing key (added to an older team.json on start)."""
+    from pipeline.registry.manifest import new_private_key
+
+    return {
+        "s3_reader": {"access_key": "simulator" + secrets.token_hex(6), "secret_key": _token(30)},
+        "publish_private_key": base64.b64encode(new_private_key()).decode(),
     }
 
 
@@ -138,18 +162,30 @@ class Stack:
             raise StackError(f"{self.file}: format {found.get('format')!r}, this needlecue reads {FORMAT}")
         return found
 
-    def init(self, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", workers: int = 2) -> bool:
+    def init(
+        self,
+        base_port: int = DEFAULT_BASE_PORT,
+        host: str = "127.0.0.1",
+        workers: int = 2,
+        publish_every_s: float = 60.0,
+    ) -> bool:
         """Write team.json with new credentials unless it exists (then its settings stand): True if new."""
         if self.file.is_file():
+            found = self.settings
+            if "publish_private_key" not in found:  # a stack made before publishing: add its keys
+                self._write({**found, **publish_settings()})
             return False
         self.dir.mkdir(parents=True, exist_ok=True)
         os.chmod(self.dir, 0o700)
+        self._write(new_settings(base_port, host, workers, publish_every_s))
+        return True
+
+    def _write(self, settings: dict[str, Any]) -> None:
         tmp = self.file.with_suffix(".tmp")
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
-            json.dump(new_settings(base_port, host, workers), f, indent=2)
+            json.dump(settings, f, indent=2)
         tmp.replace(self.file)
-        return True
 
     @property
     def ports(self) -> Ports:
@@ -166,6 +202,22 @@ class Stack:
     @property
     def s3_endpoint(self) -> str:
         return f"http://{self.host}:{self.ports.s3}"
+
+    @property
+    def published_url(self) -> str:
+        """The published bucket, as a simulator's `NEEDLECUE_PUBLISHED_URL`."""
+        return f"{self.s3_endpoint}/{PUBLISHED}"
+
+    @property
+    def publisher_url(self) -> str:
+        """Where MLflow's webhook reaches the publisher."""
+        return f"http://{self.host}:{self.ports.publisher}/mlflow"
+
+    def public_key(self) -> str:
+        """The public half of the lab's publishing key (base64), as simulators hold it."""
+        from pipeline.registry.manifest import public_of
+
+        return base64.b64encode(public_of(base64.b64decode(self.settings["publish_private_key"]))).decode()
 
     def database_uri(self, database: str) -> str:
         """SQLAlchemy URI of one of the stack's databases (psycopg2: `postgresql://` picks psycopg 3)."""
@@ -192,7 +244,8 @@ class Stack:
 
     def role_env(self, role: str) -> dict[str, str]:
         """The environment a user of `role` works with: MLflow's URI and credentials, and for the lab
-        and admin also the S3 store's (DVC's remote); a simulator never needs the object store."""
+        and admin also the S3 store's (DVC's remote). A simulator gets the published bucket instead
+        (read-only keys, the lab's public key): its client fetches from there, not from MLflow."""
         if role not in ROLES:
             raise ValueError(f"unknown role {role!r}: one of {', '.join(ROLES)}")
         s = self.settings
@@ -201,10 +254,12 @@ class Stack:
             "MLFLOW_TRACKING_USERNAME": role,
             "MLFLOW_TRACKING_PASSWORD": s["passwords"][role],
         }
-        if role != "simulator":
+        keys = s["s3_reader"] if role == "simulator" else s["s3"]
+        env |= {"AWS_ACCESS_KEY_ID": keys["access_key"], "AWS_SECRET_ACCESS_KEY": keys["secret_key"]}
+        if role == "simulator":
             env |= {
-                "AWS_ACCESS_KEY_ID": s["s3"]["access_key"],
-                "AWS_SECRET_ACCESS_KEY": s["s3"]["secret_key"],
+                "NEEDLECUE_PUBLISHED_URL": self.published_url,
+                "NEEDLECUE_PUBLISH_PUBLIC_KEY": self.public_key(),
             }
         env["NEEDLECUE_WEBHOOK_SECRET"] = s["webhook_secret"]
         return env
@@ -229,6 +284,8 @@ class Stack:
         self.dir.joinpath("logs").mkdir(parents=True, exist_ok=True)
         self.dir.joinpath("run").mkdir(exist_ok=True)
         for server in SERVERS:
+            if server == "publisher":  # it reads the registry as the lab, and has the admin add its webhook
+                access.ensure_users(self)
             if self.running(server):
                 progress(f"{server}: already running")
                 continue
@@ -236,12 +293,14 @@ class Stack:
             t0 = time.monotonic()
             getattr(self, f"_start_{server}")()
             progress(f"{server}: started in {time.monotonic() - t0:.1f} s ({self.log(server)})")
-        access.ensure_users(self)
         self.write_env_files()
 
     def _check_ports_free(self, server: str) -> None:
         p = self.ports
-        ports = {"postgres": [p.postgres], "mlflow": [p.mlflow], "s3": [p.s3, *p.weed().values()]}[server]
+        ports = {
+            "postgres": [p.postgres], "mlflow": [p.mlflow], "s3": [p.s3, *p.weed().values()],
+            "publisher": [p.publisher],
+        }[server]  # fmt: skip
         busy = [port for port in ports if _answers(self.host, port)]
         if busy:
             raise StackError(f"{server}: port(s) {busy} on {self.host} are taken by another program")
@@ -323,14 +382,23 @@ class Stack:
     def _start_s3(self) -> None:
         s = self.settings
         config = self.dir / "s3.json"
-        identity = {
-            "name": "needlecue",
-            "credentials": [{"accessKey": s["s3"]["access_key"], "secretKey": s["s3"]["secret_key"]}],
-            "actions": ["Admin", "Read", "Write", "List", "Tagging"],
-        }
+        identities = [
+            {
+                "name": "needlecue",
+                "credentials": [{"accessKey": s["s3"]["access_key"], "secretKey": s["s3"]["secret_key"]}],
+                "actions": ["Admin", "Read", "Write", "List", "Tagging"],
+            },
+            {  # every simulator: read the published bucket, nothing else (SeaweedFS's bucket-scoped actions)
+                "name": "simulator",
+                "credentials": [
+                    {"accessKey": s["s3_reader"]["access_key"], "secretKey": s["s3_reader"]["secret_key"]}
+                ],
+                "actions": [f"Read:{PUBLISHED}", f"List:{PUBLISHED}"],
+            },
+        ]
         fd = os.open(config, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
-            json.dump({"identities": [identity]}, f)
+            json.dump({"identities": identities}, f)
         data = self.dir / "seaweedfs"
         data.mkdir(exist_ok=True)
         w = self.ports.weed()
@@ -425,6 +493,14 @@ class Stack:
         except (OSError, urllib.error.URLError):
             return False
 
+    def _start_publisher(self) -> None:
+        cmd = [sys.executable, "-m", "pipeline.team.publisher", str(self.dir)]
+        self._spawn("publisher", cmd, {"PYTHONUNBUFFERED": "1"}, cwd=self.dir)
+        self._wait("publisher", self._publisher_ready)
+
+    def _publisher_ready(self) -> bool:
+        return _answers(self.host, self.ports.publisher)
+
     def _spawn(self, server: str, cmd: list[str], env: dict[str, str], cwd: Path) -> None:
         log = self.log(server)
         log.parent.mkdir(parents=True, exist_ok=True)
@@ -473,7 +549,8 @@ class Stack:
 
     def running(self, server: str) -> bool:
         """Alive and answering on its port."""
-        port = {"postgres": self.ports.postgres, "s3": self.ports.s3, "mlflow": self.ports.mlflow}[server]
+        p = self.ports
+        port = {"postgres": p.postgres, "s3": p.s3, "mlflow": p.mlflow, "publisher": p.publisher}[server]
         return self._pid(server) is not None and _answers(self.host, port)
 
     def status(self) -> dict[str, dict[str, Any]]:
@@ -482,6 +559,7 @@ class Stack:
             "postgres": f"{self.host}:{self.ports.postgres}",
             "s3": self.s3_endpoint,
             "mlflow": self.tracking_uri,
+            "publisher": self.publisher_url,
         }
         return {
             server: {

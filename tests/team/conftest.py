@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
+from pipeline.client.published import PUBLISHED_ENV
 from pipeline.team.stack import SERVERS, Stack, free_base_port
+from tests.projects import built_stages, copy_project, run
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
@@ -23,7 +26,8 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 @pytest.fixture(scope="session")
 def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     stack = Stack(tmp_path_factory.mktemp("team") / "stack")
-    stack.init(base_port=free_base_port())
+    # rounds on webhook calls only: a timed round would repair what a test tampers with, mid-test
+    stack.init(base_port=free_base_port(), publish_every_s=3600)
     try:
         stack.start(progress=lambda _m: None)
         yield stack
@@ -42,11 +46,14 @@ def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
 
 @pytest.fixture
 def as_role(team: Stack, monkeypatch: pytest.MonkeyPatch):
-    """as_role("lab") puts that role's environment (MLflow URI and credentials) in place."""
+    """as_role("lab") puts that role's environment (MLflow URI and credentials) in place; a simulator's
+    published bucket only with `published=True`."""
 
-    def use(role: str) -> dict[str, str]:
+    def use(role: str, published: bool = False) -> dict[str, str]:
         env = team.role_env(role)
-        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY"):
+        if not published:  # the tracking server's own path (a simulator's client would take the bucket)
+            env.pop(PUBLISHED_ENV, None)
+        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", PUBLISHED_ENV):
             monkeypatch.delenv(key, raising=False)
         for key, value in env.items():
             monkeypatch.setenv(key, value)
@@ -54,3 +61,28 @@ def as_role(team: Stack, monkeypatch: pytest.MonkeyPatch):
         return env
 
     return use
+
+
+def lab_env(team, role: str) -> dict[str, str]:
+    env = team.role_env(role)
+    return {**env, "MLFLOW_REGISTRY_URI": env["MLFLOW_TRACKING_URI"], "GIT_AUTHOR_NAME": "lab",
+            "GIT_AUTHOR_EMAIL": "lab@example.org", "GIT_COMMITTER_NAME": "lab",
+            "GIT_COMMITTER_EMAIL": "lab@example.org"}  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def lab(team, tiny_built, tmp_path_factory) -> Path:
+    """A small git + DVC project whose default remote is the stack's S3 store, reproduced as the lab
+    (from the shared build: only register runs, into the server). Shared by the team tests."""
+    root, _ = copy_project(tiny_built, tmp_path_factory.mktemp("lab") / "project")
+    env = lab_env(team, "lab")
+    run(root, "git", "init", "-q", env=env)
+    run(root, "dvc", "config", "core.no_scm", "false", env=env)
+    # (re)writes each output's .gitignore entry, so no data goes into git
+    run(root, "dvc", "commit", "-f", "-q", *built_stages(root), env=env)
+    run(root, "dvc", "remote", "add", "-d", "team", "s3://dvc/needlecue", env=env)
+    run(root, "dvc", "remote", "modify", "team", "endpointurl", team.s3_endpoint, env=env)
+    run(root, "git", "add", "-A", env=env)
+    run(root, "git", "commit", "-q", "-m", "a lab's project", env=env)
+    run(root, "dvc", "repro", env=env)
+    return root

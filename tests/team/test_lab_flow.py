@@ -29,18 +29,12 @@ from pipeline.client.cache import ModelNotFound, poll_alias
 from pipeline.client.webhook import AliasListener, signature
 from pipeline.registry import store
 from pipeline.team import access
-from tests.projects import built_stages, copy_project, run
+from tests.projects import run
+from tests.team.conftest import lab_env as _env
 
 # the real servers, on one xdist worker (their tests share one stack), in file order
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 ANGLES = ["15", "45"]
-
-
-def _env(team, role: str) -> dict[str, str]:
-    env = team.role_env(role)
-    return {**env, "MLFLOW_REGISTRY_URI": env["MLFLOW_TRACKING_URI"], "GIT_AUTHOR_NAME": "lab",
-            "GIT_AUTHOR_EMAIL": "lab@example.org", "GIT_COMMITTER_NAME": "lab",
-            "GIT_COMMITTER_EMAIL": "lab@example.org"}  # fmt: skip
 
 
 def _aliases(team) -> dict[str, dict[str, str]]:
@@ -52,24 +46,6 @@ def _aliases(team) -> dict[str, dict[str, str]]:
         m["name"]: {a["alias"]: a["version"] for a in m.get("aliases", [])}
         for m in got.json().get("registered_models", [])
     }
-
-
-@pytest.fixture(scope="module")
-def lab(team, tiny_built, tmp_path_factory) -> Path:
-    """A small git + DVC project whose default remote is the stack's S3 store, reproduced as the lab
-    (from the shared build: only register runs, into the server)."""
-    root, _ = copy_project(tiny_built, tmp_path_factory.mktemp("lab") / "project")
-    env = _env(team, "lab")
-    run(root, "git", "init", "-q", env=env)
-    run(root, "dvc", "config", "core.no_scm", "false", env=env)
-    # (re)writes each output's .gitignore entry, so no data goes into git
-    run(root, "dvc", "commit", "-f", "-q", *built_stages(root), env=env)
-    run(root, "dvc", "remote", "add", "-d", "team", "s3://dvc/needlecue", env=env)
-    run(root, "dvc", "remote", "modify", "team", "endpointurl", team.s3_endpoint, env=env)
-    run(root, "git", "add", "-A", env=env)
-    run(root, "git", "commit", "-q", "-m", "a lab's project", env=env)
-    run(root, "dvc", "repro", env=env)
-    return root
 
 
 def test_dvc_repro_registers_into_the_team_server_with_its_provenance(team, lab):

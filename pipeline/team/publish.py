@@ -1,0 +1,205 @@
+"""Publishing what simulators run, out of the tracking server's path: every alias of the lab's registered
+models (`needle-force-<angle>@champion`, `needle-unit-<id>@current`, ...) copied to the published bucket
+of the team's object store, as immutable objects named by their sha256 and one signed manifest per model
+and alias (the format: `pipeline.registry.manifest`).
+
+`plan` compares the registry with the bucket and says what is out of date; `publish` applies it:
+objects first (each only if missing), then the manifest, so a simulator never finds a manifest whose
+files are not there. Publishing twice changes nothing. An alias that is gone has its manifest withdrawn
+(a simulator keeps what it runs: "not found" is not a reason to stop). Objects are never deleted: a
+simulator offline since last week may still ask for one. What is published is checked first as a client
+checks it (`pipeline.client.cache.download_checked`): a broken version is not published.
+"""
+
+from __future__ import annotations
+
+import base64
+import getpass
+import hashlib
+import logging
+import socket
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from pipeline.client.cache import download_checked, read_version
+from pipeline.registry import manifest as signed
+from pipeline.registry import store
+
+log = logging.getLogger(__name__)
+
+BUCKET = "published"
+MODEL_PREFIXES = ("needle-force-", "needle-unit-")
+IMMUTABLE = "public, max-age=31536000, immutable"  # an object's bytes never change: cache it anywhere
+DESCRIBED = ("checkpoint_sha256", "onnx_sha256", "unit_id", "calibration_sha256")
+
+
+class Lab(Protocol):
+    """What publishing needs of the team stack (`pipeline.team.stack.Stack` is one)."""
+
+    @property
+    def settings(self) -> dict[str, Any]: ...  # "publish_private_key" (base64)
+
+    def s3_client(self) -> Any: ...  # boto3, with write access to the published bucket
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where and as whom the lab publishes: the bucket, a client that may write it, the signing key."""
+
+    s3: Any
+    bucket: str
+    private_key: bytes
+    who: str
+
+    @classmethod
+    def of(cls, lab: Lab, who: str | None = None) -> Target:
+        key = base64.b64decode(lab.settings["publish_private_key"])
+        return cls(lab.s3_client(), BUCKET, key, who or f"{getpass.getuser()}@{socket.gethostname()}")
+
+    @property
+    def public_key(self) -> bytes:
+        return signed.public_of(self.private_key)
+
+
+@dataclass(frozen=True)
+class Change:
+    """One manifest to write (`publish`: the alias's version is `version`) or to delete (`withdraw`)."""
+
+    action: str
+    name: str
+    alias: str
+    version: str | None
+    why: str
+
+    def __str__(self) -> str:
+        what = f"v{self.version}" if self.version else "withdraw"
+        return f"{self.name}@{self.alias}: {self.action} {what} ({self.why})"
+
+
+def wanted(client: Any) -> dict[tuple[str, str], Any]:
+    """Every alias of the project's registered models and the ModelVersion it points to."""
+    found: dict[tuple[str, str], Any] = {}
+    token = None
+    while True:
+        page = client.search_registered_models(
+            filter_string="name LIKE 'needle-%'", max_results=100, page_token=token
+        )
+        for model in page:
+            if not model.name.startswith(MODEL_PREFIXES):
+                continue
+            for alias, version in sorted((model.aliases or {}).items()):
+                found[(model.name, alias)] = client.get_model_version(model.name, str(version))
+        token = page.token
+        if not token:
+            return found
+
+
+def manifests(target: Target) -> dict[tuple[str, str], bytes]:
+    """The manifests in the bucket, by (name, alias), as stored (not yet verified)."""
+    found: dict[tuple[str, str], bytes] = {}
+    pages = target.s3.get_paginator("list_objects_v2").paginate(Bucket=target.bucket, Prefix=signed.MANIFESTS)
+    for page in pages:
+        for obj in page.get("Contents", []):
+            rest = obj["Key"][len(signed.MANIFESTS) :]
+            name, _, file = rest.partition("/")
+            if file.endswith(".json") and "/" not in file:
+                body = target.s3.get_object(Bucket=target.bucket, Key=obj["Key"])["Body"].read()
+                found[(name, file[: -len(".json")])] = body
+    return found
+
+
+def plan(client: Any, target: Target) -> list[Change]:
+    """What is out of date in the bucket against the registry (nothing: an empty list)."""
+    want, have = wanted(client), manifests(target)
+    changes = []
+    for (name, alias), mv in sorted(want.items()):
+        why = _stale(have.get((name, alias)), mv, target, name, alias)
+        if why:
+            changes.append(Change("publish", name, alias, str(mv.version), why))
+    for name, alias in sorted(set(have) - set(want)):
+        changes.append(Change("withdraw", name, alias, None, "the alias is gone from the registry"))
+    return changes
+
+
+def _stale(document: bytes | None, mv: Any, target: Target, name: str, alias: str) -> str | None:
+    """Why the published manifest of `name@alias` is not `mv`'s, or None if it is (objects included)."""
+    if document is None:
+        return "not published"
+    try:
+        body = signed.verify(document, target.public_key, f"{name}@{alias}")
+    except signed.ManifestRefused as e:
+        return f"its manifest is refused: {e}"
+    if (str(body["version"]), body["source"]) != (str(mv.version), mv.source):
+        return f"published v{body['version']}, the registry's is v{mv.version}"
+    missing = [f for f, e in body["files"].items() if not _has(target, signed.object_key(e["sha256"]))]
+    return f"objects missing: {', '.join(sorted(missing))}" if missing else None
+
+
+def _has(target: Target, key: str) -> bool:
+    from botocore.exceptions import ClientError
+
+    try:
+        target.s3.head_object(Bucket=target.bucket, Key=key)
+    except ClientError as e:
+        if e.response.get("ResponseMetadata", {}).get("HTTPStatusCode") == 404:
+            return False
+        raise
+    return True
+
+
+def publish(registry_uri: str, target: Target, *, check_only: bool = False) -> list[Change]:
+    """Bring the bucket up to date with the registry at `registry_uri` (read with the credentials in
+    the environment); returns what was (with `check_only`: what would be) changed."""
+    client = store.connect(registry_uri, must_exist=True)
+    changes = plan(client, target)
+    if check_only:
+        return changes
+    for change in changes:
+        t0 = time.monotonic()
+        if change.action == "withdraw":
+            target.s3.delete_object(Bucket=target.bucket, Key=signed.manifest_key(change.name, change.alias))
+        else:
+            mv = client.get_model_version(change.name, change.version)
+            put_version(mv, change.alias, registry_uri, target)
+        log.info("published %s in %.2f s", change, time.monotonic() - t0)
+    return changes
+
+
+def put_version(mv: Any, alias: str, registry_uri: str, target: Target) -> dict[str, Any]:
+    """Publish one version under `alias`: its checked files as objects, then its signed manifest.
+    Returns the signed document."""
+    with tempfile.TemporaryDirectory(prefix="needlecue-publish-") as tmp:
+        folder = download_checked(mv, alias, Path(tmp) / "copy", registry_uri)
+        info = read_version(folder) or {}
+        files = {}
+        for path in sorted(p for p in folder.iterdir() if p.is_file() and p.name != "version.json"):
+            data = path.read_bytes()
+            sha = hashlib.sha256(data).hexdigest()
+            if not _has(target, signed.object_key(sha)):
+                target.s3.put_object(
+                    Bucket=target.bucket, Key=signed.object_key(sha), Body=data, CacheControl=IMMUTABLE
+                )
+            files[path.name] = {"sha256": sha, "size": len(data)}
+    body = {
+        "name": mv.name,
+        "alias": alias,
+        "version": str(mv.version),
+        "run_id": mv.run_id,
+        "source": mv.source,
+        "files": files,
+        "describe": {k: info[k] for k in DESCRIBED if k in info},
+        "published_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "published_by": target.who,
+    }
+    document = signed.sign(body, target.private_key)
+    target.s3.put_object(
+        Bucket=target.bucket,
+        Key=signed.manifest_key(mv.name, alias),
+        Body=signed.canonical(document),
+        ContentType="application/json",
+        CacheControl="no-cache",  # a cache in front revalidates a manifest each time (objects: forever)
+    )
+    return document

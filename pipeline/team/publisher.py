@@ -1,0 +1,89 @@
+"""The lab's publisher: a small service beside the tracking server that keeps the published bucket up to
+date (`pipeline.team.publish`), so that simulators never wait on the tracking server.
+
+MLflow's registry webhook calls it on every alias change: the register stage's, `needlecue rollback`'s,
+`needlecue calibrate`'s, or one made by hand in the MLflow UI. A verified call (signed with the stack's
+webhook secret, fresh, not replayed: `pipeline.client.webhook.AliasListener`) wakes it, and it publishes
+whatever is out of date: idempotent, and a burst of calls (the register stage moves one alias per angle)
+is one round. It also publishes every `interval_s`, so that a call MLflow could not deliver is caught.
+The team stack runs it (`needlecue team start`); `python -m pipeline.team.publisher STACK_DIR` by hand.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+from pathlib import Path
+
+from pipeline.client.webhook import AliasListener
+from pipeline.logs import setup
+from pipeline.registry import store
+from pipeline.team import access, publish
+from pipeline.team.stack import Stack
+
+log = logging.getLogger(__name__)
+
+INTERVAL_S = 60.0
+WEBHOOK_NAME = "needlecue-publish"
+
+
+class _AnyModel:
+    """What the publisher follows: every model of the project (`AliasListener` asks `name in followed`)."""
+
+    def __contains__(self, name: object) -> bool:
+        return isinstance(name, str) and name.startswith(publish.MODEL_PREFIXES)
+
+
+class Publisher:
+    """Publishes the stack's registry into its published bucket, when woken and every `interval_s`."""
+
+    def __init__(self, stack: Stack, interval_s: float = INTERVAL_S) -> None:
+        self.stack = stack
+        self.interval_s = interval_s
+        self.followed = _AnyModel()
+        self._wake = threading.Event()
+        self.rounds = 0
+
+    def poll_soon(self) -> None:
+        """An alias moved (a verified webhook call): publish now."""
+        self._wake.set()
+
+    def once(self) -> list[publish.Change]:
+        """One round: bring the bucket up to date, reading the registry as the lab."""
+        lab = self.stack.role_env("lab")
+        creds = {k: lab[k] for k in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD")}
+        with store.environment(creds):
+            changes = publish.publish(self.stack.tracking_uri, publish.Target.of(self.stack, "publisher"))
+        self.rounds += 1
+        return changes
+
+    def serve(self, stop: threading.Event) -> None:
+        """Listen for the webhook, register it with MLflow, and publish until `stop` is set."""
+        settings = self.stack.settings
+        listener = AliasListener(settings["webhook_secret"], self.stack.host, self.stack.ports.publisher)
+        listener.follow(self)
+        with listener:
+            access.ensure_webhook(self.stack, listener.url, WEBHOOK_NAME)
+            log.info("listening at %s for MLflow's alias webhooks", listener.url)
+            while not stop.is_set():
+                self._wake.clear()
+                try:
+                    changes = self.once()
+                    log.info("round %d: %d change(s)", self.rounds, len(changes))
+                except Exception as e:  # the next call or interval tries again; the service stays up
+                    log.error("publishing failed (tried again at the next change or in %.0f s): %s: %s",
+                              self.interval_s, type(e).__name__, e)  # fmt: skip
+                self._wake.wait(self.interval_s)
+
+
+def main(argv: list[str]) -> None:
+    setup("publisher")
+    if len(argv) != 1:
+        raise SystemExit("usage: python -m pipeline.team.publisher STACK_DIR")
+    stack = Stack(Path(argv[0]))
+    Publisher(stack, float(stack.settings.get("publish_every_s", INTERVAL_S))).serve(threading.Event())
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
