@@ -3,8 +3,9 @@
 Needs the project's outputs (`make repro`). Starts a throw-away team stack (PostgreSQL, SeaweedFS,
 MLflow with basic auth, the publisher) on free loopback ports in a temp folder, registers the project's
 models into it as the lab (the register stage's command; the publisher publishes on the webhook), then
-measures, each simulator a separate process (forked after the imports, so the figures are the
-servers', not one interpreter's GIL):
+measures, each simulator a separate process (forked after one warm-up fetch each way, so that the
+figures are the servers' and the fetch's, not one interpreter's GIL nor 50 processes importing Python
+packages at once on 2 cores):
 1. SIMULATORS simulators fetching `needle-force-30@champion` at once into empty caches, ROUNDS
    rounds, alternating the old path (the tracking server) and the new (the published bucket): p50 and
    p99 of each round and the median over rounds of each, and their ratio;
@@ -31,7 +32,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.client import ForceClient, fetch  # noqa: E402
+from pipeline.client import ForceClient, fetch, published  # noqa: E402
 from pipeline.client.cache import poll_alias  # noqa: E402
 from pipeline.registry import store  # noqa: E402
 from pipeline.team.stack import Stack, free_base_port  # noqa: E402
@@ -53,7 +54,9 @@ def _pct(times: list[float], q: float) -> float:
 
 
 def _fetcher(start, out, source: str, cache: str) -> None:
-    """One simulator process: wait for the start, fetch into its own empty cache, report the seconds."""
+    """One simulator process: wait for the start, fetch into its own empty cache, report the seconds.
+    Its connections and clients are its own (the parent's bucket clients are forgotten)."""
+    published._buckets.clear()
     start.wait()
     t0 = time.perf_counter()
     try:
@@ -61,6 +64,15 @@ def _fetcher(start, out, source: str, cache: str) -> None:
         out.put(time.perf_counter() - t0)
     except Exception as e:
         out.put(f"{type(e).__name__}: {e}")
+
+
+def warm(ways: dict[str, str], tmp: Path) -> None:
+    """One fetch each way in this process before the simulators fork, so that they start with every
+    module imported and S3's service description loaded, as a running simulator has: the figures are
+    then the fetch, not Python's imports (50 of those at once on 2 cores take tens of seconds)."""
+    for way, source in ways.items():
+        fetch(ANGLE, cache_dir=tmp / f"warm-{way.replace(' ', '-')}", tracking_uri=source)
+    published._buckets.clear()
 
 
 def fetch_round(source: str, tmp: Path) -> tuple[list[float], list[str]]:
@@ -205,6 +217,7 @@ def main() -> None:
             ways = {"tracking server": stack.tracking_uri, "published bucket": published}
             p50s: dict[str, list[float]] = {w: [] for w in ways}
             p99s: dict[str, list[float]] = {w: [] for w in ways}
+            warm(ways, tmp_path)
             for r in range(ROUNDS):
                 for way, source in ways.items():
                     times, errors = fetch_round(source, tmp_path / f"r{r}-{way.replace(' ', '-')}")

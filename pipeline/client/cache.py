@@ -21,14 +21,14 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pipeline.client.published as published
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import read_unit
-from pipeline.client.folder import MLMODEL, ONNX_FILE, open_model
+from pipeline.client.folder import MLMODEL, ONNX_FILE, graph_problem, open_model, read_metadata
 from pipeline.registry import store
 from pipeline.vocab import file_sha256
 
@@ -198,8 +198,9 @@ def _fetch_version(
     registry_uri = source_uri(tracking_uri)
     cached = read_version(target) if not offline_needs_file or (target / file).is_file() else None
     if published.is_published(registry_uri):
+        light = _model_fields if describe is _model_info else describe  # the graph is opened to run it
         return _fetch_published(
-            name, alias, target, cached, registry_uri, (file, sha_key), hint, describe, problem
+            name, alias, target, cached, registry_uri, (file, sha_key), hint, light, problem
         )
     try:
         with store.patience():
@@ -302,17 +303,9 @@ def _download_published(
         bucket.forget(found["name"], alias)
         found, document = _published_manifest(bucket.uri, found["name"], alias, "")
         assert document is not None
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{alias}-download-", dir=target.parent))
-    tmp.chmod(0o755)
-    try:
+    with _staging(target, alias) as tmp:
         for fname, entry in sorted(found["files"].items()):
-            if (
-                fname in ("", ".", "..")
-                or "/" in fname
-                or "\\" in fname
-                or fname in (VERSION_FILE, MANIFEST_FILE)
-            ):
+            if fname in ("", ".", "..", VERSION_FILE, MANIFEST_FILE) or "/" in fname or "\\" in fname:
                 raise published.PublishedRefused(
                     f"{bucket.where}: refused, the manifest names a file {fname!r}"
                 )
@@ -326,19 +319,10 @@ def _download_published(
             raise published.PublishedRefused(
                 f"{bucket.where} {mv.name} v{mv.version}: refused, its files are not what the manifest says"
             )
-        info = {
-            "name": mv.name, "version": mv.version, "alias": alias, "run_id": mv.run_id, "source": mv.source,
-            **described, "tracking_uri": bucket.uri,
-            "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "published_utc": found["published_utc"], "key_id": found.get("key_id"),
-            "manifest_etag": bucket.etag(found["name"], alias),
-        }  # fmt: skip
         (tmp / MANIFEST_FILE).write_bytes(document)
-        (tmp / VERSION_FILE).write_text(json.dumps(info, indent=2) + "\n")
-        _swap_in(tmp, target)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        extra = {"published_utc": found["published_utc"], "key_id": found.get("key_id"),
+                 "manifest_etag": bucket.etag(found["name"], alias)}  # fmt: skip
+        _write_version(tmp, mv, alias, described, bucket.uri, extra)
     return target
 
 
@@ -471,6 +455,18 @@ def _model_info(folder: Path, mv: Any) -> dict[str, Any]:
     return {"checkpoint_sha256": meta.get("checkpoint_sha256"), "onnx_sha256": meta["onnx_sha256"]}
 
 
+def _model_fields(folder: Path, mv: Any) -> dict[str, Any]:
+    """`_model_info` without opening the graph: for a published copy, whose files the lab checked
+    before signing their hashes (the client still checks the folder whole as it opens it)."""
+    missing = [f for f in MODEL_FILES if not (folder / f).is_file()]
+    if missing:
+        raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
+    meta = read_metadata(folder)
+    if why := graph_problem(folder, meta, (folder / ONNX_FILE).read_bytes()):
+        raise ValueError(why)
+    return {"checkpoint_sha256": meta.get("checkpoint_sha256"), "onnx_sha256": meta["onnx_sha256"]}
+
+
 def _unit_info(unit_id: str) -> Describe:
     """What version.json says of a downloaded unit calibration: a checked document of that unit."""
 
@@ -512,10 +508,7 @@ def _download(
     import mlflow
     from mlflow.exceptions import MlflowException
 
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{alias}-download-", dir=target.parent))
-    tmp.chmod(0o755)  # mkdtemp's 0700 would hide a shared cache's copy from other users
-    try:
+    with _staging(target, alias) as tmp:
         with _quiet_downloads(), store.fluent(registry_uri):  # models:/ URIs resolve in the registry
             # by version, not alias: the alias may move between resolving it and downloading
             try:
@@ -531,22 +524,41 @@ def _download(
                 raise store.RegistryUnreachable(
                     f"downloading {mv.name} version {mv.version} from {registry_uri} failed: {e}"
                 ) from e
-        info = {
-            "name": mv.name,
-            "version": str(mv.version),
-            "alias": alias,
-            "run_id": mv.run_id,
-            "source": mv.source,
-            **describe(tmp, mv),
-            "tracking_uri": registry_uri,
-            "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        }
-        (tmp / VERSION_FILE).write_text(json.dumps(info, indent=2) + "\n")
+        _write_version(tmp, mv, alias, describe(tmp, mv), registry_uri)
+    return target
+
+
+@contextlib.contextmanager
+def _staging(target: Path, alias: str) -> Iterator[Path]:
+    """A temp sibling of `target` to download into, swapped in for `target` when the block ends (by
+    renames: a reader sees the old copy or the new, never part of one), deleted if the block fails."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{alias}-download-", dir=target.parent))
+    tmp.chmod(0o755)  # mkdtemp's 0700 would hide a shared cache's copy from other users
+    try:
+        yield tmp
         _swap_in(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return target
+
+
+def _write_version(
+    folder: Path, mv: Any, alias: str, described: dict[str, Any], source: str, extra: dict | None = None
+) -> None:
+    """version.json: which version of which model, from where and when, and what `describe` found."""
+    info = {
+        "name": mv.name,
+        "version": str(mv.version),
+        "alias": alias,
+        "run_id": mv.run_id,
+        "source": mv.source,
+        **described,
+        "tracking_uri": source,
+        "fetched_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **(extra or {}),
+    }
+    (folder / VERSION_FILE).write_text(json.dumps(info, indent=2) + "\n")
 
 
 def _download_files(mv: Any, files: tuple[str, ...], folder: Path, registry_uri: str) -> None:

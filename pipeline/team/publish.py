@@ -20,6 +20,7 @@ import logging
 import socket
 import tempfile
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -79,28 +80,51 @@ class Change:
         return f"{self.name}@{self.alias}: {self.action} {what} ({self.why})"
 
 
-def wanted(client: Any) -> dict[tuple[str, str], Any]:
-    """Every alias of the project's registered models and the ModelVersion it points to."""
+def wanted(client: Any, names: Collection[str] | None = None) -> dict[tuple[str, str], Any]:
+    """Every alias of the project's registered models (or of those `names`) and the ModelVersion it
+    points to."""
     found: dict[tuple[str, str], Any] = {}
-    token = None
+    for model in _models(client, names):
+        for alias, version in sorted((model.aliases or {}).items()):
+            found[(model.name, alias)] = client.get_model_version(model.name, str(version))
+    return found
+
+
+def _models(client: Any, names: Collection[str] | None) -> list[Any]:
+    from mlflow.exceptions import MlflowException
+
+    if names is not None:  # a webhook named them: one request each, not a search of the registry
+        models = []
+        for name in sorted(set(names)):
+            try:
+                models.append(client.get_registered_model(name))
+            except MlflowException as e:
+                if e.error_code not in ("RESOURCE_DOES_NOT_EXIST", "PERMISSION_DENIED"):
+                    raise  # (with workspaces on, a model that is not there is "denied")
+        return [m for m in models if m.name.startswith(MODEL_PREFIXES)]
+    models, token = [], None
     while True:
-        page = client.search_registered_models(
-            filter_string="name LIKE 'needle-%'", max_results=100, page_token=token
-        )
-        for model in page:
-            if not model.name.startswith(MODEL_PREFIXES):
-                continue
-            for alias, version in sorted((model.aliases or {}).items()):
-                found[(model.name, alias)] = client.get_model_version(model.name, str(version))
+        page = client.search_registered_models(filter_string="name LIKE 'needle-%'", page_token=token)
+        models += [m for m in page if m.name.startswith(MODEL_PREFIXES)]
         token = page.token
         if not token:
-            return found
+            return models
 
 
-def manifests(target: Target) -> dict[tuple[str, str], bytes]:
-    """The manifests in the bucket, by (name, alias), as stored (not yet verified)."""
+def manifests(target: Target, names: Collection[str] | None = None) -> dict[tuple[str, str], bytes]:
+    """The manifests in the bucket (of `names` only, if given), by (name, alias), as stored (not yet
+    verified)."""
     found: dict[tuple[str, str], bytes] = {}
-    pages = target.s3.get_paginator("list_objects_v2").paginate(Bucket=target.bucket, Prefix=signed.MANIFESTS)
+    for prefix in (
+        [signed.MANIFESTS] if names is None else [f"{signed.MANIFESTS}{n}/" for n in sorted(set(names))]
+    ):
+        found |= _manifests_under(target, prefix)
+    return found
+
+
+def _manifests_under(target: Target, prefix: str) -> dict[tuple[str, str], bytes]:
+    found: dict[tuple[str, str], bytes] = {}
+    pages = target.s3.get_paginator("list_objects_v2").paginate(Bucket=target.bucket, Prefix=prefix)
     for page in pages:
         for obj in page.get("Contents", []):
             rest = obj["Key"][len(signed.MANIFESTS) :]
@@ -111,9 +135,10 @@ def manifests(target: Target) -> dict[tuple[str, str], bytes]:
     return found
 
 
-def plan(client: Any, target: Target) -> list[Change]:
-    """What is out of date in the bucket against the registry (nothing: an empty list)."""
-    want, have = wanted(client), manifests(target)
+def plan(client: Any, target: Target, names: Collection[str] | None = None) -> list[Change]:
+    """What is out of date in the bucket against the registry (nothing: an empty list), for every
+    model or only `names`."""
+    want, have = wanted(client, names), manifests(target, names)
     changes = []
     for (name, alias), mv in sorted(want.items()):
         why = _stale(have.get((name, alias)), mv, target, name, alias)
@@ -150,11 +175,14 @@ def _has(target: Target, key: str) -> bool:
     return True
 
 
-def publish(registry_uri: str, target: Target, *, check_only: bool = False) -> list[Change]:
+def publish(
+    registry_uri: str, target: Target, *, names: Collection[str] | None = None, check_only: bool = False
+) -> list[Change]:
     """Bring the bucket up to date with the registry at `registry_uri` (read with the credentials in
-    the environment); returns what was (with `check_only`: what would be) changed."""
+    the environment), for every model or only `names`; returns what was (with `check_only`: what would
+    be) changed."""
     client = store.connect(registry_uri, must_exist=True)
-    changes = plan(client, target)
+    changes = plan(client, target, names)
     if check_only:
         return changes
     for change in changes:

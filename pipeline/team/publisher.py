@@ -4,8 +4,9 @@ date (`pipeline.team.publish`), so that simulators never wait on the tracking se
 MLflow's registry webhook calls it on every alias change: the register stage's, `needlecue rollback`'s,
 `needlecue calibrate`'s, or one made by hand in the MLflow UI. A verified call (signed with the stack's
 webhook secret, fresh, not replayed: `pipeline.client.webhook.AliasListener`) wakes it, and it publishes
-whatever is out of date: idempotent, and a burst of calls (the register stage moves one alias per angle)
-is one round. It also publishes every `interval_s`, so that a call MLflow could not deliver is caught.
+what is out of date of the models the calls named: idempotent, and a burst of calls (the register stage
+moves one alias per angle) is one round. Every `interval_s` it publishes the whole registry, so that a
+call MLflow could not deliver is caught.
 The team stack runs it (`needlecue team start`); `python -m pipeline.team.publisher STACK_DIR` by hand.
 """
 
@@ -15,8 +16,9 @@ import logging
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
-from pipeline.client.webhook import AliasListener
+from pipeline.client.webhook import ALIAS_ENTITY, AliasListener
 from pipeline.logs import setup
 from pipeline.registry import store
 from pipeline.team import access, publish
@@ -35,46 +37,75 @@ class _AnyModel:
         return isinstance(name, str) and name.startswith(publish.MODEL_PREFIXES)
 
 
+class _Listener(AliasListener):
+    """MLflow's alias webhook, verified as a simulator's listener verifies it, handing the publisher the
+    model each call names (so a round publishes that model, not the whole registry)."""
+
+    def __init__(self, publisher: Publisher, *args: Any) -> None:
+        super().__init__(*args)
+        self.publisher = publisher
+
+    def handle(self, event: dict[str, Any]) -> int:
+        name = (event.get("data") or {}).get("name")
+        if event.get("entity") == ALIAS_ENTITY and name in self.publisher.followed:
+            self.publisher.changed(str(name))
+        return super().handle(event)
+
+
 class Publisher:
-    """Publishes the stack's registry into its published bucket, when woken and every `interval_s`."""
+    """Publishes the stack's registry into its published bucket: the models webhook calls name, at
+    once, and all of it every `interval_s`."""
 
     def __init__(self, stack: Stack, interval_s: float = INTERVAL_S) -> None:
         self.stack = stack
         self.interval_s = interval_s
         self.followed = _AnyModel()
         self._wake = threading.Event()
+        self._lock = threading.Lock()
+        self._named: set[str] = set()
         self.rounds = 0
 
-    def poll_soon(self) -> None:
-        """An alias moved (a verified webhook call): publish now."""
+    def changed(self, name: str) -> None:
+        """An alias of `name` moved (a verified webhook call): publish it now."""
+        with self._lock:
+            self._named.add(name)
         self._wake.set()
 
-    def once(self) -> list[publish.Change]:
-        """One round: bring the bucket up to date, reading the registry as the lab."""
+    def poll_soon(self) -> None:  # what AliasListener calls on its followers; `changed` did the work
+        pass
+
+    def once(self, names: set[str] | None = None) -> list[publish.Change]:
+        """One round: bring the bucket up to date for `names` (all models: None), reading the registry
+        as the lab."""
         lab = self.stack.role_env("lab")
         creds = {k: lab[k] for k in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD")}
+        target = publish.Target.of(self.stack, "publisher")
         with store.environment(creds):
-            changes = publish.publish(self.stack.tracking_uri, publish.Target.of(self.stack, "publisher"))
+            changes = publish.publish(self.stack.tracking_uri, target, names=names)
         self.rounds += 1
         return changes
 
     def serve(self, stop: threading.Event) -> None:
         """Listen for the webhook, register it with MLflow, and publish until `stop` is set."""
         settings = self.stack.settings
-        listener = AliasListener(settings["webhook_secret"], self.stack.host, self.stack.ports.publisher)
+        listener = _Listener(self, settings["webhook_secret"], self.stack.host, self.stack.ports.publisher)
         listener.follow(self)
         with listener:
             access.ensure_webhook(self.stack, listener.url, WEBHOOK_NAME)
             log.info("listening at %s for MLflow's alias webhooks", listener.url)
+            names: set[str] | None = None  # the first round publishes everything
             while not stop.is_set():
-                self._wake.clear()
                 try:
-                    changes = self.once()
-                    log.info("round %d: %d change(s)", self.rounds, len(changes))
+                    changes = self.once(names)
+                    log.info("round %d (%s): %d change(s)", self.rounds,
+                             "all" if names is None else ", ".join(sorted(names)), len(changes))  # fmt: skip
                 except Exception as e:  # the next call or interval tries again; the service stays up
                     log.error("publishing failed (tried again at the next change or in %.0f s): %s: %s",
                               self.interval_s, type(e).__name__, e)  # fmt: skip
-                self._wake.wait(self.interval_s)
+                woken = self._wake.wait(self.interval_s)
+                self._wake.clear()
+                with self._lock:
+                    names, self._named = (set(self._named) if woken else None), set()
 
 
 def main(argv: list[str]) -> None:
