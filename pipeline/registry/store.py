@@ -100,8 +100,11 @@ def mlmodel_metadata(mlmodel: Path) -> dict[str, Any]:
     ValueError, without the path (the caller names the file), if it is not YAML or not an MLmodel."""
     import yaml
 
+    # libyaml's parser with PyYAML's safe constructors: the same mapping, 10x faster (a force model's
+    # MLmodel, cue pack included, is about 200 kB: 0.4 s in pure Python, on every fetch and open)
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
     try:
-        spec = yaml.safe_load(mlmodel.read_text()) or {}
+        spec = yaml.load(mlmodel.read_text(), Loader=loader) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as e:
         raise ValueError(f"not valid YAML: {e}") from e
     if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
