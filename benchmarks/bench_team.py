@@ -156,7 +156,8 @@ def moves(stack: Stack, source: str, tmp: Path) -> None:
     import mlflow
 
     client = ForceClient.from_registry(ANGLE, cache_dir=tmp / "mover", tracking_uri=source, poll_s=POLL_S)
-    took = []
+    took: list[float] = []
+    out: list[float] = []  # seconds from the move to the manifest in the bucket
     lab = stack.role_env("lab")
     for _ in range(MOVES):
         env = {
@@ -168,14 +169,29 @@ def moves(stack: Stack, source: str, tmp: Path) -> None:
             new = mlflow.register_model(champion.source, NAME, tags=champion.tags)
             w.set_registered_model_alias(NAME, store.CHAMPION, new.version)
         t0 = time.monotonic()
+        watch = threading.Thread(target=_watch, args=(source, str(new.version), t0, out), daemon=True)
+        watch.start()
         while client.version["version"] != new.version and time.monotonic() - t0 < 120:
             time.sleep(0.05)  # an insertion's end: the client polls if POLL_S has passed
             client.reset()
         took.append(time.monotonic() - t0)
+        watch.join(timeout=120)
         if client.version["version"] != new.version:
             raise SystemExit(f"the client did not take v{new.version} within 120 s")
     print(f"champion moved -> running on a client polling every {POLL_S:g} s: "
-          f"{', '.join(f'{t:.2f}' for t in took)} s (median {statistics.median(took):.2f} s)")  # fmt: skip
+          f"{', '.join(f'{t:.2f}' for t in took)} s (median {statistics.median(took):.2f} s); "
+          f"of which published (webhook, publisher): {', '.join(f'{t:.2f}' for t in out)} s")  # fmt: skip
+
+
+def _watch(source: str, version: str, t0: float, out: list[float]) -> None:
+    """When the bucket's manifest names `version` (asked every 20 ms on connections of its own)."""
+    bucket = published.Bucket.at(source)
+    while time.monotonic() - t0 < 120:
+        found = bucket.manifest(NAME, store.CHAMPION)
+        if found is not None and str(found[0]["version"]) == version:
+            out.append(time.monotonic() - t0)
+            return
+        time.sleep(0.02)
 
 
 def main() -> None:
@@ -244,6 +260,8 @@ def main() -> None:
             print(f"tracking server stopped: fetched {client.name}, calibrated={client.calibrated} "
                   f"for est-sim-101, in {time.perf_counter() - t0:.2f} s")  # fmt: skip
         finally:
+            rounds = [x for x in stack.log("publisher").read_text().splitlines() if f"{NAME}@" in x]
+            print("the publisher's last rounds:", *rounds[-MOVES:], sep="\n  ")
             stack.stop(purge=True)
 
 

@@ -28,7 +28,7 @@ from typing import Any
 import pipeline.client.published as published
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import read_unit
-from pipeline.client.folder import MLMODEL, ONNX_FILE, graph_problem, open_model, read_metadata
+from pipeline.client.folder import MLMODEL, ONNX_FILE, open_model
 from pipeline.registry import store
 from pipeline.vocab import file_sha256
 
@@ -198,7 +198,7 @@ def _fetch_version(
     registry_uri = source_uri(tracking_uri)
     cached = read_version(target) if not offline_needs_file or (target / file).is_file() else None
     if published.is_published(registry_uri):
-        light = _model_fields if describe is _model_info else describe  # the graph is opened to run it
+        light = _signed_model_fields if describe is _model_info else describe  # parsed once, to run it
         return _fetch_published(
             name, alias, target, cached, registry_uri, (file, sha_key), hint, light, problem
         )
@@ -240,6 +240,7 @@ class _Version:
     def __init__(self, manifest: dict[str, Any]) -> None:
         self.name, self.version, self.source = manifest["name"], str(manifest["version"]), manifest["source"]
         self.run_id = manifest.get("run_id")
+        self.describe = manifest.get("describe") or {}
         sha = (manifest.get("describe") or {}).get("calibration_sha256")
         self.tags = {store.CALIBRATION_SHA_TAG: sha} if sha else {}
 
@@ -455,16 +456,17 @@ def _model_info(folder: Path, mv: Any) -> dict[str, Any]:
     return {"checkpoint_sha256": meta.get("checkpoint_sha256"), "onnx_sha256": meta["onnx_sha256"]}
 
 
-def _model_fields(folder: Path, mv: Any) -> dict[str, Any]:
-    """`_model_info` without opening the graph: for a published copy, whose files the lab checked
-    before signing their hashes (the client still checks the folder whole as it opens it)."""
+def _signed_model_fields(folder: Path, mv: Any) -> dict[str, Any]:
+    """What the lab's signed manifest says of a published force model (its checkpoint and graph), once
+    the graph is the one it names. Every file's hash was checked against the manifest already; the
+    MLmodel is parsed once, when the client opens the folder and checks it against the graph."""
     missing = [f for f in MODEL_FILES if not (folder / f).is_file()]
     if missing:
         raise ValueError(f"{mv.name} version {mv.version} ({mv.source}) has no {' or '.join(missing)}")
-    meta = read_metadata(folder)
-    if why := graph_problem(folder, meta, (folder / ONNX_FILE).read_bytes()):
-        raise ValueError(why)
-    return {"checkpoint_sha256": meta.get("checkpoint_sha256"), "onnx_sha256": meta["onnx_sha256"]}
+    described = {k: mv.describe.get(k) for k in ("checkpoint_sha256", "onnx_sha256")}
+    if file_sha256([folder / ONNX_FILE]) != described["onnx_sha256"]:
+        raise ValueError(f"its {ONNX_FILE} is not the graph its manifest describes (onnx_sha256)")
+    return described
 
 
 def _unit_info(unit_id: str) -> Describe:

@@ -111,7 +111,7 @@ def _graph_description(session: Any) -> dict[str, Any]:
     return found if isinstance(found, dict) else {}
 
 
-def graph_problem(folder: Path, meta: Mapping[str, Any], graph: bytes) -> str | None:
+def _graph_problem(folder: Path, meta: Mapping[str, Any], graph: bytes) -> str | None:
     """Why `graph` is not the one the description names (None: it is); before it is parsed."""
     mlmodel, onnx_file = folder / MLMODEL, folder / ONNX_FILE
     named = meta.get("onnx_sha256")
@@ -156,7 +156,7 @@ def open_model(model_dir: Path, *, unverified: bool = False) -> tuple[dict[str, 
     if not onnx_file.is_file():
         raise FileNotFoundError(f"{model_dir} has no {ONNX_FILE}")
     graph = onnx_file.read_bytes()  # read once: the bytes checked are the bytes run
-    if not unverified and (why := graph_problem(model_dir, meta, graph)):
+    if not unverified and (why := _graph_problem(model_dir, meta, graph)):
         raise ModelRefused(why)  # before parsing: a damaged file never reaches the parser
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1  # one frame at a time: threads would only add hand-off latency
