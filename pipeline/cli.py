@@ -693,6 +693,10 @@ def team_publish(
     check: Annotated[
         bool, typer.Option("--check", help="only say what is out of date (exit 1 if anything is)")
     ] = False,
+    model: Annotated[
+        list[str] | None,
+        typer.Option("--model", help="only this registered model (repeat for more); default: all"),
+    ] = None,
     folder: TeamDir = None,
 ) -> None:
     """Publish every alias of the registry to the bucket simulators read (signed manifests, objects by
@@ -704,15 +708,16 @@ def team_publish(
     try:
         lab = stack.role_env("lab")
         with store.environment({k: v for k, v in lab.items() if k.startswith("MLFLOW_TRACKING_")}):
-            changes = publish.publish(stack.tracking_uri, publish.Target.of(stack), check_only=check)
+            target = publish.Target.of(stack)
+            changes = publish.publish(stack.tracking_uri, target, names=model, check_only=check)
     except Exception as e:  # a stopped stack, refused credentials
         raise _fail(f"publish: {type(e).__name__}: {e}") from e
     for change in changes:
-        typer.echo(("out of date: " if check else "published: ") + str(change))
-    where = f"{stack.published_url}"
+        said = "out of date" if check else "cannot publish" if change.action == "refused" else "published"
+        typer.echo(f"{said}: {change}")
     if not changes:
-        typer.echo(f"{where}: up to date with {stack.tracking_uri}")
-    elif check:
+        typer.echo(f"{stack.published_url}: up to date with {stack.tracking_uri}")
+    if (check and changes) or any(c.action == "refused" for c in changes):
         raise typer.Exit(1)
 
 

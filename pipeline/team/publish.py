@@ -21,7 +21,7 @@ import socket
 import tempfile
 import time
 from collections.abc import Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -67,7 +67,8 @@ class Target:
 
 @dataclass(frozen=True)
 class Change:
-    """One manifest to write (`publish`: the alias's version is `version`) or to delete (`withdraw`)."""
+    """One manifest to write (`publish`: the alias's version is `version`) or to delete (`withdraw`);
+    `refused`: a version that could not be published, `why` says why (it is not what a client runs)."""
 
     action: str
     name: str
@@ -76,6 +77,8 @@ class Change:
     why: str
 
     def __str__(self) -> str:
+        if self.action == "refused":
+            return f"{self.name}@{self.alias}: v{self.version} not published ({self.why})"
         what = f"v{self.version}" if self.version else "withdraw"
         return f"{self.name}@{self.alias}: {self.action} {what} ({self.why})"
 
@@ -180,20 +183,27 @@ def publish(
 ) -> list[Change]:
     """Bring the bucket up to date with the registry at `registry_uri` (read with the credentials in
     the environment), for every model or only `names`; returns what was (with `check_only`: what would
-    be) changed."""
+    be) changed, a version that could not be published as a `refused` change."""
     client = store.connect(registry_uri, must_exist=True)
     changes = plan(client, target, names)
     if check_only:
         return changes
+    done = []
     for change in changes:
         t0 = time.monotonic()
         if change.action == "withdraw":
             target.s3.delete_object(Bucket=target.bucket, Key=signed.manifest_key(change.name, change.alias))
         else:
             mv = client.get_model_version(change.name, change.version)
-            put_version(mv, change.alias, registry_uri, target)
+            try:
+                put_version(mv, change.alias, registry_uri, target)
+            except ValueError as e:  # a broken registered version: never published; the others go on
+                done.append(replace(change, action="refused", why=str(e)))
+                log.error("cannot publish %s", done[-1])
+                continue
+        done.append(change)
         log.info("published %s in %.2f s", change, time.monotonic() - t0)
-    return changes
+    return done
 
 
 def put_version(mv: Any, alias: str, registry_uri: str, target: Target) -> dict[str, Any]:

@@ -30,6 +30,9 @@ from pipeline.team import publish
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 NAME = "needle-force-15"
 UNIT = "est-sim-101"
+# the lab project's models (other team tests register models of their own into the same stack)
+LAB_MODELS = ["needle-force-15", "needle-force-45", f"needle-unit-{UNIT}"]
+ONLY_LAB = [arg for name in LAB_MODELS for arg in ("--model", name)]
 
 
 def _publish(team, lab: Path, *args: str) -> subprocess.CompletedProcess:
@@ -43,7 +46,7 @@ def _up_to_date(team, lab: Path, within_s: float = 60.0) -> subprocess.Completed
     """`publish --check` until it passes (the publisher works on its own), at most `within_s`."""
     deadline = time.monotonic() + within_s
     while True:
-        done = _publish(team, lab, "--check")
+        done = _publish(team, lab, "--check", *ONLY_LAB)
         if done.returncode == 0 or time.monotonic() > deadline:
             return done
         time.sleep(1)
@@ -87,7 +90,7 @@ def test_the_publisher_publishes_every_alias_and_publishing_again_changes_nothin
         assert {signed.object_key(f["sha256"]) for f in doc["manifest"]["files"].values()} <= keys
     before = {o["Key"]: o["ETag"] for o in s3.list_objects_v2(Bucket="published")["Contents"]}
     # When the lab publishes by hand
-    again = _publish(team, lab)
+    again = _publish(team, lab, *ONLY_LAB)
     # Then nothing changes: not one object or manifest is written again
     assert again.returncode == 0 and "up to date" in again.stdout, again.stdout + again.stderr
     after = {o["Key"]: o["ETag"] for o in s3.list_objects_v2(Bucket="published")["Contents"]}
@@ -211,10 +214,10 @@ def test_nothing_changed_or_unsigned_runs_and_the_verified_copy_keeps_running(
         s3.put_object(Bucket="published", Key=signed.object_key(onnx["sha256"]), Body=onnx_bytes)
     # And a changed manifest is found out of date by `publish --check`, and published again
     s3.put_object(Bucket="published", Key=key, Body=json.dumps(changed).encode())
-    stale = _publish(team, lab, "--check")
+    stale = _publish(team, lab, "--check", *ONLY_LAB)
     assert stale.returncode == 1 and "its manifest is refused" in stale.stdout, stale.stdout + stale.stderr
-    assert _publish(team, lab).returncode == 0
-    assert _publish(team, lab, "--check").returncode == 0
+    assert _publish(team, lab, *ONLY_LAB).returncode == 0
+    assert _publish(team, lab, "--check", *ONLY_LAB).returncode == 0
 
 
 def test_a_champion_moved_by_the_lab_reaches_a_polling_simulator_through_the_webhook(
@@ -242,7 +245,7 @@ def test_a_champion_moved_by_the_lab_reaches_a_polling_simulator_through_the_web
     assert client.calibrated
     print(f"champion moved -> running on a client polling every 1 s: {took:.2f} s")
     # And the publisher did it: the bucket is up to date without anyone publishing by hand
-    assert _publish(team, lab, "--check").returncode == 0
+    assert _publish(team, lab, "--check", *ONLY_LAB).returncode == 0
 
 
 def test_publish_says_what_is_out_of_date_without_a_stack_of_its_own(team, lab):
@@ -254,7 +257,34 @@ def test_publish_says_what_is_out_of_date_without_a_stack_of_its_own(team, lab):
     # When the lab plans against the registry
     env = team.role_env("lab")
     with store.environment({k: v for k, v in env.items() if k.startswith("MLFLOW_TRACKING_")}):
-        changes = publish.plan(store.connect(team.tracking_uri), publish.Target.of(team))
+        changes = publish.plan(store.connect(team.tracking_uri), publish.Target.of(team), LAB_MODELS)
     # Then exactly that alias is out of date, as not published
     assert [(c.name, c.alias, c.why) for c in changes] == [("needle-force-45", "champion", "not published")]
-    assert _publish(team, lab).returncode == 0
+    assert _publish(team, lab, *ONLY_LAB).returncode == 0
+
+
+def test_a_broken_version_is_not_published_and_does_not_hold_up_the_others(team, lab, as_role):
+    # Given a champion whose version has no model files, and a published manifest deleted
+    as_role("lab")
+    with store.writing() as client:
+        run = client.create_run(store.experiment_id(client, "publish-check", "a run with no model files"))
+        store.create_registered_model(client, "needle-force-75", "a broken version")
+        version = client.create_model_version(
+            "needle-force-75", f"runs:/{run.info.run_id}/model", run.info.run_id
+        )
+        client.set_registered_model_alias("needle-force-75", store.CHAMPION, version.version)
+    _lab_s3(team).delete_object(
+        Bucket="published", Key=signed.manifest_key("needle-force-45", store.CHAMPION)
+    )
+    try:
+        # When the lab publishes everything
+        done = _publish(team, lab)
+        # Then the broken version is refused, saying why, the other alias is published anyway, and the
+        # command says it failed
+        assert done.returncode == 1, done.stdout + done.stderr
+        assert "cannot publish: needle-force-75@champion: v1 not published" in done.stdout
+        assert "published: needle-force-45@champion" in done.stdout
+        assert _publish(team, lab, "--check", *ONLY_LAB).returncode == 0
+    finally:
+        with store.writing() as client:
+            client.delete_registered_model("needle-force-75")
