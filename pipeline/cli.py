@@ -490,6 +490,9 @@ def ui(
     """MLflow's UI on the registry, on the runs of every angle and model kind with their external and
     test NRMSE, best first. The project's sqlite store is served here until Ctrl-C; a tracking server
     (MLFLOW_TRACKING_URI) serves its own UI, and the link to it is printed. Exit 2: no registry."""
+    import contextlib
+    import os
+    import signal
     import subprocess
     import sys
     import time
@@ -508,7 +511,11 @@ def ui(
             link = runs_link(client, f"http://{host}:{port}")
     except store.RegistryUnreachable as e:
         raise _fail(str(e), 2) from e
-    server = subprocess.Popen(server_command(uri, host, port), stdout=sys.stderr)  # stdout: the link
+    # in a process group of its own, stopped whole: mlflow server runs uvicorn and job workers under it
+    server = subprocess.Popen(server_command(uri, host, port), stdout=sys.stderr, start_new_session=True)
+    # `kill` (SIGTERM) ends the UI as Ctrl-C does: through the `finally` below, which stops the server
+    # (by default Python would die at once and leave the server running, orphaned)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
         deadline = time.monotonic() + 120
         while server.poll() is None and time.monotonic() < deadline:
@@ -523,8 +530,12 @@ def ui(
         typer.echo(link)
         server.wait()
     finally:
-        if server.poll() is None:
-            server.terminate()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(server.pid, signal.SIGTERM)
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
             server.wait(timeout=30)
 
 

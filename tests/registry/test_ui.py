@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -28,7 +29,6 @@ NAME, NRMSE = "attributes.`Run Name`", "metrics.`external_nrmse_pct_mean`"
 
 
 def _free_port() -> int:
-    import socket
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -51,7 +51,8 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
     assert set(expected) == {f"{a:g}°-{k}" for a in angles for k in kinds}
     # when: `needlecue ui` serves the store and a browser opens the link it prints
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    cmd = [sys.executable, "-m", "pipeline.cli", "ui", "--port", str(_free_port())]
+    port = _free_port()
+    cmd = [sys.executable, "-m", "pipeline.cli", "ui", "--port", str(port)]
     ui = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, text=True, start_new_session=True)
     try:
         assert ui.stdout is not None
@@ -69,7 +70,10 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
     finally:
         ui.terminate()
         ui.wait(timeout=60)
-    # then: the page is the model-training view of needle-force's runs, one row per angle and kind,
+    # then: killed (SIGTERM), `needlecue ui` stopped the server it started: nothing answers on its port
+    with socket.socket() as sock:
+        assert sock.connect_ex(("127.0.0.1", port)) != 0, "the MLflow server outlived `needlecue ui`"
+    # and the page is the model-training view of needle-force's runs, one row per angle and kind,
     # each with its run's external NRMSE, best first
     assert "Model training" in shown and "needle-force" in shown
     seen = {row[NAME].splitlines()[-1]: float(row[NRMSE]) for row in rows}
