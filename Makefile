@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup setup-system repro verify test test-team ci lint bench ui clean team-start team-stop team-status
+.PHONY: setup setup-system repro verify test test-team ci lint bench ui clean team-start team-stop team-status firmware
 
 setup: $(VENV)/.installed
 
@@ -15,13 +15,20 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[dev,team]"
 	touch $@
 
-# PostgreSQL's server, for the team stack, and Chromium, for the trainee page's browser test (Debian's
-# packages; needs root). Nothing if they are there.
+# PostgreSQL's server, for the team stack; Chromium, for the trainee page's browser test; the AVR
+# toolchain, the Arduino core and simavr, for the firmware and its emulated board (Debian's packages;
+# needs root). Nothing if they are there.
+AVR_PACKAGES := gcc-avr avr-libc arduino-core-avr libsimavr-dev libelf-dev pkg-config
 setup-system:
 	@ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1 || command -v pg_ctl >/dev/null || \
 	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql; }
 	@command -v chromium >/dev/null || \
 	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; }
+	@dpkg -s $(AVR_PACKAGES) >/dev/null 2>&1 || \
+	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(AVR_PACKAGES); }
+
+firmware: setup-system  ## the estimator's firmware (firmware/build/needlecue.hex, to flash) and its emulated board
+	$(MAKE) -C firmware hex board
 
 team-start: setup setup-system  ## the team stack: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth (README, Team setup)
 	$(BIN)/needlecue team start

@@ -734,6 +734,8 @@ def team_publish(
 
 app.command("live")(live_commands.live)
 app.command("emulate-rig")(live_commands.emulate_rig)
+app.command("emulate-board")(live_commands.emulate_board)
+app.command("unit-id")(live_commands.unit_id)
 
 if __name__ == "__main__":
     app()

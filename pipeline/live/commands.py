@@ -1,4 +1,5 @@
-"""The live commands of `needlecue` (`pipeline.cli` registers them): `live`, `emulate-rig`, and the
+"""The live commands of `needlecue` (`pipeline.cli` registers them): `live`, `emulate-rig`,
+`emulate-board`, `unit-id`, and the
 client every command that runs the champion builds (`load_client`). Heavy imports stay inside the
 functions, so `needlecue --help` stays quick."""
 
@@ -188,3 +189,113 @@ def emulate_rig(
         say=lambda m: typer.echo(m),
     )
     typer.echo(f"emulate-rig: done: {json.dumps(sent, sort_keys=True)}")
+
+
+def emulate_board(
+    trials: Annotated[
+        list[Path],
+        typer.Argument(help="rig-log/1 estimator files (<batch>/<trial>.fsr.csv), played in order"),
+    ],
+    link: Annotated[Path, typer.Option(help="a symlink to the pseudo-terminal, for `needlecue live --port`")],
+    pause: Annotated[float, typer.Option(help="seconds at rest before, between and after the trials")] = 3.0,
+    seconds: Annotated[
+        float | None, typer.Option(help="board seconds to run (default: 1 s after the last rest)")
+    ] = None,
+    reset_at: Annotated[list[float] | None, typer.Option(help="reset the board at this second")] = None,
+    stuck: Annotated[
+        list[str] | None, typer.Option(help="PIN:FROM_S:TO_S:MV: an analog pin stuck at MV millivolts")
+    ] = None,
+    crystal_hz: Annotated[
+        int, typer.Option(help="the board's crystal (the firmware assumes 16000000; 15920000 is 0.5 % slow)")
+    ] = 16_000_000,
+    dev_buf: Annotated[
+        int, typer.Option(help="bytes the USB link holds for a host that stops reading; the rest is lost")
+    ] = 4096,
+    eeprom: Annotated[
+        Path | None, typer.Option(help="a file that keeps the board's EEPROM (its unit id) between runs")
+    ] = None,
+    elf: Annotated[Path, typer.Option(help="the firmware, built by `make firmware`")] = Path(
+        "firmware/build/needlecue.elf"
+    ),
+    board: Annotated[Path, typer.Option(help="the simavr harness, built by `make firmware`")] = Path(
+        "firmware/build/board"
+    ),
+    wait_reader: Annotated[float, typer.Option(help="seconds to wait for a reader to open the port")] = 60.0,
+) -> None:
+    """Run the shipped firmware on an emulated ATmega328P (simavr), its analog pins driven by recorded
+    or simulated trials, its serial port on a pseudo-terminal (docs/live.md, "The emulated board")."""
+    import signal
+    import tempfile
+
+    from pipeline.live import board as bd
+    from pipeline.live.emulate import load_trial
+
+    try:
+        loaded = [load_trial(t) for t in trials]
+        faults = bd.BoardFaults(
+            tuple(reset_at or ()), tuple(bd.Stuck.parse(s) for s in stuck or ()), crystal_hz, dev_buf
+        )
+    except ValueError as e:
+        raise fail(str(e)) from e
+    with tempfile.TemporaryDirectory(prefix="needlecue-board-") as folder:
+        try:
+            proc = bd.emulate(
+                loaded,
+                link,
+                Path(folder) / "pins.csv",
+                elf=elf,
+                board=board,
+                pause_s=pause,
+                seconds=seconds,
+                faults=faults,
+                eeprom=eeprom,
+                wait_reader_s=wait_reader,
+            )
+        except FileNotFoundError as e:
+            raise fail(str(e)) from e
+        signal.signal(signal.SIGTERM, lambda *_: proc.terminate())
+        assert proc.stdout is not None
+        try:
+            for line in proc.stdout:
+                typer.echo(line.rstrip("\n"))
+        except KeyboardInterrupt:
+            proc.terminate()
+        code = proc.wait()
+    if code != 0:
+        raise fail(f"the emulated board exited {code}", code)
+
+
+def unit_id(
+    port: Annotated[str, typer.Option(help="the estimator's serial port, e.g. /dev/ttyACM0")],
+    unit: Annotated[
+        str | None, typer.Argument(help="the id to keep in the board's EEPROM (none: just show it)")
+    ] = None,
+    clear: Annotated[bool, typer.Option(help="clear the id: the banner then names no unit")] = False,
+    reset_wait: Annotated[
+        float, typer.Option(help="seconds to wait out the board's reset after the port opens")
+    ] = 2.0,
+    baud: Annotated[int, typer.Option(help="the port's baud rate")] = 115200,
+) -> None:
+    """Show or set the unit id an estimator running needlecue's firmware keeps in its EEPROM and sends in
+    its banner (docs/live.md, "The firmware"). Exit 1 if the board refuses or does not answer."""
+    import time
+
+    from pipeline.live.port import open_serial
+    from pipeline.live.unit_id import read_banner, set_unit_id
+
+    if unit is not None and clear:
+        raise fail("give a unit id or --clear, not both")
+    try:
+        ser = open_serial(port, baud)
+    except OSError as e:  # serial.SerialException is an OSError
+        raise fail(f"cannot open {port}: {e}") from e
+    try:
+        time.sleep(reset_wait)  # an Uno resets when the port opens; its bootloader ignores what comes first
+        banner = set_unit_id(ser, unit) if unit is not None or clear else read_banner(ser)
+    except (ValueError, TimeoutError) as e:
+        raise fail(f"{port}: {e}") from e
+    finally:
+        ser.close()
+    rate = f"{banner.rate_hz:g} Hz" if banner.rate_hz else "no rate given"
+    channels = ",".join(banner.channels or ()) or "not given"
+    typer.echo(f"{port}: unit {banner.unit_id or '(none)'}; channels {channels}; {rate}")

@@ -1,11 +1,13 @@
 """The serial stream's health, judged line by line: rate, gaps, late samples, garbage, a wrong baud
-rate, silence and a pulled cable. Each problem stays on show for `HOLD_S` after it was last seen, so
-a trainee has time to read it; `counts` keeps the session's totals for the recording."""
+rate, silence, a pulled cable and a stuck channel. Each problem stays on show for `HOLD_S` after it was
+last seen, so a trainee has time to read it; `counts` keeps the session's totals for the recording."""
 
 from __future__ import annotations
 
 from collections import Counter, deque
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from pipeline.live.wire import BAUD
 
@@ -17,6 +19,9 @@ RATE_TOL = 0.1  # the measured rate may be this far (relative) off the nominal o
 RATE_WINDOW = 60  # samples the rate is measured over (2 s)
 BAUD_WINDOW_S = 2.0  # a window with only garbage in it: the baud rate is probably wrong
 DRIFT = 0.01  # the board's clock may run this much (relative) slower than the host's
+STUCK_S = 2.0  # a channel whose count has not changed for this long (board time) ...
+STUCK_MOVE = 0.02  # ... while another moved this share of full scale (20 counts at 10 bits) ...
+STUCK_CHANGES = 10  # ... in at least this many steps (one jump is a fault or a bump, not a load) is stuck
 
 
 @dataclass
@@ -35,6 +40,8 @@ class StreamHealth:
     _connected_at: float | None = None
     _quiet_until: float = 0.0
     _disconnected: str | None = None
+    _window: deque[tuple[float, tuple[int, ...]]] = field(default_factory=deque)  # the last STUCK_S
+    _stuck: set[int] = field(default_factory=set)
 
     def _flag(self, now: float, key: str, message: str) -> None:
         self._seen[key] = (now, message)
@@ -47,6 +54,7 @@ class StreamHealth:
         self._quiet_until = now + settle_s
         self._last_sample_host = None
         self._millis.clear()
+        self._window.clear()
 
     def disconnected(self, now: float, why: str) -> None:
         self.counts["disconnects"] += 1
@@ -82,6 +90,40 @@ class StreamHealth:
             rate = (len(self._millis) - 1) / span if span > 0 else float("inf")
             if abs(rate - self.rate_hz) > RATE_TOL * self.rate_hz:
                 self._flag(now, "rate", f"sample rate {rate:.1f} Hz, expected {self.rate_hz:g} Hz")
+
+    def channels(
+        self, now: float, board_s: float, counts: tuple[int, ...], adc_max: int, names: tuple[str, ...]
+    ) -> None:
+        """A sample's counts: a channel that has not changed by one count for `STUCK_S` while another
+        moved is stuck (a broken wire, a pin shorted to a rail, an ADC channel that stopped). A live
+        force-sensing resistor never holds one count exactly while the silicone around it is loaded."""
+        window = self._window
+        window.append((board_s, counts))
+        while window[0][0] < board_s - STUCK_S:
+            window.popleft()
+        if (
+            board_s - window[0][0] < STUCK_S - 1.5 / self.rate_hz
+            or len(window) < 0.9 * STUCK_S * self.rate_hz
+        ):
+            return  # not 2 s yet, or samples lost in them: a channel seen a few times may seem still
+        table = np.array([c for _, c in window])
+        span = table.max(axis=0) - table.min(axis=0)
+        steps = (np.diff(table, axis=0) != 0).sum(axis=0)
+        moved = (span >= STUCK_MOVE * adc_max) & (steps >= STUCK_CHANGES)
+        for k in range(len(counts)):
+            if span[k] > 0:
+                self._stuck.discard(k)
+            elif np.delete(moved, k).any():
+                if k not in self._stuck:
+                    self._stuck.add(k)
+                    self.counts["stuck_channels"] += 1
+                name = names[k] if k < len(names) else f"channel {k + 1}"
+                self._flag(
+                    now,
+                    "stuck",
+                    f"{name} stuck at {counts[k]} for {STUCK_S:g} s while the others moved: "
+                    "a broken wire or a dead channel? The force and cue are wrong",
+                )
 
     def garbage(self, now: float, why: str) -> None:
         self.counts["garbage_lines"] += 1

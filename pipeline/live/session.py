@@ -246,6 +246,7 @@ class LiveSession:
         t, gap = self._board_time(host_s, sample.millis)
         self._last_host = host_s
         self.health.sample(host_s, t, gap)
+        self.health.channels(host_s, t, sample.counts, self.settings.adc_max, self.settings.channels)
         volts = self.settings.volts(sample.counts)
         host_ms = (host_s - (self._t0_host or host_s)) * 1000.0
         self._phase = "insertion" if self.detector.active else "idle"

@@ -52,9 +52,12 @@ def live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
     return LiveModel(uri, fetch(30, cache_dir=root / "cache", tracking_uri=uri))
 
 
-def write_trials(folder: Path, angles: list[float], seed: int = 7) -> list[Path]:
+def write_trials(
+    folder: Path, angles: list[float], seed: int = 7, adc_bits: int = ADC_BITS, withdraw: bool = False
+) -> list[Path]:
     """A rig-log/1 batch of one synthetic trial per angle (held-out draws: another seed than training),
-    in 12-bit counts; the estimator files, in the order of `angles`. A synthetic trial ends loaded and
+    in `adc_bits` counts; the estimator files, in the order of `angles`. With `withdraw`, each trial ends
+    with the needle out: its first second at rest, twice. A synthetic trial ends loaded and
     its rest reading moves about 13 % per 15° (the simulator's: about 3 %), so trials played back to
     back should be at most 15° apart: the insertion detector ends a steady stretch within 20 % of rest."""
     folder.mkdir(parents=True)
@@ -65,7 +68,7 @@ def write_trials(folder: Path, angles: list[float], seed: int = 7) -> list[Path]
             "unit_id": UNIT,
             "channels": CHANNELS,
             "units": "counts",
-            "adc_bits": ADC_BITS,
+            "adc_bits": adc_bits,
             "vref_v": VREF,
         },
         "reference": {"units": "N"},
@@ -74,8 +77,16 @@ def write_trials(folder: Path, angles: list[float], seed: int = 7) -> list[Path]
     rows, paths = [], []
     for k, angle in enumerate(angles):
         trial = cue_trials(angle, 1, folder.name, seed=seed + k)
+        if withdraw:
+            rest = trial[trial["t_s"] < 1.0]
+            step = trial["t_s"].iloc[1]
+            tail = [
+                rest.assign(t_s=rest["t_s"] + trial["t_s"].iloc[-1] + step * (1 + i * len(rest)))
+                for i in (0, 1)
+            ]
+            trial = pd.concat([trial, *tail], ignore_index=True)
         tid = f"a{angle:g}-t{k:02d}"
-        counts = np.rint(trial[CHANNELS].to_numpy() / VREF * (2**ADC_BITS - 1)).astype(int)
+        counts = np.rint(trial[CHANNELS].to_numpy() / VREF * (2**adc_bits - 1)).astype(int)
         fsr = pd.DataFrame(counts, columns=CHANNELS)
         fsr.insert(0, "t_ms", (trial["t_s"].to_numpy() * 1000).round(3))
         fsr.to_csv(folder / f"{tid}.fsr.csv", index=False)

@@ -1,5 +1,6 @@
-"""The live tests' real processes: `needlecue emulate-rig` on a pseudo-terminal and `needlecue live`
-reading it, with the unit's calibration, a session folder and the page on a free port."""
+"""The live tests' real processes: `needlecue emulate-rig` (or `emulate-board`, the firmware on an
+emulated board) on a pseudo-terminal and `needlecue live` reading it, with the unit's calibration, a
+session folder and the page on a free port."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from tests.live.conftest import UNIT, LiveModel, write_trials
+from tests.live.conftest import ADC_BITS, UNIT, LiveModel, write_trials
 
 NEEDLECUE = [sys.executable, "-m", "pipeline.cli"]
 
@@ -20,6 +21,8 @@ NEEDLECUE = [sys.executable, "-m", "pipeline.cli"]
 @dataclass(frozen=True)
 class Running:
     live: subprocess.Popen[str]
+    rig: subprocess.Popen[str]
+    files: list[Path]  # the trials the rig plays
     url: str  # the trainee page
     session: Path  # the recording's folder
     env: dict[str, str]  # the environment both run in (the model's store, a cache of their own)
@@ -48,15 +51,22 @@ def display_url(proc: subprocess.Popen[str], limit_s: float = 60) -> str:
 
 @contextlib.contextmanager
 def rig_and_live(
-    model: LiveModel, tmp_path: Path, angles: list[float], rig_args: list[str], live_args: list[str]
+    model: LiveModel,
+    tmp_path: Path,
+    angles: list[float],
+    rig_args: list[str],
+    live_args: list[str],
+    rig: str = "emulate-rig",
+    adc_bits: int = ADC_BITS,
+    withdraw: bool = False,
 ) -> Iterator[Running]:
     """The rig playing one synthetic trial per angle (2.5 s rests), live on its link; both are killed
     on the way out if still running."""
-    files = write_trials(tmp_path / "held", angles)
+    files = write_trials(tmp_path / "held", angles, adc_bits=adc_bits, withdraw=withdraw)
     link, session = tmp_path / "rig", tmp_path / "session"
     env = env_for(model, tmp_path)
-    rig = subprocess.Popen(
-        [*NEEDLECUE, "emulate-rig", *map(str, files), "--link", str(link), "--pause", "2.5", *rig_args],
+    board = subprocess.Popen(
+        [*NEEDLECUE, rig, *map(str, files), "--link", str(link), "--pause", "2.5", *rig_args],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -75,9 +85,9 @@ def rig_and_live(
             stderr=subprocess.STDOUT,
             text=True,
         )  # fmt: skip
-        yield Running(live, display_url(live), session, env)
+        yield Running(live, board, files, display_url(live), session, env)
     finally:
-        for proc in (live, rig):
+        for proc in (live, board):
             if proc is not None and proc.poll() is None:
                 proc.kill()
                 proc.wait(timeout=10)

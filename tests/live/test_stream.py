@@ -84,7 +84,9 @@ def test_a_banner_that_would_break_the_conversion_is_garbage() -> None:
         assert isinstance(parse_line(b"#needlecue-wire/1 " + bad, 3, 1023), str), bad
 
 
-def test_each_simulated_insertion_is_one_insertion_start_to_end(tmp_path: Path) -> None:
+def test_each_simulated_insertion_is_one_insertion_start_to_end_and_no_channel_looks_stuck(
+    tmp_path: Path,
+) -> None:
     # given: the built-in rig simulator's trials at two angles, played back to back with rests between
     from pipeline.config import SimulateParams
     from pipeline.sim.rig import write_new_batch
@@ -93,12 +95,17 @@ def test_each_simulated_insertion_is_one_insertion_start_to_end(tmp_path: Path) 
     trials = [load_trial(f) for f in sorted((tmp_path / "b").glob("*.fsr.csv"))]
     settings = StreamSettings(("fsr1", "fsr2", "fsr3"))
     det = InsertionDetector(30.0)
-    # when: the detector reads their volts
+    health = StreamHealth(30.0)
+    health.connected(0.0, settle_s=0.0)
+    # when: the detector reads their volts, and the health their counts
     events = []
     for at, sample in schedule(trials, pause_s=3.0):
+        health.channels(at, at, sample.counts, settings.adc_max, settings.channels)
         if (e := det.push(at, settings.volts(sample.counts))) is not None:
             events.append((e, at))
     # then: one start and one end per trial, the whole insertion (10 s in, then out) in between
     assert [e for e, _ in events] == ["start", "end"] * len(trials)
     lengths = [end - start for (_, start), (_, end) in zip(events[::2], events[1::2], strict=True)]
     assert all(9.0 < n < 20.0 for n in lengths), lengths
+    # and every channel of a live estimator moves, if only by its noise: none is taken for stuck
+    assert health.counts["stuck_channels"] == 0
