@@ -19,7 +19,7 @@
  * --stuck PIN:FROM:TO:MV   pin PIN reads MV from FROM to TO seconds (a broken wire, a stuck channel)
  * --crosstalk F     the first conversion after the multiplexer switched pins reads F of the previous
  *                   pin's voltage (the sample-and-hold capacitor behind a high-impedance source)
- * --dev-buf BYTES   bytes the USB link holds for a host that does not read (default 4096); more is lost
+ * --dev-buf BYTES   bytes the USB link holds for a host that does not read (64..4095, default 4000); more is lost
  * --eeprom FILE     the EEPROM's 1024 bytes, read at the start if the file exists, written at the end
  * --wait-reader S   with --pty, give up if nobody opens it within S seconds (default 60)
  *
@@ -181,8 +181,9 @@ static void on_tx(avr_irq_t *irq, uint32_t value, void *param) {
 		else B.lost_bytes++;
 	}
 }
-static void on_xon(avr_irq_t *irq, uint32_t value, void *param) { (void)irq, (void)value, (void)param; B.xon = 1; }
-static void on_xoff(avr_irq_t *irq, uint32_t value, void *param) { (void)irq, (void)value, (void)param; B.xon = 0; }
+/* simavr raises XOFF with 0 just before XON with 1: only a raised line changes the state */
+static void on_xon(avr_irq_t *irq, uint32_t value, void *param) { (void)irq, (void)param; if (value) B.xon = 1; }
+static void on_xoff(avr_irq_t *irq, uint32_t value, void *param) { (void)irq, (void)param; if (value) B.xon = 0; }
 
 static void feed_rx(void) {
 	while (B.xon && B.rx_pos < B.rx_len) avr_raise_irq(B.uart + UART_IRQ_INPUT, B.rx[B.rx_pos++]);
@@ -206,7 +207,8 @@ static void service_pty(void) {
 		int unread = 0;
 		ioctl(B.slave, TIOCINQ, &unread);
 		size_t room = unread >= (int)B.dev_buf ? 0 : B.dev_buf - unread;
-		size_t n = B.tx_len < room ? B.tx_len : room, written = 0;
+		/* a slice that does not fit is lost whole: a bridge that is full takes nothing */
+		size_t n = B.tx_len <= room ? B.tx_len : 0, written = 0;
 		while (written < n) {
 			ssize_t w = write(B.master, B.tx + written, n - written);
 			if (w <= 0) break;
@@ -269,7 +271,7 @@ int main(int argc, char **argv) {
 	const char *elf = NULL, *table = NULL, *link = NULL, *tx = NULL, *events = NULL, *eeprom = NULL;
 	double seconds = INFINITY, wait_reader = 60, boot_ms = 0;
 	uint32_t freq = 16000000;
-	B.dev_buf = 4096;
+	B.dev_buf = 4000;
 	B.master = B.slave = -1;
 	for (int i = 1; i < argc; i++) {
 		const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
@@ -303,6 +305,9 @@ int main(int argc, char **argv) {
 		} else die("unknown option", a);
 	}
 	if (!elf) die("--elf is required", NULL);
+	/* TIOCINQ cannot say more than the terminal's 4095-byte buffer holds: a larger bridge buffer would
+	 * never fill, and the kernel's overflow would pass fragments of lines on instead */
+	if (B.dev_buf < 64 || B.dev_buf > 4095) die("--dev-buf is 64 to 4095 bytes", NULL);
 	qsort(B.events, B.n_events, sizeof *B.events, by_time);
 	if (table) load_table(table);
 	boot_cycles = (uint64_t)(boot_ms / 1000 * freq);
@@ -361,7 +366,10 @@ int main(int argc, char **argv) {
 		open_pty(link);
 		uint64_t give_up = wall_ns() + (uint64_t)(wait_reader * 1e9);
 		while (!reader_present() && !stop_requested) {
-			if (wall_ns() > give_up) die("nobody opened the port", link);
+			if (wall_ns() > give_up) {
+				unlink(link);
+				die("nobody opened the port", link);
+			}
 			usleep(10000);
 		}
 	}

@@ -1,5 +1,6 @@
 // needlecue estimator firmware: the settings a lab may change, all in this one file (docs/live.md, "The
-// firmware"). Every value can also be given on the make command line, e.g. `make OVERSAMPLE=1`.
+// firmware"). Rate, oversampling, discarding and baud can also be given on the make command line, e.g.
+// `make OVERSAMPLE=1`; the channels and the reference are edited here.
 #pragma once
 
 // The channels, in the order they are sent: X(analog pin, name). The number of channels, the banner's
@@ -8,7 +9,8 @@
 #define NC_CHANNELS(X) X(0, "fsr1") X(1, "fsr2") X(2, "fsr3")
 
 #ifndef NC_RATE_HZ
-#define NC_RATE_HZ 30  // samples per second, from Timer1 (integer; 8..1000 at 16 MHz)
+#define NC_RATE_HZ 30  // samples per second, from Timer1: an integer, 4 to 500; the build refuses a rate
+                       // whose conversions do not fit half its period (above 320 Hz with 3 channels at 1+4)
 #endif
 #ifndef NC_OVERSAMPLE
 #define NC_OVERSAMPLE 4  // conversions averaged per channel and sample (1 = none); counts stay 10-bit

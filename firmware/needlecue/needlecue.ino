@@ -21,12 +21,15 @@ static const char NAMES[] PROGMEM = NC_CHANNELS(NAME_OF);  // ",fsr1,fsr2,fsr3":
 #define NC_PRESCALE 64UL
 #define NC_TOP ((F_CPU + NC_PRESCALE * NC_RATE_HZ / 2) / (NC_PRESCALE * NC_RATE_HZ) - 1)
 static_assert(NC_TOP > 0 && NC_TOP < 65536UL, "NC_RATE_HZ out of Timer1's range at this prescaler");
+// each sample must carry a later millis() than the last: the host reads an equal one as a restart
+static_assert(NC_RATE_HZ <= 500, "NC_RATE_HZ above 500: two samples could carry the same millis()");
 // the rate Timer1 really gives, in millihertz, must be within 0.1 % of the declared one
 #define NC_RATE_MHZ (F_CPU * 1000ULL / NC_PRESCALE / (NC_TOP + 1))
 #define NC_DECLARED_MHZ (NC_RATE_HZ * 1000ULL)
 static_assert((NC_RATE_MHZ > NC_DECLARED_MHZ ? NC_RATE_MHZ - NC_DECLARED_MHZ : NC_DECLARED_MHZ - NC_RATE_MHZ)
                   <= NC_DECLARED_MHZ / 1000, "Timer1 cannot give NC_RATE_HZ within 0.1 %");
 static_assert(NC_OVERSAMPLE >= 1 && NC_OVERSAMPLE <= 64, "NC_OVERSAMPLE: 1..64 (a 16-bit sum of 10-bit counts)");
+static_assert(NC_DISCARD + NC_OVERSAMPLE <= 255, "conversions per channel are counted in 8 bits");
 // one sample's conversions (13 ADC clocks at 125 kHz each) must end well within the sample period
 static_assert(N * (NC_DISCARD + NC_OVERSAMPLE) * 104UL * NC_RATE_HZ < 500000UL, "too many conversions per sample");
 
@@ -35,7 +38,7 @@ struct Reading {
   uint32_t ms;
   uint16_t counts[N];
 };
-static const uint8_t SLOTS = 4;  // samples loop() may fall behind by (an EEPROM write takes ~80 ms)
+static const uint8_t SLOTS = 8;  // loop() may fall 7 samples behind (saving an id in EEPROM: ~90 ms)
 static Reading ring[SLOTS];
 static volatile uint8_t head, tail;  // ISR writes ring[head], loop() reads ring[tail]
 static volatile uint8_t busy;        // a conversion chain is under way
@@ -89,8 +92,8 @@ ISR(ADC_vect) {
 static const uint8_t ID_MAX = 23;
 static char unit_id[ID_MAX + 1];
 
-static uint8_t crc8(const char *s, uint8_t n) {
-  uint8_t crc = 0;
+static uint8_t crc8(const char *s, uint8_t n) {  // over the length and the id
+  uint8_t crc = _crc8_ccitt_update(0, n);
   while (n--) crc = _crc8_ccitt_update(crc, *s++);
   return crc;
 }
@@ -181,7 +184,7 @@ static void run_command() {
   }
 }
 
-static void read_commands() {
+static void read_commands() {  // one command per pass: each EEPROM write leaves the ring time to drain
   while (Serial.available()) {
     char c = Serial.read();
     if (c == '\r') continue;
@@ -190,6 +193,7 @@ static void read_commands() {
       run_command();
       command_len = 0;
       command_too_long = false;
+      return;
     } else if (command_len < sizeof command - 1) {
       command[command_len++] = c;
     } else {
@@ -203,6 +207,7 @@ void setup() {
   Serial.begin(NC_BAUD);
   load_id();
   // init() left the ADC on at F_CPU/128 (125 kHz) and Timer1 in 8-bit PWM: take both over.
+  ADMUX = _BV(REFS0) | MUX[0];  // AVCC now: the AREF pin's capacitor settles before the first sample
   ADCSRA |= _BV(ADIE);
   cli();
   TCCR1A = 0;

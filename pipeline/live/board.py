@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.live.emulate import Trial, schedule
+from pipeline.live.wire import RATE_HZ
 
 FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"  # the repository's firmware folder
 BUILD = FIRMWARE / "build"
@@ -56,7 +57,7 @@ class BoardFaults:
     reset_at_s: tuple[float, ...] = ()  # resets (board seconds)
     stuck: tuple[Stuck, ...] = ()
     freq_hz: int = 16_000_000  # the crystal; the firmware assumes 16 MHz (a slow one: 15_920_000)
-    dev_buf: int = 4096  # bytes the USB link holds for a host that stops reading; the rest is lost
+    dev_buf: int = 4000  # bytes the USB link holds for a host that stops reading (64..4095); the rest is lost
 
 
 def to_millivolts(trial: Trial, counts: np.ndarray) -> np.ndarray:
@@ -68,8 +69,9 @@ def to_millivolts(trial: Trial, counts: np.ndarray) -> np.ndarray:
 
 
 def write_table(trials: Sequence[Trial], path: Path, pause_s: float, boot_ms: float = BOOT_MS) -> float:
-    """The harness's pin table for `trials` played as `schedule` plays them, from board power-on (the
-    sketch starts `boot_ms` later); returns the board seconds the playback takes."""
+    """The harness's pin table for `trials` (one unit's files: the first one's ADC settings convert
+    all) played as `schedule` plays them, from board power-on (the sketch starts `boot_ms` later);
+    returns the board seconds the playback takes."""
     plan = schedule(trials, pause_s)
     t = np.array([at for at, _ in plan]) + boot_ms / 1000
     mv = to_millivolts(trials[0], np.array([s.counts for _, s in plan]))
@@ -77,7 +79,7 @@ def write_table(trials: Sequence[Trial], path: Path, pause_s: float, boot_ms: fl
         f.write("t_s," + ",".join(f"mv{k}" for k in range(mv.shape[1])) + "\n")
         for ti, row in zip(t, mv, strict=True):
             f.write(f"{ti:.6f}," + ",".join(map(str, row)) + "\n")
-    return float(t[-1]) + 1 / 30
+    return float(t[-1]) + 1 / RATE_HZ
 
 
 def command(

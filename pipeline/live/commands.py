@@ -209,8 +209,11 @@ def emulate_board(
         int, typer.Option(help="the board's crystal (the firmware assumes 16000000; 15920000 is 0.5 % slow)")
     ] = 16_000_000,
     dev_buf: Annotated[
-        int, typer.Option(help="bytes the USB link holds for a host that stops reading; the rest is lost")
-    ] = 4096,
+        int,
+        typer.Option(
+            help="bytes (64..4095) the USB link holds for a host that stops reading; the rest is lost"
+        ),
+    ] = 4000,
     eeprom: Annotated[
         Path | None, typer.Option(help="a file that keeps the board's EEPROM (its unit id) between runs")
     ] = None,
@@ -278,10 +281,8 @@ def unit_id(
 ) -> None:
     """Show or set the unit id an estimator running needlecue's firmware keeps in its EEPROM and sends in
     its banner (docs/live.md, "The firmware"). Exit 1 if the board refuses or does not answer."""
-    import time
-
     from pipeline.live.port import open_serial
-    from pipeline.live.unit_id import read_banner, set_unit_id
+    from pipeline.live.unit_id import read_banner, set_unit_id, wait_for_banner
 
     if unit is not None and clear:
         raise fail("give a unit id or --clear, not both")
@@ -290,9 +291,9 @@ def unit_id(
     except OSError as e:  # serial.SerialException is an OSError
         raise fail(f"cannot open {port}: {e}") from e
     try:
-        time.sleep(reset_wait)  # an Uno resets when the port opens; its bootloader ignores what comes first
+        wait_for_banner(ser, reset_wait)  # an Uno resets when the port opens; its bootloader ignores input
         banner = set_unit_id(ser, unit) if unit is not None or clear else read_banner(ser)
-    except (ValueError, TimeoutError) as e:
+    except (ValueError, TimeoutError, OSError) as e:  # OSError: serial.SerialException, a pulled cable
         raise fail(f"{port}: {e}") from e
     finally:
         ser.close()

@@ -95,8 +95,10 @@ class StreamHealth:
         self, now: float, board_s: float, counts: tuple[int, ...], adc_max: int, names: tuple[str, ...]
     ) -> None:
         """A sample's counts: a channel that has not changed by one count for `STUCK_S` while another
-        moved is stuck (a broken wire, a pin shorted to a rail, an ADC channel that stopped). A live
-        force-sensing resistor never holds one count exactly while the silicone around it is loaded."""
+        moved is stuck (a broken wire, an ADC channel that stopped). A live force-sensing resistor never
+        holds one count exactly while the silicone around it is loaded. A channel at 0 or full scale
+        is left alone: an unloaded FSR over a pull-down reads 0 and a saturated one full scale, as a
+        broken wire may (the two cannot be told apart)."""
         window = self._window
         window.append((board_s, counts))
         while window[0][0] < board_s - STUCK_S:
@@ -111,7 +113,7 @@ class StreamHealth:
         steps = (np.diff(table, axis=0) != 0).sum(axis=0)
         moved = (span >= STUCK_MOVE * adc_max) & (steps >= STUCK_CHANGES)
         for k in range(len(counts)):
-            if span[k] > 0:
+            if span[k] > 0 or not 0 < counts[k] < adc_max:  # at a rail: an unloaded or saturated FSR
                 self._stuck.discard(k)
             elif np.delete(moved, k).any():
                 if k not in self._stuck:

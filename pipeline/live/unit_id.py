@@ -30,6 +30,19 @@ def _answer(ser: Any, command: str, wanted: Callable[[str], bool], timeout_s: fl
     raise TimeoutError(f"no answer to {command!r} within {timeout_s:g} s: is this needlecue's firmware?")
 
 
+def wait_for_banner(ser: Any, limit_s: float) -> bool:
+    """Wait until the banner a reset board sends has arrived, at most `limit_s` (a board that does not
+    reset when the port opens sends none); whether it came."""
+    end = time.monotonic() + limit_s
+    buf = b""
+    while time.monotonic() < end:
+        buf += ser.read(ser.in_waiting or 1)
+        if f"#{WIRE}".encode() in buf and buf.endswith(b"\n"):
+            return True
+        buf = buf[-256:]
+    return False
+
+
 def read_banner(ser: Any, timeout_s: float = 3.0) -> Banner:
     """The banner the board sends when asked."""
     text = _answer(ser, "?", lambda t: t.startswith(f"#{WIRE}"), timeout_s)

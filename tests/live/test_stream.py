@@ -109,3 +109,16 @@ def test_each_simulated_insertion_is_one_insertion_start_to_end_and_no_channel_l
     assert all(9.0 < n < 20.0 for n in lengths), lengths
     # and every channel of a live estimator moves, if only by its noise: none is taken for stuck
     assert health.counts["stuck_channels"] == 0
+
+
+def test_a_channel_at_a_rail_is_not_taken_for_stuck_but_one_still_in_mid_range_is() -> None:
+    # given: 3 s in which fsr1 rises steadily, fsr2 reads 0 (an unloaded FSR over a pull-down), fsr3
+    # holds 400 exactly
+    health = StreamHealth(30.0)
+    health.connected(0.0, settle_s=0.0)
+    for k in range(90):
+        at = k / 30
+        health.channels(at, at, (300 + 3 * k, 0, 400), 1023, ("fsr1", "fsr2", "fsr3"))
+    # then: fsr3 is named, fsr2 is not
+    problem = health.problems(3.0)["stuck"]
+    assert problem.startswith("fsr3 stuck at 400") and health.counts["stuck_channels"] == 1
