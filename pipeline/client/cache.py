@@ -241,7 +241,7 @@ class _Version:
         self.name, self.version, self.source = manifest["name"], str(manifest["version"]), manifest["source"]
         self.run_id = manifest.get("run_id")
         self.describe = manifest.get("describe") or {}
-        sha = (manifest.get("describe") or {}).get("calibration_sha256")
+        sha = self.describe.get("calibration_sha256")
         self.tags = {store.CALIBRATION_SHA_TAG: sha} if sha else {}
 
 

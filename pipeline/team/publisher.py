@@ -20,7 +20,6 @@ from typing import Any
 
 from pipeline.client.webhook import ALIAS_ENTITY, AliasListener
 from pipeline.logs import setup
-from pipeline.registry import store
 from pipeline.team import access, publish
 from pipeline.team.stack import Stack
 
@@ -30,26 +29,23 @@ INTERVAL_S = 60.0
 WEBHOOK_NAME = "needlecue-publish"
 
 
-class _AnyModel:
-    """What the publisher follows: every model of the project (`AliasListener` asks `name in followed`)."""
-
-    def __contains__(self, name: object) -> bool:
-        return isinstance(name, str) and name.startswith(publish.MODEL_PREFIXES)
-
-
 class _Listener(AliasListener):
-    """MLflow's alias webhook, verified as a simulator's listener verifies it, handing the publisher the
-    model each call names (so a round publishes that model, not the whole registry)."""
+    """MLflow's alias webhook, verified as a simulator's listener verifies it (signature, age, replay),
+    handing the publisher the model each call names (so a round publishes that model, not the whole
+    registry)."""
 
     def __init__(self, publisher: Publisher, *args: Any) -> None:
         super().__init__(*args)
         self.publisher = publisher
 
     def handle(self, event: dict[str, Any]) -> int:
-        name = (event.get("data") or {}).get("name")
-        if event.get("entity") == ALIAS_ENTITY and name in self.publisher.followed:
-            self.publisher.changed(str(name))
-        return super().handle(event)
+        data = event.get("data") or {}
+        name = data.get("name")
+        if event.get("entity") != ALIAS_ENTITY or not str(name).startswith(publish.MODEL_PREFIXES):
+            return 0
+        self.publisher.changed(str(name))
+        log.info("webhook: %s@%s %s -> published at once", name, data.get("alias"), event.get("action"))
+        return 1
 
 
 class Publisher:
@@ -59,7 +55,6 @@ class Publisher:
     def __init__(self, stack: Stack, interval_s: float = INTERVAL_S) -> None:
         self.stack = stack
         self.interval_s = interval_s
-        self.followed = _AnyModel()
         self._wake = threading.Event()
         self._lock = threading.Lock()
         self._named: set[str] = set()
@@ -71,16 +66,11 @@ class Publisher:
             self._named.add(name)
         self._wake.set()
 
-    def poll_soon(self) -> None:  # what AliasListener calls on its followers; `changed` did the work
-        pass
-
     def once(self, names: set[str] | None = None) -> list[publish.Change]:
         """One round: bring the bucket up to date for `names` (all models: None), reading the registry
         as the lab."""
-        lab = self.stack.role_env("lab")
-        creds = {k: lab[k] for k in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD")}
         target = publish.Target.of(self.stack, "publisher")
-        with store.environment(creds):
+        with self.stack.as_lab():
             changes = publish.publish(self.stack.tracking_uri, target, names=names)
         self.rounds += 1
         return changes
@@ -89,7 +79,6 @@ class Publisher:
         """Listen for the webhook, register it with MLflow, and publish until `stop` is set."""
         settings = self.stack.settings
         listener = _Listener(self, settings["webhook_secret"], self.stack.host, self.stack.ports.publisher)
-        listener.follow(self)
         with listener:
             access.ensure_webhook(self.stack, listener.url, WEBHOOK_NAME)
             log.info("listening at %s for MLflow's alias webhooks", listener.url)

@@ -242,6 +242,15 @@ class Stack:
     def _pid_file(self, server: str) -> Path:
         return self.dir / "run" / f"{server}.pid"
 
+    def as_lab(self) -> contextlib.AbstractContextManager[None]:
+        """A block in which MLflow calls go to this stack's server as the lab (its tracking
+        credentials in the environment, restored afterwards): how the stack's own tools read the
+        registry."""
+        from pipeline.registry import store
+
+        lab = self.role_env("lab")
+        return store.environment({k: v for k, v in lab.items() if k.startswith("MLFLOW_TRACKING_")})
+
     def role_env(self, role: str) -> dict[str, str]:
         """The environment a user of `role` works with: MLflow's URI and credentials, and for the lab
         and admin also the S3 store's (DVC's remote). A simulator gets the published bucket instead

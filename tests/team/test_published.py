@@ -65,8 +65,7 @@ def _lab_s3(team):
 
 
 def _registry_champion(team) -> str:
-    env = team.role_env("lab")
-    with store.environment({k: v for k, v in env.items() if k.startswith("MLFLOW_TRACKING_")}):
+    with team.as_lab():
         client = store.connect(team.tracking_uri)
         return str(store.alias_version(client, NAME, store.CHAMPION).version)
 
@@ -255,8 +254,7 @@ def test_publish_says_what_is_out_of_date_without_a_stack_of_its_own(team, lab):
     key = signed.manifest_key("needle-force-45", store.CHAMPION)
     s3.delete_object(Bucket="published", Key=key)
     # When the lab plans against the registry
-    env = team.role_env("lab")
-    with store.environment({k: v for k, v in env.items() if k.startswith("MLFLOW_TRACKING_")}):
+    with team.as_lab():
         changes = publish.plan(store.connect(team.tracking_uri), publish.Target.of(team), LAB_MODELS)
     # Then exactly that alias is out of date, as not published
     assert [(c.name, c.alias, c.why) for c in changes] == [("needle-force-45", "champion", "not published")]
