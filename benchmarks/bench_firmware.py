@@ -31,10 +31,7 @@ def ramps(path: Path, seconds: float) -> Path:
     t = np.arange(0, seconds, 0.05)
     k = np.arange(len(t))
     counts = np.stack([100 + (k * 7) % 300, 900 - (k * 5) % 400, 500 + (k * 11) % 200], axis=1)
-    mv = np.ceil(counts * bd.VCC_MV / 1023).astype(int)
-    rows = [f"{ti:.3f}," + ",".join(map(str, r)) for ti, r in zip(t, mv, strict=True)]
-    path.write_text("t_s,mv0,mv1,mv2\n" + "\n".join(rows) + "\n")
-    return path
+    return bd.write_pins(path, t, bd.millivolts(counts))
 
 
 def main() -> None:

@@ -60,25 +60,31 @@ class BoardFaults:
     dev_buf: int = 4000  # bytes the USB link holds for a host that stops reading (64..4095); the rest is lost
 
 
-def to_millivolts(trial: Trial, counts: np.ndarray) -> np.ndarray:
-    """Pin voltages (mV, integers) that a 10-bit ADC on a 5 V reference reads back as the trial's
-    volts: rounded up, so a 10-bit count comes back exactly."""
-    full = 2**trial.banner.adc_bits - 1
-    volts = counts * (trial.banner.vref_v or 5.0) / full
+def millivolts(counts: np.ndarray, adc_bits: int = 10, vref_v: float = 5.0) -> np.ndarray:
+    """Pin voltages (mV, integers) that a 10-bit ADC on the 5 V reference reads back as the volts of
+    `counts` (at `adc_bits` on `vref_v`): rounded up, so a 10-bit count comes back exactly."""
+    volts = np.asarray(counts) * vref_v / (2**adc_bits - 1)
     return np.clip(np.ceil(volts * 1000 - 1e-6), 0, VCC_MV).astype(np.int64)
 
 
+def write_pins(path: Path, t_s: np.ndarray, mv: np.ndarray) -> Path:
+    """The harness's pin table: from board second t_s[i] on, pin k holds mv[i, k] millivolts."""
+    lines = ["t_s," + ",".join(f"mv{k}" for k in range(mv.shape[1]))]
+    lines += [f"{t:.6f}," + ",".join(map(str, row)) for t, row in zip(t_s, mv, strict=True)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def write_table(trials: Sequence[Trial], path: Path, pause_s: float, boot_ms: float = BOOT_MS) -> float:
-    """The harness's pin table for `trials` (one unit's files: the first one's ADC settings convert
-    all) played as `schedule` plays them, from board power-on (the sketch starts `boot_ms` later);
-    returns the board seconds the playback takes."""
+    """The pin table for `trials` (one unit's files: the first one's ADC settings convert all) played
+    as `schedule` plays them, from board power-on (the sketch starts `boot_ms` later); returns the
+    board seconds the playback takes."""
     plan = schedule(trials, pause_s)
     t = np.array([at for at, _ in plan]) + boot_ms / 1000
-    mv = to_millivolts(trials[0], np.array([s.counts for _, s in plan]))
-    with path.open("w") as f:
-        f.write("t_s," + ",".join(f"mv{k}" for k in range(mv.shape[1])) + "\n")
-        for ti, row in zip(t, mv, strict=True):
-            f.write(f"{ti:.6f}," + ",".join(map(str, row)) + "\n")
+    banner = trials[0].banner
+    write_pins(
+        path, t, millivolts(np.array([s.counts for _, s in plan]), banner.adc_bits, banner.vref_v or 5.0)
+    )
     return float(t[-1]) + 1 / RATE_HZ
 
 

@@ -6,41 +6,40 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
-from pipeline.live.wire import WIRE, Banner, parse_banner
+from pipeline.live.wire import MAX_LINE, WIRE, Banner, parse_banner
 
 UNIT_ID = re.compile(r"[A-Za-z0-9._-]{1,23}")  # what the firmware's EEPROM record holds
+
+
+def _lines(ser: Any, limit_s: float) -> Iterator[str]:
+    """The lines the board sends within `limit_s`, as text."""
+    end = time.monotonic() + limit_s
+    buf = b""
+    while time.monotonic() < end:
+        buf += ser.read(ser.in_waiting or 1)
+        *lines, buf = buf.split(b"\n")
+        for raw in lines:
+            yield raw.decode("ascii", "replace").strip()
+        buf = buf[-MAX_LINE:]  # a longer run without a line break is garbage, not a line
 
 
 def _answer(ser: Any, command: str, wanted: Callable[[str], bool], timeout_s: float) -> str:
     """Send `command` and return the first line that `wanted` accepts or that is an `#error`."""
     ser.reset_input_buffer()
     ser.write(command.encode("ascii") + b"\n")
-    end = time.monotonic() + timeout_s
-    buf = b""
-    while time.monotonic() < end:
-        buf += ser.read(ser.in_waiting or 1)
-        *lines, buf = buf.split(b"\n")
-        for raw in lines:
-            text = raw.decode("ascii", "replace").strip()
-            if text.startswith("#error") or wanted(text):
-                return text
+    for text in _lines(ser, timeout_s):
+        if text.startswith("#error") or wanted(text):
+            return text
     raise TimeoutError(f"no answer to {command!r} within {timeout_s:g} s: is this needlecue's firmware?")
 
 
 def wait_for_banner(ser: Any, limit_s: float) -> bool:
     """Wait until the banner a reset board sends has arrived, at most `limit_s` (a board that does not
     reset when the port opens sends none); whether it came."""
-    end = time.monotonic() + limit_s
-    buf = b""
-    while time.monotonic() < end:
-        buf += ser.read(ser.in_waiting or 1)
-        if f"#{WIRE}".encode() in buf and buf.endswith(b"\n"):
-            return True
-        buf = buf[-256:]
-    return False
+    return any(text.startswith(f"#{WIRE}") for text in _lines(ser, limit_s))
 
 
 def read_banner(ser: Any, timeout_s: float = 3.0) -> Banner:

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from filelock import FileLock
 
-from pipeline.live.board import FIRMWARE, VCC_MV
+from pipeline.live import board
+from pipeline.live.board import FIRMWARE
 from tests.live.conftest import live_model
 
 
@@ -56,18 +57,9 @@ def built(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Built:
     )
 
 
-def millivolts(counts: np.ndarray) -> np.ndarray:
-    """Pin voltages a 10-bit ADC on the 5 V reference reads back as exactly `counts`."""
-    return np.ceil(counts * VCC_MV / 1023).astype(np.int64)
-
-
 def write_pins(path: Path, t_s: np.ndarray, counts: np.ndarray) -> Path:
-    """A harness table: from t_s[i] on, pin k holds the voltage of counts[i, k]."""
-    mv = millivolts(counts)
-    lines = ["t_s," + ",".join(f"mv{k}" for k in range(counts.shape[1]))]
-    lines += [f"{t:.6f}," + ",".join(map(str, row)) for t, row in zip(t_s, mv, strict=True)]
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    """A harness table: from t_s[i] on, pin k holds the voltage a 10-bit ADC reads as counts[i, k]."""
+    return board.write_pins(path, t_s, board.millivolts(counts))
 
 
 @pytest.fixture

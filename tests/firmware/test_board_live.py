@@ -22,7 +22,7 @@ from pipeline.live.recording import unescape
 from pipeline.live.wire import Sample, parse_banner, parse_line
 from tests.firmware.conftest import Built, write_pins
 from tests.live.conftest import UNIT, LiveModel
-from tests.live.processes import NEEDLECUE, rig_and_live
+from tests.live.processes import NEEDLECUE, rig_and_live, watch_problems
 
 pytestmark = pytest.mark.xdist_group("live")  # one real-time session at a time
 CUE_LINE = re.compile(r"^\s*-?\d+\.\d+ s  (\w+)")
@@ -103,7 +103,6 @@ def test_an_overrun_a_reset_and_a_stuck_channel_on_the_board_are_shown_and_recor
         built, "--reset-at", "9.7", "--stuck", stuck, "--dev-buf", "1024", "--seconds", "26"
     )
     live_args = ["--angle", "30", "--duration", "21", "--give-up", "5"]
-    seen: set[str] = set()
     with rig_and_live(
         live_model, tmp_path, [30, 30, 30], rig_args, live_args, rig="emulate-board", adc_bits=10
     ) as run:
@@ -113,15 +112,7 @@ def test_an_overrun_a_reset_and_a_stuck_channel_on_the_board_are_shown_and_recor
         os.kill(run.live.pid, signal.SIGSTOP)
         time.sleep(3.5)
         os.kill(run.live.pid, signal.SIGCONT)
-        while run.live.poll() is None and time.monotonic() < started + 40:
-            try:
-                import urllib.request
-
-                with urllib.request.urlopen(run.url + "state", timeout=2) as r:
-                    seen |= set(json.loads(r.read()).get("problems") or {})
-            except OSError:
-                pass  # the session ended between two polls
-            time.sleep(0.05)
+        seen = watch_problems(run, started + 40 - time.monotonic())
         out, _ = run.live.communicate(timeout=30)
         board_out, _ = run.rig.communicate(timeout=30)
     assert run.live.returncode == 0, out

@@ -5,10 +5,13 @@ session folder and the page on a free port."""
 from __future__ import annotations
 
 import contextlib
+import http.client
+import json
 import os
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,3 +94,17 @@ def rig_and_live(
             if proc is not None and proc.poll() is None:
                 proc.kill()
                 proc.wait(timeout=10)
+
+
+def watch_problems(run: Running, limit_s: float) -> set[str]:
+    """The problem keys the page's state showed, polled until live ends (at most `limit_s`)."""
+    seen: set[str] = set()
+    end = time.monotonic() + limit_s
+    while run.live.poll() is None and time.monotonic() < end:
+        try:
+            with urllib.request.urlopen(run.url + "state", timeout=2) as r:
+                seen |= set(json.loads(r.read()).get("problems") or {})
+        except (OSError, http.client.HTTPException):
+            pass  # the session ended between two polls, or in the middle of one
+        time.sleep(0.05)
+    return seen

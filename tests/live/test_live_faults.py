@@ -4,16 +4,13 @@ the recording keeps what arrived. Each run is bounded (--duration, --give-up) to
 from __future__ import annotations
 
 import csv
-import http.client
 import json
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
 from tests.live.conftest import LiveModel
-from tests.live.processes import rig_and_live
+from tests.live.processes import rig_and_live, watch_problems
 
 pytestmark = pytest.mark.xdist_group("live")
 
@@ -23,16 +20,8 @@ def _run(
 ) -> tuple[set[str], str, Path]:
     """emulate-rig with `rig_args` against live with `live_args`: the problem keys the page's state
     showed, live's output and the session folder."""
-    seen: set[str] = set()
     with rig_and_live(model, tmp_path, [30, 45], rig_args, live_args) as run:
-        end = time.monotonic() + 60
-        while run.live.poll() is None and time.monotonic() < end:
-            try:
-                with urllib.request.urlopen(run.url + "state", timeout=2) as r:
-                    seen |= set(json.loads(r.read()).get("problems") or {})
-            except (OSError, http.client.HTTPException):
-                pass  # the session ended between two polls, or in the middle of one
-            time.sleep(0.05)
+        seen = watch_problems(run, 60)
         out, _ = run.live.communicate(timeout=30)
         assert run.live.returncode == 0, out
     return seen, out, run.session
