@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pipeline.live.emulate import load_trial, schedule
 from pipeline.live.health import StreamHealth
@@ -12,6 +13,7 @@ from pipeline.live.insertions import InsertionDetector
 from pipeline.live.recording import escape, unescape
 from pipeline.live.session import StreamSettings
 from pipeline.live.wire import Banner, Sample, format_banner, format_sample, parse_line
+from pipeline.sim.rigs import RIGS
 
 
 def test_a_line_and_the_banner_round_trip_and_garbage_says_why() -> None:
@@ -122,3 +124,21 @@ def test_a_channel_at_a_rail_is_not_taken_for_stuck_but_one_still_in_mid_range_i
     # then: fsr3 is named, fsr2 is not
     problem = health.problems(3.0)["stuck"]
     assert problem.startswith("fsr3 stuck at 400") and health.counts["stuck_channels"] == 1
+
+
+@pytest.mark.parametrize("rig", sorted(RIGS))
+def test_no_channel_of_any_rig_in_the_family_looks_stuck(rig: str, tmp_path: Path) -> None:
+    # given: each estimator design of the simulator's family, at every angle, played with rests between
+    from pipeline.config import SimulateParams
+    from pipeline.sim.rig import write_new_batch
+
+    write_new_batch(SimulateParams(rig=rig), tmp_path, "b", (0.0, 15.0, 30.0, 45.0, 60.0, 75.0), 1)
+    trials = [load_trial(f) for f in sorted((tmp_path / "b").glob("*.fsr.csv"))]
+    banner = trials[0].banner
+    health = StreamHealth(30.0)
+    health.connected(0.0, settle_s=0.0)
+    # when: the health reads their counts at the design's own ADC resolution
+    for at, sample in schedule(trials, pause_s=3.0):
+        health.channels(at, at, sample.counts, 2**banner.adc_bits - 1, banner.channels or ())
+    # then: no channel is taken for stuck (the stuck rule was set on none of them)
+    assert health.counts["stuck_channels"] == 0
