@@ -83,17 +83,21 @@ def team_stop(
 
 @team.command("status")
 def team_status(folder: TeamDir = None) -> None:
-    """Each server: running or not, address, log (exit 1 unless all of them run)."""
+    """Each server: running or not, address, log; and the S3 store's free disk (exit 1 unless all of them
+    run and it can write)."""
     from pipeline.team.stack import StackError
 
     try:
-        found = _stack(folder).status()
+        stack = _stack(folder)
+        found = stack.status()
+        space = stack.disk_space()
     except StackError as e:
         raise fail(str(e)) from e
     for server, s in found.items():
         state = f"running (pid {s['pid']})" if s["running"] else "stopped"
         typer.echo(f"{server:9} {state:22} {s['address']:28} log {s['log']}")
-    if not all(s["running"] for s in found.values()):
+    typer.echo(("error: " if space.full else "warning: " if space.low else "") + space.describe())
+    if space.full or not all(s["running"] for s in found.values()):
         raise typer.Exit(1)
 
 

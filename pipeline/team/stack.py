@@ -49,10 +49,44 @@ START_TIMEOUT_S = 120.0
 # on a loaded machine can: the kill drops every request it holds, a register's upload among them (seen
 # with the pipeline and the tests sharing 2 cores). A hung worker is still replaced, after a minute.
 WORKER_HEALTHCHECK_S = 60
+# SeaweedFS marks every volume read-only once its disk has less than 1 % free (the volume server's
+# -minFreeSpace default, which `weed mini` cannot change), after which every write fails with S3's bare
+# "InternalError" and MLflow's artifact proxy answers 500 (seen in CI on a shared, nearly full disk).
+S3_MIN_FREE_SHARE = 0.01
+S3_HEADROOM = 2 * 1024**3  # closer than this to that line, `start` and `status` warn
 
 
 class StackError(RuntimeError):
     """A server of the stack could not be started or stopped (the message says which and where its log is)."""
+
+
+@dataclass(frozen=True)
+class DiskSpace:
+    """Free space on the disk that holds SeaweedFS's data, against the line below which it writes nothing."""
+
+    path: Path
+    free: int
+    total: int
+
+    @property
+    def floor(self) -> int:
+        return int(self.total * S3_MIN_FREE_SHARE)
+
+    @property
+    def full(self) -> bool:
+        return self.free < self.floor
+
+    @property
+    def low(self) -> bool:
+        return self.free < self.floor + S3_HEADROOM
+
+    def describe(self) -> str:
+        gib = 1024**3
+        said = f"{self.free / gib:.1f} GiB free on the disk of {self.path} ({self.total / gib:.0f} GiB)"
+        line = f"SeaweedFS refuses every write below {self.floor / gib:.1f} GiB free (1 % of the disk)"
+        if self.full:
+            return f"s3: {said}: {line}, so nothing can be stored; free some space"
+        return f"s3: {said}; {line}" + (": close to it" if self.low else "")
 
 
 def default_dir() -> Path:
@@ -292,6 +326,11 @@ class Stack:
         make sure the `lab` and `simulator` users exist with their permissions."""
         self.dir.joinpath("logs").mkdir(parents=True, exist_ok=True)
         self.dir.joinpath("run").mkdir(exist_ok=True)
+        space = self.disk_space()
+        if space.full:
+            raise StackError(space.describe())
+        if space.low:
+            progress(f"warning: {space.describe()}")
         for server in SERVERS:
             if server == "publisher":  # it reads the registry as the lab, and has the admin add its webhook
                 access.ensure_users(self)
@@ -579,6 +618,12 @@ class Stack:
             }
             for server in SERVERS
         }
+
+    def disk_space(self) -> DiskSpace:
+        """Free space where SeaweedFS keeps its data (the state folder)."""
+        where = next(p for p in (self.dir, *self.dir.parents) if p.exists())
+        usage = shutil.disk_usage(where)
+        return DiskSpace(self.dir, usage.free, usage.total)
 
     def stop(self, purge: bool = False) -> list[str]:
         """Stop the servers (MLflow, then S3, then PostgreSQL); `purge` also deletes every byte the stack

@@ -23,6 +23,31 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
         pytest.fail(f"{item.nodeid}: xdist did not keep the team tests on one worker (pytest-xdist #1386)")
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    """A failed test that used the stack reports the stack's disk and its servers' last errors: CI keeps
+    no logs, and S3's "InternalError" or MLflow's "500" alone do not say why."""
+    outcome = yield
+    report = outcome.get_result()
+    stack = getattr(item, "funcargs", {}).get("team")
+    if report.when == "call" and report.failed and isinstance(stack, Stack):
+        report.sections.append(("team stack", _diagnosis(stack)))
+
+
+def _diagnosis(stack: Stack, n: int = 8) -> str:
+    lines = [stack.disk_space().describe()]
+    for server in ("s3", "mlflow", "publisher"):
+        log = stack.log(server)
+        text = log.read_text(errors="replace").splitlines() if log.is_file() else []
+        # SeaweedFS marks its errors "E<date>"; MLflow and the publisher write ERROR or a traceback
+        errors = [line for line in text if line[:2] in {"E0", "E1"} or "ERROR" in line or "Error" in line]
+        lines += [
+            f"--- {server}: last {min(n, len(errors))} of {len(errors)} error lines ({log})",
+            *errors[-n:],
+        ]
+    return "\n".join(lines)
+
+
 @pytest.fixture(scope="session")
 def team(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     stack = Stack(tmp_path_factory.mktemp("team") / "stack")

@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import base64
 import json
+import shutil
+from types import SimpleNamespace
 
 import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
 from pipeline.registry import manifest as signed
-from pipeline.team.stack import Stack
+from pipeline.team.stack import SERVERS, Stack, StackError
 
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 
@@ -57,3 +59,43 @@ def test_publish_without_a_stack_says_where_it_looked(tmp_path):
     # Then it fails, naming the folder and how to start one
     assert result.exit_code == 1
     assert "no team stack in" in result.output and "needlecue team start" in result.output
+
+
+def _disk(monkeypatch, free_gib: float, total_gib: float = 250) -> None:
+    """The disk under the stack as `shutil.disk_usage` reports it."""
+    gib = 2**30
+    usage = SimpleNamespace(
+        total=int(total_gib * gib), used=int((total_gib - free_gib) * gib), free=int(free_gib * gib)
+    )
+    monkeypatch.setattr(shutil, "disk_usage", lambda _path: usage)
+
+
+def test_a_stack_on_a_disk_seaweedfs_would_not_write_to_refuses_to_start_and_says_why(tmp_path, monkeypatch):
+    # Given a stack whose disk has 2 GiB free of 250 (SeaweedFS writes nothing below 1 %: 2.5 GiB)
+    stack = Stack(tmp_path / "stack")
+    stack.init(base_port=21000)
+    _disk(monkeypatch, free_gib=2)
+    # When it is started
+    with pytest.raises(StackError) as refused:
+        stack.start(progress=lambda _m: None)
+    # Then nothing starts, and the error says how much is free, where, and the line
+    assert "2.0 GiB free on the disk of" in str(refused.value) and str(stack.dir) in str(refused.value)
+    assert "refuses every write below 2.5 GiB" in str(refused.value)
+    assert not any(stack.running(server) for server in SERVERS)
+    # And `team status` says so and fails
+    result = CliRunner().invoke(app, ["team", "status", "--dir", str(stack.dir)])
+    assert result.exit_code == 1 and "error: s3: 2.0 GiB free" in result.output
+
+
+def test_a_disk_close_to_that_line_is_a_warning_and_room_enough_is_silent(tmp_path, monkeypatch):
+    # Given a stack
+    stack = Stack(tmp_path / "stack")
+    stack.init(base_port=21000)
+    # When its disk has 1 GiB more than SeaweedFS's line, then 100 GiB free
+    _disk(monkeypatch, free_gib=3.5)
+    close = stack.disk_space()
+    _disk(monkeypatch, free_gib=100)
+    roomy = stack.disk_space()
+    # Then the first is low but writable, the second neither
+    assert (close.full, close.low, roomy.full, roomy.low) == (False, True, False, False)
+    assert close.describe().endswith("close to it") and not roomy.describe().endswith("close to it")
