@@ -83,7 +83,8 @@ class DiskSpace:
     def describe(self) -> str:
         gib = 1024**3
         said = f"{self.free / gib:.1f} GiB free on the disk of {self.path} ({self.total / gib:.0f} GiB)"
-        line = f"SeaweedFS refuses every write below {self.floor / gib:.1f} GiB free (1 % of the disk)"
+        share = f"{S3_MIN_FREE_SHARE * 100:g} % of the disk"
+        line = f"SeaweedFS refuses every write below {self.floor / gib:.1f} GiB free ({share})"
         if self.full:
             return f"s3: {said}: {line}, so nothing can be stored; free some space"
         return f"s3: {said}; {line}" + (": close to it" if self.low else "")
