@@ -1,7 +1,7 @@
 """The pipeline on every member of the simulator's family of rigs (docs/physics.md §11): the figures of
 issue 24's targets, one row per member, from one cold `dvc repro` each.
 
-    python benchmarks/bench_family.py [--members default,transimpedance,...] [--no-declare]
+    python benchmarks/bench_family.py [--members default,transimpedance,...] [--no-declare] [--units N]
                                       [--new-rig MEMBER] [--calibration-trials N] [--small] [--keep DIR]
 
 Each member runs in a fresh copy of this checkout's code, dvc.yaml and params.yaml, with
@@ -9,10 +9,12 @@ Each member runs in a fresh copy of this checkout's code, dvc.yaml and params.ya
 batch; `--small` for a quick look), every stage but register. `--no-declare` leaves the circuit out
 of every batch.yaml; `--new-rig` records the new unit's batches with another member (a lab whose
 replacement estimator is built differently); `--calibration-trials` sets the new unit's calibration
-insertions per angle (`simulate.calibration_trials_per_angle`, default one). Printed per member: the
+insertions per angle (`simulate.calibration_trials_per_angle`, default one); `--units N` keeps the
+first N training units (`--units 1`: the paper's lab, one estimator unit). Printed per member: the
 champion's mean external NRMSE on the training units (same unit), on the new unit without and with
-its calibration and their ratios to the same-unit figure, the best cue's balanced accuracy within
-3 s on the calibrated new unit, the inputs the models chose, and the wall time.
+its calibration and their ratios to the same-unit figure, the combined cue as a trainee sees it
+(balanced accuracy within 3 s, wrong cue at the insertion's end and per frame, coverage) on the same
+unit and on the new unit calibrated and not, the inputs the models chose, and the wall time.
 """
 
 from __future__ import annotations
@@ -73,9 +75,19 @@ def new_unit_of(root: Path, member: str, declare: bool, calibration_trials: int)
 
 
 def run_member(
-    member: str, declare: bool, new_rig: str | None, small: bool, work: Path, calibration_trials: int | None
+    member: str,
+    declare: bool,
+    new_rig: str | None,
+    small: bool,
+    work: Path,
+    calibration_trials: int | None,
+    units: int | None = None,
 ) -> dict[str, Any]:
     simulate: dict[str, Any] = {"rig": member, "declare_front_end": declare}
+    if units is not None:
+        from pipeline.config import SimulateParams
+
+        simulate["units"] = list(SimulateParams().units[:units])
     if calibration_trials is not None:
         simulate["calibration_trials_per_angle"] = calibration_trials
     angles = None
@@ -115,9 +127,8 @@ def run_member(
         return {"member": member, "error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
     metrics = json.loads((root / "reports" / "metrics.json").read_text())
     champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
-    cues = json.loads((root / "reports" / "cues" / "evaluation.json").read_text())
-    best = _best_cue(cues, "new_calibrated")
-    best_same = _best_cue(cues, "same_unit")
+    cues = metrics.get("cues") or {}
+    seen = cues.get("lstm") or next(iter(cues.values()), {})  # the combined cue: the same for every kind
     inputs = json.loads((root / "data" / "predictions" / "inputs.json").read_text())
     chosen = sorted({f"{k}:{r['inputs']['kind']}" for k, by in inputs.items() for r in by.values()})
     same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
@@ -128,24 +139,19 @@ def run_member(
         "new_calibrated_pct": cal,
         "calibrated_ratio": None if not same or cal is None else cal / same,
         "uncalibrated_ratio": None if not same or uncal is None else uncal / same,
-        "cues_same_unit": best_same,
-        "cues_new_calibrated": best,
+        "cues": {group: seen.get(group) for group in ("same_unit", "new_calibrated", "new_uncalibrated")},
         "inputs": chosen,
         "seconds": seconds,
     }
 
 
-def _best_cue(evaluation: dict[str, Any], group: str) -> float | None:
-    """The best deployable cue's balanced accuracy within the window, in one unit group."""
-    results = ((evaluation.get("by_unit_group") or {}).get(group) or {}).get("results") or {}
-    found = [
-        r["balanced_within_s"]
-        for kind, methods in results.items()
-        if kind != "reference"
-        for r in methods.values()
-        if r.get("balanced_within_s") is not None
-    ]
-    return max(found, default=None)
+def _cue(r: dict[str, Any], group: str) -> str:
+    """balanced / wrong at the end / wrong frames / coverage, in percent, of one unit group."""
+    c = (r.get("cues") or {}).get(group)
+    if not c:
+        return "–"
+    keys = ("balanced_within_s", "wrong_final", "wrong_frames", "coverage_frames")
+    return " / ".join(_f(c.get(k), ".1f") for k in keys)
 
 
 def _f(x: float | None, spec: str) -> str:
@@ -160,30 +166,34 @@ def main() -> None:
     ap.add_argument("--no-declare", action="store_true")
     ap.add_argument("--new-rig", default=None)
     ap.add_argument("--calibration-trials", type=int, default=None)
+    ap.add_argument("--units", type=int, default=None, help="keep the first N training units")
     ap.add_argument("--small", action="store_true")
     ap.add_argument("--keep", type=Path, default=None, help="keep the projects in this folder")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="needlecue-family-"))
     rows = []
     for member in args.members.split(","):
-        row = run_member(member, not args.no_declare, args.new_rig, args.small, work, args.calibration_trials)
+        row = run_member(
+            member, not args.no_declare, args.new_rig, args.small, work, args.calibration_trials, args.units
+        )
         rows.append(row)
         print(json.dumps(row), flush=True)
     print()
     print(
-        "| member | same unit % | new, uncal. % (×) | new, calibrated % (×) | cues same | cues new cal. "
-        "| inputs | s |"
+        "| member | same unit % | new, uncal. % (×) | new, calibrated % (×) | cues same unit "
+        "| cues new, calibrated | cues new, uncalibrated | inputs | s |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
+    print("| (cues: balanced within 3 s / wrong at the end / wrong frames / coverage, %) | | | | | | | | |")
     for r in rows:
         if "error" in r:
-            print(f"| {r['member']} | error | | | | | | {r['seconds']:.0f} |")
+            print(f"| {r['member']} | error | | | | | | | {r['seconds']:.0f} |")
             continue
         print(
             f"| {r['member']} | {_f(r['same_unit_pct'], '.2f')} "
             f"| {_f(r['new_uncalibrated_pct'], '.2f')} ({_f(r['uncalibrated_ratio'], '.2f')}) "
             f"| {_f(r['new_calibrated_pct'], '.2f')} ({_f(r['calibrated_ratio'], '.2f')}) "
-            f"| {_f(r['cues_same_unit'], '.1%')} | {_f(r['cues_new_calibrated'], '.1%')} "
+            f"| {_cue(r, 'same_unit')} | {_cue(r, 'new_calibrated')} | {_cue(r, 'new_uncalibrated')} "
             f"| {', '.join(r['inputs'])} | {r['seconds']:.0f} |"
         )
     if args.keep is None:

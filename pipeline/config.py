@@ -232,8 +232,11 @@ class CuesParams(Section):
     unit_template_weight: Literal["auto"] | float = "auto"
     calibrate_temperature: bool = True
     min_stage: int = Field(0, ge=0, description="evidence stage needed to leave wait (0: rest reading)")
-    min_confidence: float = Field(0.7, ge=0, le=1)
-    switch_margin: float = Field(0.1, ge=0, le=1)
+    # P(deviation class) a cue needs: "auto" is the least that keeps the cross-validated share of
+    # insertion frames with a wrong cue at or under max_wrong (pipeline.cues.fit), or the number
+    min_confidence: Literal["auto"] | float = "auto"
+    max_wrong: float = Field(0.01, gt=0, lt=1, description="the wrong-cue frame share 'auto' aims at")
+    switch_margin: float = Field(0.3, ge=0, le=1)
     debounce_s: float = Field(0.2, ge=0)
     # the paper's standard profile and its comparison
     profile_dt_s: float = Field(0.1, gt=0)
@@ -257,6 +260,8 @@ class CuesParams(Section):
             raise ValueError(f"evidence_levels must be 'auto' or positive and increasing, got {list(lv)}")
         if isinstance(self.lda_shrinkage, float) and not 0 <= self.lda_shrinkage <= 1:
             raise ValueError("lda_shrinkage is 'auto' or a float in [0, 1]")
+        if isinstance(self.min_confidence, float) and not 0 <= self.min_confidence <= 1:
+            raise ValueError("min_confidence is 'auto' or a float in [0, 1]")
         if isinstance(self.unit_template_weight, float) and self.unit_template_weight < 0:
             raise ValueError("unit_template_weight is 'auto' or a float >= 0")
         if self.min_stage > len(lv):
@@ -274,6 +279,26 @@ class CalibrateParams(Section):
     max_iter: int = Field(200, ge=1, description="L-BFGS iterations")
     validate_by_angle: bool = True  # keep the identity unless leave-one-angle-out says the transform helps
     min_trial_s: float = Field(3.0, gt=0, description="a shorter calibration trial is set aside")
+
+
+class NeedsParams(Section):
+    """`needs`: how much data a lab needs (pipeline/needs/): force and cue figures against the training
+    insertions per angle, and a new unit's cues against its calibration insertions per angle, by
+    subsampling the lab's own data."""
+
+    # training insertions per angle to try: "auto" doubles from 3 up to what every angle has, plus that
+    training_insertions: Literal["auto"] | tuple[int, ...] = "auto"
+    calibration_insertions: tuple[int, ...] = (1, 2, 3)  # per angle, for a new unit
+    cue_target_pct: float = Field(95.0, gt=0, le=100, description="balanced accuracy the advice aims at")
+    seed: int = 0  # which insertions a subsample keeps
+
+    @model_validator(mode="after")
+    def _check(self) -> NeedsParams:
+        for name in ("training_insertions", "calibration_insertions"):
+            v = getattr(self, name)
+            if v != "auto" and (not v or any(n < 1 for n in v) or list(v) != sorted(set(v))):
+                raise ValueError(f"{name} must be increasing counts >= 1, got {list(v)}")
+        return self
 
 
 class RegisterParams(Section):

@@ -1,4 +1,4 @@
-"""Reading and writing a unit's calibration document (format "needlecue-unit/3", built by
+"""Reading and writing a unit's calibration document (format "needlecue-unit/4", built by
 `pipeline.calibration.unit`), and picking the transform that applies to one model. Numpy and json
 only: the simulator's client imports this module."""
 
@@ -10,9 +10,10 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.modelling.features import InputTransform
+from pipeline.rig.frontend import declared
 from pipeline.vocab import angle_name, format_problem
 
-FORMAT = "needlecue-unit/3"
+FORMAT = "needlecue-unit/4"  # 4: a transform says its domain (conductance or the inputs)
 DIGITS = 6  # decimals in the JSON: small, stable files
 FILE = "calibration.json"  # its name in MLflow and in the client's cache
 
@@ -34,8 +35,12 @@ def read_unit(path: Path) -> dict[str, Any]:
     problem = format_problem(found, FORMAT, "document", "calibrate the unit again")
     if problem:
         raise ValueError(f"{path}: {problem}")
+    front_end = declared(doc.get("front_end"))
     for kind, t in (doc.get("transforms") or {}).items():
-        InputTransform.from_dict(t)  # raises on a malformed matrix
+        try:
+            InputTransform.from_dict(t, front_end)  # raises on a malformed matrix or domain
+        except ValueError as e:
+            raise ValueError(f"{path}: transform {kind!r}: {e}") from e
         if not isinstance(t.get("models"), dict):
             raise ValueError(f"{path}: transform {kind!r} does not say which models it applies to")
     return doc
@@ -48,7 +53,7 @@ def transform_for(
     t = (doc.get("transforms") or {}).get(kind)
     if t is None or t.get("models", {}).get(angle_name(angle)) != checkpoint_sha:
         return None
-    return InputTransform.from_dict(t)
+    return InputTransform.from_dict(t, declared(doc.get("front_end")))
 
 
 def read_units(cal_dir: Path) -> dict[str, dict[str, Any]]:

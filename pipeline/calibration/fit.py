@@ -1,5 +1,9 @@
-"""Fitting one unit's input transform through frozen models: x' = x A^T + b such that each shared
-model, reading x', gives the reference force of the unit's calibration trials at its angle.
+"""Fitting one unit's transform through frozen models, such that each shared model, reading the
+unit through it, gives the reference force of the unit's calibration trials at its angle. Where the
+unit declares its circuit the map acts on the FSRs' conductance, g' = g A^T + b, before the model's
+inputs are computed from it (the part-to-part quantity: a unit's FSR gains scale its conductance,
+whatever inputs the model reads); otherwise on the model's inputs, x' = x A^T + b
+(`pipeline.modelling.features.InputTransform`).
 
 One transform per unit and model kind, shared by the angles: what differs between units (FSR gain,
 placement, alignment) belongs to the unit, not to the angle, so every calibration insertion constrains
@@ -20,11 +24,11 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CalibrateParams
-from pipeline.modelling.features import InputTransform
+from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
 from pipeline.modelling.predict import Predictor
-from pipeline.rig.frontend import Circuit
+from pipeline.rig.frontend import Circuit, conductance_us, volts_of_conductance
 from pipeline.vocab import AXES
 from pipeline.workers import ordered_map, workers_for
 
@@ -44,31 +48,76 @@ def force_scale(y: np.ndarray) -> float:
 
 @dataclass(frozen=True)
 class AngleData:
-    """One angle's calibration rows as a frozen model reads them, in trial-time order."""
+    """One angle's calibration rows as a frozen model reads them, in trial-time order: what the unit's
+    map acts on (`x`), and, in the conductance domain, how the model's inputs follow from it."""
 
     predictor: Predictor
-    x: np.ndarray  # (n, c) the model's inputs, before the unit's transform
+    x: np.ndarray  # (n, c) the FSRs' conductance (µS; the unit declares its circuit), else the model's inputs
     y: np.ndarray  # (n, 3) reference force, N
     windows: np.ndarray | None  # (n, window) row positions of each row's LSTM window, or None
+    front_end: Circuit | None = None  # the unit's circuit: the map acts on conductance
+    rest: tuple[np.ndarray, np.ndarray] | None = None  # per row, its rest reading's first and last row
+
+    @property
+    def domain(self) -> str:
+        return "inputs" if self.front_end is None else "conductance"
 
     @classmethod
     def of(cls, predictor: Predictor, frame: pd.DataFrame, front_end: Circuit | None = None) -> AngleData:
-        """The rows as the model reads them, through the unit's own circuit if it declares one."""
+        """The rows as the model reads them; with the unit's declared circuit, its FSRs' conductance
+        through it, the map's domain."""
         codes, t = trial_codes(frame), times_of(frame)
         order, start = sequence_order(codes, t)
-        x = features_of(frame, list(predictor.channels), predictor.inputs.through(front_end))[order]
         y = frame[list(AXES)].to_numpy(np.float64)[order]
         windows = window_index(start, predictor.window) if predictor.kind == "lstm" else None
-        return cls(predictor, x, y, windows)
+        if front_end is None:
+            x = features_of(frame, list(predictor.channels), predictor.inputs)[order]
+            return cls(predictor, x, y, windows)
+        g = conductance_us(frame[list(predictor.channels)].to_numpy(np.float64)[order], front_end)
+        rest = (
+            _rest_rows(t[order], start, predictor.inputs.rest_s)
+            if predictor.inputs.kind.startswith("rest_")
+            else None
+        )
+        return cls(predictor, g, y, windows, front_end, rest)
+
+    def inputs(self, mapped: Any) -> Any:
+        """The model's inputs (torch) from `x` after the unit's map: in the conductance domain, the
+        inputs the model's own kind computes from that conductance (as `features` does from volts)."""
+        if self.front_end is None:
+            return mapped
+        import torch
+
+        g = torch.clamp(mapped, min=MIN_CONDUCTANCE_US)
+        a = g if self.predictor.inputs.kind in NEEDS_CIRCUIT else volts_of_conductance(g, self.front_end)
+        if self.rest is None:
+            return a
+        first, last = (torch.from_numpy(i) for i in self.rest)
+        cum = torch.cat([torch.zeros_like(a[:1]), torch.cumsum(a, dim=0)])
+        count = (last - first + 1).to(a.dtype)[:, None]
+        return a - (cum[last + 1] - cum[first]) / count
+
+
+def _rest_rows(t: np.ndarray, start: np.ndarray, rest_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row in trial-time order, the first and last row of its rest reading: the running mean of
+    its trial's rows within `rest_s` of the first, frozen after (`features.rest_reading`)."""
+    pos = np.arange(len(t)) - start
+    within = t - t[start] < rest_s - 1e-9
+    n_rest = np.zeros(len(t), dtype=np.int64)
+    for s0 in np.unique(start):
+        rows = np.flatnonzero(start == s0)
+        n_rest[rows] = max(int(np.sum(within[rows])), 1)  # a prefix: t is sorted within a trial
+    return start.astype(np.int64), (start + np.minimum(pos, n_rest - 1)).astype(np.int64)
 
 
 def _losses(data: list[AngleData], forwards: list[Any], transform: Any) -> list[Any]:
-    """Per angle, the mean squared error of the model on the transformed inputs over `force_scale`²."""
+    """Per angle, the mean squared error of the model reading the unit through the map, over
+    `force_scale`²."""
     import torch
 
     out = []
     for d, forward in zip(data, forwards, strict=True):
-        x = transform(torch.from_numpy(d.x))
+        x = d.inputs(transform(torch.from_numpy(d.x)))
         if d.windows is not None:
             x = x[torch.from_numpy(d.windows)]
         out.append((((forward(x) - torch.from_numpy(d.y)) / force_scale(d.y)) ** 2).mean())
@@ -131,21 +180,21 @@ class _Fold:
     (`held_out` None), or on all but `held_out`, which it then scores. Predictors travel as their
     checkpoints (a network's class is built at run time and does not pickle)."""
 
-    angles: tuple[tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray | None], ...]
+    angles: tuple[tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray | None, Circuit | None, Any], ...]
     p: CalibrateParams
     seed: int
     held_out: int | None
 
 
 def _fold_of(data: list[AngleData], p: CalibrateParams, seed: int, held_out: int | None) -> _Fold:
-    angles = tuple((d.predictor.checkpoint, d.x, d.y, d.windows) for d in data)
+    angles = tuple((d.predictor.checkpoint, d.x, d.y, d.windows, d.front_end, d.rest) for d in data)
     return _Fold(angles, p, seed, held_out)
 
 
 def _run_fold(fold: _Fold) -> tuple[np.ndarray, np.ndarray, float, float, float, float]:
     """(matrix, offset, loss before, loss after) of the fold's fit, then, for a leave-one-angle-out
     fold, the angle left out's loss through the identity and through the fitted transform."""
-    data = [AngleData(Predictor(c), x, y, w) for c, x, y, w in fold.angles]
+    data = [AngleData(Predictor(c), x, y, w, fe, rest) for c, x, y, w, fe, rest in fold.angles]
     forwards = [d.predictor.torch_forward() for d in data]
     i = fold.held_out
     with deterministic_torch(fold.seed):
@@ -172,7 +221,7 @@ def fit_transforms(
     }
     jobs = [_fold_of(data[kind], p, seed, i) for kind, held in folds.items() for i in held]
     # the work: rows through the model (an LSTM reads a window of them per row) in every fold
-    work = sum(len(x) * (1 if w is None else w.shape[1]) for fold in jobs for _, x, _, w in fold.angles)
+    work = sum(len(x) * (1 if w is None else w.shape[1]) for fold in jobs for _, x, _, w, _, _ in fold.angles)
     results = iter(ordered_map(_run_fold, jobs, workers=workers_for(work, WORTH_A_WORKER, workers)))
     return {kind: _decide(data[kind], [next(results) for _ in held]) for kind, held in folds.items()}
 
@@ -212,5 +261,7 @@ def _decide(
             f"({report['held_out_loss_before']:.4g} -> {report['held_out_loss_after']:.4g})"
         )
     if "identity_kept" in report:
-        return InputTransform.identity(n), report
-    return InputTransform.from_dict({"matrix": matrix, "offset": b}), report
+        matrix, b = np.eye(n), np.zeros(n)
+    return InputTransform.from_dict(
+        {"matrix": matrix, "offset": b, "domain": data[0].domain}, data[0].front_end
+    ), report

@@ -1,4 +1,4 @@
-"""One unit's calibration document (format "needlecue-unit/3"), from its calibration rows and the
+"""One unit's calibration document (format "needlecue-unit/4"), from its calibration rows and the
 frozen shared models: which trials and angles it used, what was set aside and why, and per model kind
 the input transform with the models it was fitted through (their checkpoint hashes: a transform
 applies to those models only).

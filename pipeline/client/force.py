@@ -247,14 +247,16 @@ class ForceClient:
             self._features = StreamFeatures(spec, self._n)
         self._cues_on = self._tracker is not None and (decision.calibrated or self._cues_uncalibrated)
         if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
-            from pipeline.cues.tracker import calibration_evidence, unit_evidence
+            from pipeline.cues.tracker import calibration_evidence, reading_of, unit_evidence
 
             self._tracker.use_front_end(decision.circuit)
             pack = self._model.cue_pack
             evidence = (
                 calibration_evidence(pack, (decision.doc or {}).get("cues")) if decision.calibrated else None
             )
-            self._tracker.set_unit(unit_evidence(pack, self.unit_id, evidence))
+            self._tracker.set_unit(
+                unit_evidence(pack, self.unit_id, evidence), reading_of(pack, self.unit_id, evidence)
+            )
         after = (self.calibrated, self.uncalibrated_reason, self.calibration)
         if not self.calibrated and (first or before is None or before[:2] != after[:2]):
             self._warn_uncalibrated()
@@ -435,9 +437,12 @@ class ForceClient:
             raise ValueError(f"non-finite volts {list(sample)} for channels {list(self.channels)}")
         if t_s is None:
             t_s = 0.0 if self._frames == 0 else self._last_t + 1.0 / (self.rate_hz or 1.0)
-        inputs = self._features.push(float(t_s), sample)
-        if self._transform is not None:
-            inputs = self._transform.apply(inputs)
+        if self._transform is None:
+            inputs = self._features.push(float(t_s), sample)
+        else:
+            inputs = self._transform.on_inputs(
+                self._features.push(float(t_s), self._transform.on_volts(sample))
+            )
         x = self._x[0]
         if self._model.window > 1 and self._frames > 0:
             x[:-1] = x[1:]  # slide the window by one sample (numpy handles the overlap)

@@ -79,7 +79,13 @@ def rmse(replayed: pd.DataFrame) -> dict[str, float]:
     }
 
 
-CUE_COLOURS = {"wait": "#bbbbbb", "continue": "#7fc97f", "correct": "#fdb462", "stop": "#e7298a"}
+CUE_COLOURS = {
+    "wait": "#bbbbbb",
+    "continue": "#7fc97f",
+    "correct": "#fdb462",
+    "stop": "#e7298a",
+    "none": "#e0e0e0",  # no angle cue
+}
 
 
 def plot_replay(replayed: pd.DataFrame, out: Path, title: str) -> Path:

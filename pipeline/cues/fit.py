@@ -21,7 +21,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, class_means, cue_for_deviation, discriminant
+from pipeline.cues.reading import distances, log_scores, read_unit
+from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, cue_for_deviation
 from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
 from pipeline.cues.units import average_unit, evidence_of, trial_features
 from pipeline.logs import Log
@@ -89,10 +90,17 @@ def _template_weight(
     return None if tau2 <= 0 else 1.0 / tau2
 
 
+MIN_UNITS_FOR_SPREAD = 3  # training units needed before their spread bounds a new unit's offset
+
+
 def _offset_spread(offset: Mapping[str, np.ndarray], precision: np.ndarray) -> float | None:
-    """The variance of the units' offsets per feature, in the scatter's whitened units (None with
-    fewer than two units: nothing says how far a unit may sit from the average)."""
-    if len(offset) < 2:
+    """The variance of the units' offsets per feature, in the scatter's whitened units. None with
+    fewer than MIN_UNITS_FOR_SPREAD units: nothing, or one difference, says how far a unit may sit
+    from the average (two similar units would call a third that differs "close to average", shrink its
+    calibration towards them, and show it confident wrong cues: measured with est-sim-002 left out of
+    the defaults' three, 11 % of insertions ending on a wrong cue). A calibrated unit is then shifted
+    by its whole offset, and an uncalibrated one gets no angle cue."""
+    if len(offset) < MIN_UNITS_FOR_SPREAD:
         return None
     width = precision.shape[0]
     total = sum(float(d @ precision @ d) for d in offset.values())
@@ -101,7 +109,7 @@ def _offset_spread(offset: Mapping[str, np.ndarray], precision: np.ndarray) -> f
 
 def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams) -> dict:
     """One evidence stage: the average unit's class means, the shared precision, the template weight,
-    and the cells {(unit, class): (n, mean)} of the trials given."""
+    the units' offset spread, and the cells {(unit, class): (n, mean)} of the trials given."""
     keys = sorted(set(zip(units.tolist(), y.tolist(), strict=True)))
     member = {key: (units == key[0]) & (y == key[1]) for key in keys}
     cells = {key: x[m].mean(axis=0) for key, m in member.items()}
@@ -124,20 +132,81 @@ def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, 
 
 
 def _logits(fitted: dict, x: np.ndarray, units: np.ndarray, classes: int) -> np.ndarray:
-    """Scores (trials, classes) of trials, each read through its own unit's class means."""
+    """Scores (trials, classes) of trials, each read through its own unit's class means and their
+    uncertainty (`pipeline.cues.reading`), as the tracker reads them (before the temperature)."""
     stage = fitted["stage"]
     out = np.empty((len(x), classes))
     for u in sorted(set(units.tolist())):
         cells = [(c, float(n), m) for (u2, c), (n, m) in fitted["cells"].items() if u2 == u]
-        means = class_means(stage["means"], cells, stage["template_weight"], stage["offset_spread"])
-        w, b = discriminant(stage, means)
-        sel = units == u
-        out[sel] = x[sel] @ w.T + b
+        reading = read_unit(stage["means"], cells, stage["template_weight"], stage["offset_spread"])
+        for i in np.flatnonzero(units == u):
+            out[i] = log_scores(distances(stage["precision"], reading.means, x[i]), reading, 1.0)
     return out
+
+
+OUTSIDE_P = 0.001  # the share of trials of a trained angle the "outside" test may call outside
+
+
+def outside_limit(n_trials: int, n_classes: int, width: int) -> float | None:
+    """The squared distance from its class mean that a new trial of a trained angle exceeds with
+    probability OUTSIDE_P, in the scatter's units, when the means and the scatter are estimated from
+    `n_trials` trials of `n_classes` classes (Hotelling's predictive distribution: a scaled F, wider
+    than chi-square when the trials are few); None when the trials are too few to say."""
+    from scipy.stats import f
+
+    dof = n_trials - n_classes - width + 1
+    if dof < 1:
+        return None
+    scale = width * (n_trials - n_classes) / dof * (1.0 + n_classes / n_trials)
+    return float(scale * f.ppf(1.0 - OUTSIDE_P, width, dof))
+
+
+CALIBRATION_DEPTHS = (1, 2, 3)  # calibration insertions per angle the "calibrated-<k>" readings validate
+
+
+def _unit_out(
+    x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams
+) -> dict[str, tuple[list[int], np.ndarray]]:
+    """Leave one training unit out, as a new unit meets the estimator: fitted on the other units, the
+    unit left out is read calibrated from its first k trials at each angle (k in CALIBRATION_DEPTHS,
+    as a lab records k calibration insertions per angle; scored on its other trials: reading
+    "calibrated-<k>") and uncalibrated (no cells; scored on all its trials). {reading: (positions in
+    `x` scored, their scores (positions, classes) before the temperature)}; empty with fewer than
+    two units."""
+    out: dict[str, tuple[list[int], list[np.ndarray]]] = {}
+    if len(np.unique(units)) < 2:
+        return {}
+    for held in sorted(set(units.tolist())):
+        rest = units != held
+        if len(np.unique(y[rest])) < n_classes:
+            continue
+        stage = _fit_stage(x[rest], y[rest], units[rest], n_classes, params)["stage"]
+        mine = np.flatnonzero(~rest)
+        by_class: dict[int, list[int]] = {}
+        for i in mine.tolist():
+            by_class.setdefault(int(y[i]), []).append(i)
+        cases = [("uncalibrated", [], mine.tolist())]
+        for k in CALIBRATION_DEPTHS:
+            if any(len(rows) <= k for rows in by_class.values()):
+                continue  # nothing of that class left to score
+            used = {i for rows in by_class.values() for i in rows[:k]}
+            cells = [(c, float(k), x[rows[:k]].mean(axis=0)) for c, rows in sorted(by_class.items())]
+            cases.append((f"calibrated-{k}", cells, [i for i in mine.tolist() if i not in used]))
+        for reading, known, scored in cases:
+            r = read_unit(stage["means"], known, stage["template_weight"], stage["offset_spread"])
+            if not r.known:  # nothing bounds this unit (too few units left): no posterior to validate
+                continue
+            pos, z = out.setdefault(reading, ([], []))
+            for i in scored:
+                pos.append(i)
+                z.append(log_scores(distances(stage["precision"], r.means, x[i]), r, 1.0))
+    return {k: (pos, np.asarray(z)) for k, (pos, z) in out.items() if pos}
 
 
 def _fit_temperature(logits: np.ndarray, y: np.ndarray) -> float:
     """The temperature minimising the cross-validated negative log-likelihood (grid, deterministic)."""
+    if np.ptp(logits, axis=1).max(initial=0.0) == 0.0:
+        return 1.0  # a flat posterior says nothing of the temperature
     best_t, best_nll = 1.0, math.inf
     for temp in np.geomspace(0.2, 20.0, 81):
         p = _softmax(logits / temp)
@@ -179,6 +248,8 @@ def fit_angle_estimator(
     u_all = np.array([t.unit for t in trials])
     st_all = np.array([t.stage for t in trials], dtype=np.int64)
     out_stages = []
+    # per reading (pipeline.cues.tracker.READINGS): (trial, stage, its cross-validated P(angle))
+    cv_probs: dict[str, list[tuple[int, int, np.ndarray]]] = {"training": []}
     for j in range(len(levels) + 1):
         sel = np.flatnonzero(st_all >= j)
         y, g, u = y_all[sel], g_all[sel], u_all[sel]
@@ -204,6 +275,16 @@ def fit_angle_estimator(
             cv_acc = float(np.mean(np.argmax(logits[ok], axis=1) == y[ok]))
             if params.calibrate_temperature:
                 temp = _fit_temperature(logits[ok], y[ok])
+            probs = _softmax(logits[ok] / temp)
+            cv_probs["training"] += [(int(i), j, p) for i, p in zip(sel[ok], probs, strict=True)]
+        temps = {}
+        for reading, (pos, z) in _unit_out(x, y, u, len(angles), params).items():
+            t_r = _fit_temperature(z, y[pos]) if params.calibrate_temperature else 1.0
+            temps[reading] = _sig(t_r)
+            probs = _softmax(z / t_r)
+            cv_probs.setdefault(reading, []).extend(
+                (int(sel[i]), j, p) for i, p in zip(pos, probs, strict=True)
+            )
         stage = fitted["stage"]
         k, spread = stage["template_weight"], stage["offset_spread"]
         out_stages.append(
@@ -213,6 +294,11 @@ def fit_angle_estimator(
                 "template_weight": None if k is None else _sig(k),
                 "offset_spread": None if spread is None else _sig(spread),
                 "temperature": _sig(temp),
+                # a unit left out of training, read calibrated or not (leave-one-unit-out; none with one unit)
+                "temperatures": temps,
+                "outside_limit": None
+                if (lim := outside_limit(len(sel), len(angles), x.shape[1])) is None
+                else _sig(lim),
                 "n_train": len(sel),
                 "cv_accuracy": None if cv_acc is None else _sig(cv_acc, 4),
             }
@@ -229,9 +315,27 @@ def fit_angle_estimator(
             "cannot fit the angle estimator: it needs training trials with a rest reading at every "
             f"angle, more than {len(angles) + 1} in all (has {rested})"
         )
+    # The confidence is chosen on the training units' batches, where cross-validation reads units as
+    # the tracker reads them; a unit left out is put on the same footing by its own temperature, and
+    # what the training units' confidence gives it in cross-validation is recorded beside.
+    confidence = {"training": _min_confidence(cv_probs["training"], trials, angles, len(out_stages), params)}
+    at = params.model_copy(update={"min_confidence": confidence["training"]["min_confidence"]})
+    for reading, probs in cv_probs.items():
+        if reading != "training":
+            confidence[reading] = {
+                **_min_confidence(probs, trials, angles, len(out_stages), at),
+                "chosen_by": "the training units' (its own temperature puts it on their footing)",
+            }
+    for reading, c in confidence.items():
+        log(
+            f"angle estimator, {reading} unit: a cue needs P >= {c['min_confidence']:g} ({c['chosen_by']}); "
+            f"cross-validated, a wrong cue in {100 * c['cv_wrong_frames']:.2f} % of insertion frames, "
+            f"a cue in {100 * c['cv_coverage']:.1f} %"
+        )
     return {
-        "method": "linear discriminant per evidence stage (shared shrunk covariance, uniform priors), "
-        "class means per estimator unit (pipeline.cues.units), softmax(scores / temperature)",
+        "method": "Gaussian classes per evidence stage (shared shrunk covariance, uniform priors), each "
+        "unit read through its own class means and their uncertainty (pipeline.cues.reading), "
+        "softmax(scores / temperature)",
         "features": "per channel, the log of the rest signal (the FSR's conductance through each unit's "
         "declared front end; the volts where none is declared), then the unit direction of the "
         "signal's change since rest when the norm of log(signal / rest) first reaches each level",
@@ -243,7 +347,68 @@ def fit_angle_estimator(
             for unit, per in evidence_of(trials, n_ch).items()
         },
         "cv": "leave-one-batch-out" if len(np.unique(g_all)) >= 2 else "5-fold by trial",
+        "confidence": confidence,
     }
+
+
+CONFIDENCE_GRID = tuple(round(0.5 + 0.01 * i, 2) for i in range(50))  # 0.50 .. 0.99
+
+
+def _min_confidence(
+    cv_probs: Sequence[tuple[int, int, np.ndarray]],
+    trials: Sequence[Any],
+    angles: Sequence[float],
+    n_stages: int,
+    params: CuesParams,
+) -> dict[str, Any]:
+    """The P(deviation class) a cue needs, and what it gives on the cross-validated trials: with
+    `min_confidence: auto`, the least value of CONFIDENCE_GRID at and above which the share of
+    insertion frames showing a wrong cue stays at or under `max_wrong`, every trained angle taken as
+    the preset in turn. Each trial's stage counts for the insertion frames it is the latest stage
+    (`TrialFeatures.frames`; stages past the last fitted one count for it, as the tracker reads them)."""
+    pinned = params.min_confidence != "auto"
+    grid = np.asarray([params.min_confidence] if pinned else CONFIDENCE_GRID, dtype=np.float64)
+    wrong, shown, total = np.zeros(len(grid)), np.zeros(len(grid)), 0.0
+    for preset in angles:
+        dev = np.array(
+            [
+                VERDICTS.index(cue_for_deviation(a - preset, params.continue_below_deg, params.stop_from_deg))
+                for a in angles
+            ]
+        )
+        for i, j, p in cv_probs:
+            frames = trials[i].frames
+            w = float(sum(frames[j:])) if j == n_stages - 1 else float(frames[j] if j < len(frames) else 0)
+            if not w:
+                continue
+            pdev = np.bincount(dev, weights=p, minlength=len(VERDICTS))
+            best = int(np.argmax(pdev))
+            on = pdev[best] >= grid - 1e-12
+            shown += w * on
+            wrong += w * on * (best != dev[label_of(angles, trials[i].angle)])
+            total += w
+    rate = wrong / total if total else np.zeros(len(grid))
+    if pinned:
+        k, how = 0, "pinned in params"
+    else:
+        fine = rate <= params.max_wrong + 1e-12
+        holds = np.flatnonzero(np.logical_and.accumulate(fine[::-1])[::-1])  # fine here and above
+        k = int(holds[0]) if len(holds) else len(grid) - 1
+        how = f"auto: cross-validated wrong-cue frames <= {params.max_wrong:g}"
+        if not len(holds):
+            how += " not reached on the grid; its top value"
+    return {
+        "min_confidence": _sig(grid[k], 4),
+        "chosen_by": how,
+        "cv_wrong_frames": _sig(rate[k] if total else 0.0, 4),
+        "cv_coverage": _sig(shown[k] / total if total else 0.0, 4),
+        "cv_frames": int(total),
+    }
+
+
+def label_of(angles: Sequence[float], angle: float) -> int:
+    """The class index of a trained angle."""
+    return list(angles).index(float(angle))
 
 
 def try_fit_angle_estimator(

@@ -26,6 +26,7 @@ from pipeline.cues.tracker import (
     CueTracker,
     UnitEvidence,
     cue_for_deviation,
+    reading_of,
     unit_evidence,
 )
 from pipeline.cues.trials import Trial, trials_of
@@ -76,6 +77,30 @@ def time_to_cue(t: np.ndarray, right: np.ndarray, start: int, end: int) -> float
     return 0.0 if not len(wrong) else float(t[start + wrong[-1] + 1] - t[start])
 
 
+def _shown(codes: np.ndarray) -> np.ndarray:
+    """Which cue codes are an angle cue shown to the trainee (continue, correct or stop)."""
+    return (codes >= 1) & (codes <= len(VERDICTS))
+
+
+def trainee_view(final: np.ndarray, frames: np.ndarray, wrong_ever: int) -> dict[str, float | None]:
+    """What a trainee sees, from the confusion matrices (rows: true continue / correct / stop; columns:
+    CUES) at the insertion's end and over its frames, and the insertions that showed a wrong cue at
+    some frame: the share of insertions ending on a wrong cue, of insertions showing one at any time,
+    of insertion frames showing one, and of insertion frames showing a cue at all (coverage)."""
+    n, nf = int(final.sum()), int(frames.sum())
+    cue_cols = slice(1, 1 + len(VERDICTS))
+
+    def wrong(m: np.ndarray) -> int:
+        return int(m[:, cue_cols].sum() - np.trace(m[:, cue_cols]))
+
+    return {
+        "wrong_final": wrong(final) / n if n else None,
+        "wrong_ever": wrong_ever / n if n else None,
+        "wrong_frames": wrong(frames) / nf if nf else None,
+        "coverage_frames": int(frames[:, cue_cols].sum()) / nf if nf else None,
+    }
+
+
 def summarise_runs(
     runs: Sequence[Run], continue_below: float = 7.5, stop_from: float = 22.5, within_s: float = 3.0
 ) -> dict[str, Any]:
@@ -88,8 +113,9 @@ def summarise_runs(
         d = out.setdefault(run.kind, {}).setdefault(
             run.method,
             {
-                "final": np.zeros((3, 4), dtype=np.int64),
-                "frames": np.zeros((3, 4), dtype=np.int64),
+                "final": np.zeros((3, len(CUES)), dtype=np.int64),
+                "frames": np.zeros((3, len(CUES)), dtype=np.int64),
+                "wrong_ever": 0,
                 "ttc": {g: [] for g in DEVIATION_GROUPS},
                 "n": {g: 0 for g in DEVIATION_GROUPS},
                 "right_final": {g: 0 for g in DEVIATION_GROUPS},
@@ -99,7 +125,8 @@ def summarise_runs(
         )
         seg = run.codes[run.ins_start : run.ins_end + 1]
         d["final"][true - 1, run.codes[run.ins_end]] += 1
-        d["frames"][true - 1] += np.bincount(seg, minlength=4)
+        d["frames"][true - 1] += np.bincount(seg, minlength=len(CUES))
+        d["wrong_ever"] += int(bool(np.any(_shown(seg) & (seg != true))))
         g = deviation_group(run.true_angle - run.preset)
         d["n"][g] += 1
         d["right_final"][g] += int(run.codes[run.ins_end] == true)
@@ -149,6 +176,7 @@ def summarise_runs(
                 "accuracy_final": float(np.trace(fin[:, 1:]) / fin.sum()) if fin.sum() else None,
                 "accuracy_frames": float(np.trace(frm[:, 1:]) / frm.sum()) if frm.sum() else None,
                 "recall_final": per_class,
+                "seen": trainee_view(fin, frm, d["wrong_ever"]),
                 "time_to_cue": ttc,
                 "force_alarm_trials": d["alarms"] if method == "combined" else None,
             }
@@ -178,12 +206,14 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
     kinds = job.pack["thresholds"]["profile"]
     for a, trials, forces in job.on:
         for tr, f in zip(trials, forces, strict=True):
+            calibration = job.units.get(tr.unit or "")
             tracker = CueTracker(
                 job.pack,
                 job.preset,
                 model_kind=job.kind if job.kind in kinds else None,
-                unit_evidence=unit_evidence(job.pack, tr.unit, job.units.get(tr.unit or "")),
+                unit_evidence=unit_evidence(job.pack, tr.unit, calibration),
                 front_end=tr.front_end,
+                reading=reading_of(job.pack, tr.unit, calibration),
             )
             n = tr.ins_end + 1
             codes = {m: np.zeros(n, dtype=np.int64) for m in METHODS}
@@ -197,7 +227,7 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
                 alarm |= tracker.force_alarm
             seconds += time.perf_counter() - t0
             n_updates += n
-            est = tracker.states["combined"].angle_est_deg
+            est = tracker.angle_map_deg
             for m in job.methods:
                 if m == "combined" and not job.with_estimator:
                     continue
@@ -230,6 +260,7 @@ def evaluate_cues(
     log: Log,
     units: Mapping[str, UnitEvidence] | None = None,
     circuits: Mapping[str, Circuit | None] | None = None,
+    paper_bound: bool = True,
 ) -> dict[str, Any]:
     """Cue quality on the external trials of every angle, for every preset angle with a pack; each
     trial read through its unit's declared circuit in `circuits` (else the pack's).
@@ -237,7 +268,8 @@ def evaluate_cues(
     `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
     angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
     the calibrated units' evidence (`pipeline.cues.units`); a trial of a unit neither there nor
-    among the pack's training units is read as the average unit's.
+    among the pack's training units is read as the average unit's. `paper_bound`: also score the
+    paper's method on the measured force (its upper bound; the angle-estimate matrix comes with it).
     Without external trials with an insertion phase there is nothing to score: the result is
     `skipped_evaluation(reason)`. The combined method is scored only with an angle estimator."""
     external = {float(a): f for a, f in external.items() if len(f)}
@@ -266,6 +298,8 @@ def evaluate_cues(
     # so the (kind, preset) jobs run on every core.
     jobs: list[_Job] = []
     for preset, pack in sorted(packs.items()):
+        if not paper_bound:  # the paper's method on the measured force is not asked for
+            break
         # the paper's comparison on the measured force: not deployable, its upper bound
         on = [(a, trials[a], [tr.force for tr in trials[a]]) for a in external]
         jobs.append(
@@ -389,7 +423,7 @@ def evaluation_json(evaluation: Mapping[str, Any]) -> str:
 
 
 UNIT_GROUPS = ("same_unit", "new_uncalibrated", "new_calibrated")
-GROUP_KEYS = ("balanced_within_s", "recall_within_s", "within_s", "accuracy_final", "confusion_final")
+GROUP_KEYS = ("balanced_within_s", "recall_within_s", "within_s", "accuracy_final", "confusion_final", "seen")
 # (kind, preset angle, true angle, split) -> the preset model's forces on that angle's `split` frame
 ForcesOfSplit = Callable[[str, float, float, str], np.ndarray | None]
 

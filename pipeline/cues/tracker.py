@@ -8,13 +8,17 @@ methods every frame from a *cue pack* (`pipeline.cues.fit.build_cue_pack`):
 - **paper** (profile comparison alone): a running, spread-normalised RMS distance between the
   predicted force and the preset angle's *standard profile*, cut by two calibrated thresholds;
 - **combined** (ours): the estimator's own volts say at which angle it is held (the needle's weight
-  at rest, then the direction in which the FSRs' conductance moves as the load builds), through one linear
-  discriminant per evidence stage read with the estimator unit's own class means (`unit_means`:
-  every unit differs), plus the profile's "force in range" check.
+  at rest, then the direction in which the FSRs' conductance moves as the load builds), through
+  Gaussian classes per evidence stage read with the estimator unit's own class means and how sure
+  they are (`pipeline.cues.reading`: every unit differs), plus the profile's "force in range" check.
 
-Both are debounced (a new cue must hold `debounce_s` before it is shown) with hysteresis. Numpy, the
-params model and the front end's inversion only: the simulator's client imports this module and
-nothing of the training code.
+A trainee taught the wrong angle is worse off than one taught nothing: the combined method shows an
+angle cue only when P(its deviation class) reaches the confidence cross-validated for the way the
+estimator knows this unit (`reading_of`); otherwise it shows "none", no angle cue, saying why
+(`NO_CUE_REASONS`: an uncalibrated unit, not enough evidence yet, or evidence outside what training
+covered). Both methods are debounced (a new cue must hold `debounce_s` before it is shown) with
+hysteresis. Numpy, the params model and the front end's inversion only: the simulator's client imports
+this module and nothing of the training code.
 """
 
 from __future__ import annotations
@@ -27,12 +31,21 @@ from typing import Any
 import numpy as np
 
 from pipeline.config import CuesParams
+from pipeline.cues.reading import UnitReading, distances, log_scores, outside, read_unit
 from pipeline.rig.frontend import Circuit, conductance_us, declared, legacy_divider
 from pipeline.vocab import format_problem
 
-FORMAT = "needlecue-cues/4"  # 4: levels and rest in the signal read (3: directions in conductance)
-CUES = ("wait", "continue", "correct", "stop")
-VERDICTS = CUES[1:]  # the cues a deviation maps to
+FORMAT = "needlecue-cues/5"  # 5: a unit's class means with their uncertainty (4: levels in the signal read)
+# "wait": the rest reading is being collected; "none": no angle cue, the evidence does not decide
+CUES = ("wait", "continue", "correct", "stop", "none")
+VERDICTS = CUES[1:4]  # the cues a deviation maps to
+NO_CUE = CUES.index("none")
+# why there is no angle cue (CueState.no_cue), in the trainee's words
+NO_CUE_REASONS = {
+    "uncalibrated": "uncalibrated unit",
+    "undecided": "not enough evidence yet",
+    "outside": "outside what training covered",
+}
 METHODS = ("combined", "paper")
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
 REFERENCE = "reference"  # profile thresholds calibrated on the reference force (no model)
@@ -40,6 +53,39 @@ MIN_VOLTS = 1e-3  # floor before taking logs (an unloaded FSR reads a few mV)
 
 
 UnitEvidence = Mapping[str, Mapping[str, Any]]  # {angle: {"n": [per stage], "means": [per stage]}}
+
+
+READINGS = ("training", "calibrated", "uncalibrated")  # how the estimator knows a unit (`reading_of`)
+
+
+def reading_of(pack: Mapping[str, Any], unit_id: str | None, calibration: UnitEvidence | None) -> str:
+    """How the angle estimator knows a unit: by its calibration insertions ("calibrated-<k>", k the
+    fewest insertions it has at an angle), by its training trials in the pack ("training"), or not at
+    all ("uncalibrated"). Each has its own cross-validated temperature and confidence in the pack
+    where training allowed (`pipeline.cues.fit`); `CueTracker.set_unit` picks the nearest."""
+    if calibration:
+        k = min((int(e["n"][0]) for e in calibration.values() if e.get("n")), default=1)
+        return f"calibrated-{max(k, 1)}"
+    units = (pack.get("angle_estimator") or {}).get("units") or {}
+    return "training" if unit_id is not None and unit_id in units else "uncalibrated"
+
+
+def validated_reading(reading: str, validated: Sequence[str]) -> str | None:
+    """The reading whose cross-validated numbers apply to `reading`: itself if validated; for a unit
+    calibrated from k insertions per angle, the deepest validated calibration of at most k
+    insertions (else the shallowest, else "training": one training unit, nothing could be left
+    out); for an uncalibrated unit, None unless it was validated (too few training units to leave
+    one out and still bound it: it gets no angle cue)."""
+    if reading in validated:
+        return reading
+    if reading == "uncalibrated":
+        return None
+    if reading.startswith("calibrated-"):
+        k = int(reading.rsplit("-", 1)[1])
+        depths = sorted(int(r.rsplit("-", 1)[1]) for r in validated if r.startswith("calibrated-"))
+        if depths:
+            return f"calibrated-{max([d for d in depths if d <= k] or [depths[0]])}"
+    return "training"
 
 
 def unit_evidence(
@@ -66,57 +112,23 @@ def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None
     return cues["evidence"] if same else None
 
 
-def class_means(
-    mu: np.ndarray,
-    cells: Sequence[tuple[int, float, np.ndarray]],
-    k: float | None,
-    spread: float | None,
-) -> np.ndarray:
-    """A unit's class means from the average unit's `mu` (classes, features) and the unit's `cells`
-    [(class, trials n, their mean features)].
-
-    1. Shift: mu moves by the unit's offset, the cells' mean difference from mu, shrunk by how well
-       the cells pin it down: spread / (spread + its variance), where `spread` is the training units'
-       offset variance and the estimate's variance is (1/n + 1/k) / cells^2 summed over the cells, all
-       per feature in the scatter's whitened units (spread None: no shift).
-    2. Pull: each cell's class moves towards its trials, (n * trials + k * shifted) / (n + k)
-       (k None: no pull; the units' departures at an angle are not told from scatter).
-    No cells: mu."""
-    if not cells:
-        return mu
-    out = mu.copy()
-    if spread is not None:
-        noise = sum(1.0 / n + (0.0 if k is None else 1.0 / k) for _, n, _ in cells) / len(cells) ** 2
-        out = out + spread / (spread + noise) * np.mean([m - mu[c] for c, _, m in cells], axis=0)
-    if k is not None:
-        for c, n, m in cells:
-            out[c] = (n * m + k * out[c]) / (n + k)
-    return out
-
-
-def unit_means(
+def unit_reading(
     stage: Mapping[str, Any], j: int, classes: Sequence[float], evidence: UnitEvidence | None
-) -> np.ndarray:
-    """The class means (classes, features) of evidence stage `j` for the unit of `evidence` (None: the
-    average unit), with the stage's `template_weight` and `offset_spread` (`class_means`)."""
+) -> UnitReading:
+    """How evidence stage `j` reads the unit of `evidence` (None: an uncalibrated unit): its class
+    means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
+    `template_weight` and `offset_spread`."""
     cells = []
     for c, a in enumerate(classes):
         e = (evidence or {}).get(f"{float(a):g}")
         if e and len(e["n"]) > j and e["n"][j] > 0:
             cells.append((c, float(e["n"][j]), np.asarray(e["means"][j], dtype=np.float64)))
-    return class_means(
+    return read_unit(
         np.asarray(stage["means"], dtype=np.float64),
         cells,
         stage.get("template_weight"),
         stage.get("offset_spread"),
     )
-
-
-def discriminant(stage: Mapping[str, Any], means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(coef (classes, features), intercept (classes,)) of the linear discriminant with these class
-    means and the stage's shared precision: score = coef @ x + intercept, equal priors."""
-    w = means @ np.asarray(stage["precision"], dtype=np.float64)
-    return w, -0.5 * np.sum(w * means, axis=1)
 
 
 def cue_for_deviation(dev_deg: float, continue_below: float = 7.5, stop_from: float = 22.5) -> str:
@@ -285,9 +297,10 @@ class Evidence:
 
 @dataclass(frozen=True)
 class CueState:
-    cue: str  # "wait" | "continue" | "correct" | "stop"
-    angle_est_deg: float | None
+    cue: str  # "wait" | "continue" | "correct" | "stop" | "none" (no angle cue)
+    angle_est_deg: float | None  # the estimate behind a shown angle cue (None when none is shown)
     reason: str
+    no_cue: str | None = None  # with "none": a key of NO_CUE_REASONS
 
 
 class _Debounce:
@@ -354,6 +367,10 @@ class CueTracker:
     those calibrated on the reference force).
     Call `reset()` at the start of every insertion, with the needle at rest.
 
+    `unit_evidence` is what the estimator knows of the unit (`unit_evidence`), `reading` how it knows
+    it (`reading_of`: "training", "calibrated-<k>" or "uncalibrated"), which picks the temperature and
+    the confidence a cue needs.
+
     A pack without an angle estimator (`angle_estimator` null: see `unavailable` in the pack) falls
     back to the paper method for the "combined" cue too, its reason saying that the angle estimate is
     unavailable; a pack without a standard profile or profile thresholds has no paper-method cue (it
@@ -369,6 +386,7 @@ class CueTracker:
         method: str = "combined",
         unit_evidence: UnitEvidence | None = None,
         front_end: Circuit | None = None,
+        reading: str = "training",
     ) -> None:
         check_pack(pack)
         if abs(float(pack["preset_angle_deg"]) - float(preset_angle_deg)) > 1e-6:
@@ -394,8 +412,8 @@ class CueTracker:
         self.classes = np.asarray(est["classes_deg"] if est else [], dtype=np.float64)
         self._classes = [float(a) for a in self.classes]
         self._stages = est["stages"] if est else []
-        self._temp = [float(s["temperature"]) for s in self._stages]
-        self.set_unit(unit_evidence)
+        self._est = est
+        self.set_unit(unit_evidence, reading)
         levels = est["levels"] if est else []
         th = pack["thresholds"]
         devcls = [
@@ -459,7 +477,8 @@ class CueTracker:
         self._map = -1
         self._z2, self._nz = 0.0, 0
         self._score: float | None = None
-        self._alarm = False
+        self._alarm = self._alarmed = self._outside = False
+        self._why: str | None = None
         self._state_key: tuple = ()
         self._paper_key: tuple = ()
         self.states: dict[str, CueState] = {
@@ -484,16 +503,27 @@ class CueTracker:
     def profile_score(self) -> float | None:
         return self._score
 
+    @property
+    def angle_map_deg(self) -> float | None:
+        """The most probable trained angle so far, shown or not (None before the rest reading)."""
+        return self._classes[self._map] if self._map >= 0 else None
+
     def posterior(self) -> np.ndarray | None:
         """P(angle) over the pack's trained angles from the evidence so far (None before rest)."""
+        return self._judge()[0]
+
+    def _judge(self) -> tuple[np.ndarray | None, bool]:
+        """(P(angle), whether the evidence lies outside what training covered) from the evidence so
+        far, read through the unit's class means and their uncertainty (None, False before rest)."""
         x = self._ev.features()
-        if x is None or not self._w:
-            return None
-        j = min(self._ev.stage, len(self._w) - 1)
-        z = (self._w[j] @ np.asarray(x[: self._w[j].shape[1]])) + self._b[j]
-        z = z / self._temp[j]
+        if x is None or not self._readings:
+            return None, False
+        j = min(self._ev.stage, len(self._readings) - 1)
+        reading = self._readings[j]
+        d2 = distances(self._precision[j], reading.means, np.asarray(x))
+        z = log_scores(d2, reading, self._temp[j])
         e = np.exp(z - z.max())
-        return e / e.sum()
+        return e / e.sum(), outside(d2, reading, self._temp[j], self._stages[j].get("outside_limit"))
 
     def _accumulate(self, t: float, f: Any) -> None:
         tau = t - self._ev.contact_t  # type: ignore[operator]
@@ -508,13 +538,34 @@ class CueTracker:
         self._nz += 1
 
     # -- one frame ---------------------------------------------------------------------------
-    def set_unit(self, evidence: UnitEvidence | None) -> None:
-        """The estimator unit the angle estimator reads (`unit_evidence`; None: the average unit)."""
-        forms = [
-            discriminant(s, unit_means(s, j, self._classes, evidence)) for j, s in enumerate(self._stages)
+    def set_unit(self, evidence: UnitEvidence | None, reading: str = "training") -> None:
+        """The estimator unit the angle estimator reads (`unit_evidence`; None: an uncalibrated unit,
+        read as the average unit with the training units' spread around it, or not at all when one
+        unit trained: then no angle cue is shown), and how it knows it (`reading_of`): the temperature
+        and the confidence a cue needs were cross-validated for that case where training allowed."""
+        if reading.split("-", 1)[0] not in READINGS:
+            raise ValueError(f"a unit is read as one of {READINGS}, not {reading!r}")
+        self.unit_known = bool(evidence)
+        confidence = (self._est or {}).get("confidence") or {}
+        validated = validated_reading(reading, list(confidence))
+        if validated is None:  # an uncalibrated unit nothing validated: read as not known at all
+            evidence, validated = None, "training"
+            self._unvalidated = True
+        else:
+            self._unvalidated = False
+        self.reading = validated
+        self._temp = [
+            float((s.get("temperatures") or {}).get(self.reading, s["temperature"])) for s in self._stages
         ]
-        self._w = [w for w, _ in forms]
-        self._b = [b for _, b in forms]
+        chosen = confidence.get(self.reading) or confidence.get("training") or {}
+        # the P a cue needs: the params' own, or what the estimator chose by cross-validation
+        auto = self.params.min_confidence == "auto"
+        self.min_confidence = float(chosen.get("min_confidence", 0.7) if auto else self.params.min_confidence)
+        self._readings: list[UnitReading] = [
+            UnitReading(r.means, np.full(len(r.means), math.inf)) if self._unvalidated else r
+            for r in (unit_reading(s, j, self._classes, evidence) for j, s in enumerate(self._stages))
+        ]
+        self._precision = [np.asarray(s["precision"], dtype=np.float64) for s in self._stages]
 
     def update(self, t_s: float, volts: np.ndarray, force_n: np.ndarray) -> CueState:
         """Feed one frame (volts in the pack's channel order, the model's predicted force in N)."""
@@ -527,30 +578,17 @@ class CueTracker:
                 self._accumulate(tp, fp)
         if self._nz:
             self._score = math.sqrt(self._z2 / (3 * self._nz))
-        if changed and ev.rest_n and self._w:
-            p = self.posterior()
-            pd_ = (p @ self._to_dev).tolist()  # type: ignore[operator]
-            self._pdev = pd_
+        if changed and ev.rest_n and self._readings:
+            p, self._outside = self._judge()
+            self._pdev = (p @ self._to_dev).tolist()  # type: ignore[operator]
             self._map = int(np.argmax(p))  # type: ignore[arg-type]
         self._alarm = f[0] * f[0] + f[1] * f[1] + f[2] * f[2] > self._force_limit2
+        self._alarmed |= self._alarm
 
         # combined: angle estimate -> deviation class, force-in-range check
         if self.angle_unavailable is None:
-            deb = self._deb
-            shown = deb.shown
-            cand = shown
-            if self._alarm:
-                cand = 3
-            elif self._pdev is not None and ev.rest_ready(t) and ev.stage >= self._min_stage:
-                pdv = self._pdev
-                best = 0 if pdv[0] >= pdv[1] and pdv[0] >= pdv[2] else (1 if pdv[1] >= pdv[2] else 2)
-                pb = pdv[best]
-                if pb >= self.params.min_confidence and (
-                    shown == 0 or best + 1 == shown or pb >= pdv[shown - 1] + self.params.switch_margin
-                ):
-                    cand = best + 1
-            cue = deb.step(t, cand)
-            key = (cue, self._map, ev.stage, self._alarm, ev.contact_t is not None)
+            cue = self._deb.step(t, self._candidate(t))
+            key = (cue, self._map, ev.stage, self._alarm, ev.contact_t is not None, self._why)
             if key != self._state_key:
                 self._state_key = key
                 self.states["combined"] = self._combined_state(cue)
@@ -580,17 +618,49 @@ class CueTracker:
                 )
         return self.states[self.method]
 
+    def _candidate(self, t: float) -> int:
+        """The cue the evidence supports now (before debouncing); sets `_why` when it is none.
+
+        A cue needs P(its deviation class) >= `min_confidence`, and to beat the shown cue's P by
+        `switch_margin` to replace it; a shown cue is withdrawn (no angle cue) once its P falls below
+        `min_confidence - switch_margin`. A predicted force out of range is a stop for the rest of
+        the insertion."""
+        ev, shown, p = self._ev, self._deb.shown, self.params
+        if self._alarmed:
+            return 3
+        if self._pdev is None or not ev.rest_ready(t):
+            return 0
+        self._why = None
+        if not self._readings[min(ev.stage, len(self._readings) - 1)].known:
+            self._why = "uncalibrated"
+        elif ev.stage < self._min_stage:
+            self._why = "undecided"
+        elif self._outside:
+            self._why = "outside"
+        else:
+            pdv = self._pdev
+            best = 0 if pdv[0] >= pdv[1] and pdv[0] >= pdv[2] else (1 if pdv[1] >= pdv[2] else 2)
+            showing = 1 <= shown <= 3
+            if pdv[best] >= self.min_confidence and (
+                not showing or best + 1 == shown or pdv[best] >= pdv[shown - 1] + p.switch_margin
+            ):
+                return best + 1
+            if showing and pdv[shown - 1] >= self.min_confidence - p.switch_margin:
+                return shown
+            self._why = "undecided" if self.unit_known else "uncalibrated"
+        return NO_CUE
+
     def _combined_state(self, cue: int) -> CueState:
         ev = self._ev
         est = self._classes[self._map] if self._map >= 0 else None
         evidence = "rest reading" + (f" + {ev.stage} loading level(s)" if ev.stage else "")
         if cue == 0:
-            if not ev.rest_ready(math.inf) or self._pdev is None:
-                why = "collecting the rest reading"
-            else:
-                why = f"not confident yet ({evidence}, best P={max(self._pdev):.2f})"
-            return CueState("wait", est, why)
-        if self._alarm and cue == 3:
+            return CueState("wait", None, "collecting the rest reading")
+        if cue == NO_CUE:
+            why = self._why or "undecided"
+            best = "" if self._pdev is None else f", best P={max(self._pdev):.2f}"
+            return CueState("none", None, f"no angle cue: {NO_CUE_REASONS[why]} ({evidence}{best})", why)
+        if self._alarmed and cue == 3:
             return CueState("stop", est, "predicted force above the preset angle's range")
         dev = abs(est - self.preset) if est is not None else math.nan
         what = {

@@ -77,6 +77,23 @@ def trials_rate_hz(trials: Sequence[Trial]) -> float:
 def run_evidence(trial: Trial, params: CuesParams, levels: Sequence[float] = ()) -> Evidence:
     """The evidence of a whole trial (causal code, fed frame by frame until the contact and every
     one of the loading `levels` are reached; none: the contact alone)."""
+    return replay_evidence(trial, params, levels)[0]
+
+
+def stage_frames(trial: Trial, starts: Sequence[int]) -> tuple[int, ...]:
+    """Per evidence stage the trial reached (`starts`: the frame each became the latest, from
+    `replay_evidence`), how many of its insertion frames (labelled 'insertion') the tracker spends
+    with that stage's evidence as its latest: what a cue of that stage weighs for the trainee."""
+    if trial.ins_start < 0:
+        return (0,) * len(starts)
+    ends = [*starts[1:], trial.ins_end + 1]
+    first, last = trial.ins_start, trial.ins_end + 1
+    return tuple(max(0, min(e, last) - max(s, first)) for s, e in zip(starts, ends, strict=True))
+
+
+def replay_evidence(trial: Trial, params: CuesParams, levels: Sequence[float]) -> tuple[Evidence, list[int]]:
+    """(the evidence of `run_evidence`, the frame at which each stage it reached became the latest:
+    the rest reading when it is ready, then each loading level)."""
     ev = Evidence(
         trial.volts.shape[1],
         levels,
@@ -85,11 +102,16 @@ def run_evidence(trial: Trial, params: CuesParams, levels: Sequence[float] = ())
         params.min_rest_s,
         trial.front_end,
     )
+    starts: list[int] = []
     for i, (ti, vi) in enumerate(zip(trial.t.tolist(), trial.volts.tolist(), strict=True)):
         ev.push(ti, vi, None, i)
+        if not starts and ev.rest_ready(ti):
+            starts.append(i)
+        while starts and len(starts) <= ev.stage:
+            starts.append(i)
         if ev.contact_t is not None and ev.stage >= len(levels):
             break
-    return ev
+    return ev, starts
 
 
 def peak_loading(trial: Trial, params: CuesParams) -> float | None:

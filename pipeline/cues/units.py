@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.trials import Trial, loading_levels, run_evidence, trials_of
+from pipeline.cues.trials import Trial, loading_levels, replay_evidence, stage_frames, trials_of
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, channels_of
 
@@ -39,6 +39,7 @@ class TrialFeatures:
     batch: str
     features: np.ndarray  # (channels * (stage + 1),)
     stage: int
+    frames: tuple[int, ...] = ()  # per stage reached, its insertion frames (`stage_frames`)
 
     def at(self, j: int, n_ch: int) -> np.ndarray:
         """The features of stage j (the rest reading and the first j loading directions)."""
@@ -86,11 +87,12 @@ def trial_features(
     levels = loading_levels(trials, params) if levels is None else tuple(levels)
     out = []
     for tr in trials:
-        ev = run_evidence(tr, params, levels)
+        ev, starts = replay_evidence(tr, params, levels)
         f = ev.features()
         if f is not None:
             unit = NO_UNIT if tr.unit is None else tr.unit
-            out.append(TrialFeatures(unit, tr.angle, tr.batch, np.asarray(f), ev.stage))
+            frames = stage_frames(tr, starts)
+            out.append(TrialFeatures(unit, tr.angle, tr.batch, np.asarray(f), ev.stage, frames))
     return out, levels
 
 

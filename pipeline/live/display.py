@@ -18,6 +18,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import IO, Any
 
+from pipeline.cues.tracker import NO_CUE_REASONS
+
 KEEPALIVE_S = 5.0
 
 
@@ -165,13 +167,15 @@ CUE_WORDS = {
     "correct": "CORRECT ANGLE",
     "stop": "STOP",
     "wait": "wait",
-    "none": "no cue",
+    "none": "no angle cue",
 }
 
 
 def terminal_line(state: dict[str, Any]) -> str:
     """The compact terminal view of one state."""
     cue = CUE_WORDS.get(state.get("cue", ""), state.get("cue", ""))
+    if state.get("cue") == "none" and state.get("no_cue") in NO_CUE_REASONS:
+        cue += f" ({NO_CUE_REASONS[state['no_cue']]})"
     ins = state.get("insertion")
     head = f"[{state.get('preset_angle_deg', 0):g}°] " + (f"#{ins} " if ins else "rest ")
     est = state.get("angle_est_deg")

@@ -322,14 +322,16 @@ class LiveSession:
         frame, c = self._frame, self.client
         cue_state = getattr(frame, "cue", None)
         inside = self._current is not None
+        no_cue = None  # why there is no angle cue (pipeline.cues.tracker.NO_CUE_REASONS), if none
         if self._phase in ("connecting", "disconnected"):
             cue, reason = "wait", self._phase
         elif not inside:
             cue, reason = "wait", "at rest: insert when ready"
         elif cue_state is None:
             cue, reason = "none", c.uncalibrated_reason or "this model has no cues"
+            no_cue = "uncalibrated" if not c.calibrated else "unavailable"
         else:
-            cue, reason = cue_state.cue, cue_state.reason
+            cue, reason, no_cue = cue_state.cue, cue_state.reason, cue_state.no_cue
         contact = c.contact_t if inside else None
         return {
             "seq": self._seq,
@@ -339,6 +341,7 @@ class LiveSession:
             "insertion": self._current.number if inside else None,
             "since_contact_s": None if contact is None else self._t - contact,
             "cue": cue,
+            "no_cue": no_cue,
             "reason": reason,
             "angle_est_deg": None if not inside or cue_state is None else cue_state.angle_est_deg,
             "force_n": None if frame is None else [round(float(f), 5) for f in frame.force_n],

@@ -66,7 +66,7 @@ def candidates(front_end: Circuit | None, other_designs: Sequence[str] = ()) -> 
     return [k for k in KINDS if k.endswith("conductance") or not other_designs]
 
 
-def _basis(
+def stand_in_basis(
     x: np.ndarray, linear: bool, intercept: bool, lags: Sequence[int], codes: np.ndarray, t: np.ndarray
 ) -> np.ndarray:
     """The inputs as they are (`linear`, least squares), or standardised with their squares and
@@ -95,7 +95,7 @@ def _nrmse(pred: np.ndarray, y: np.ndarray) -> float:
     return float(np.mean(100.0 * rmse / np.where(span > 0, span, 1.0)))
 
 
-def _ridge(a: np.ndarray, y: np.ndarray) -> np.ndarray:
+def ridge(a: np.ndarray, y: np.ndarray) -> np.ndarray:
     gram = a.T @ a
     lam = RIDGE * float(np.trace(gram)) / len(gram) if len(gram) else 0.0
     return np.linalg.solve(gram + lam * np.eye(len(gram)), a.T @ y)
@@ -142,12 +142,12 @@ def choose_inputs(
         spec = ModelInputs(
             kind=kind, rest_s=rest_s, front_end=front_end if kind.endswith("conductance") else None
         )
-        a = _basis(features_of(rows, channels, spec), model_kind == "ls", intercept, lags, codes, t)
+        a = stand_in_basis(features_of(rows, channels, spec), model_kind == "ls", intercept, lags, codes, t)
         found = []
         for fit_rows, score_rows in folds:
             if score_rows.sum() < MIN_FOLD_ROWS or fit_rows.sum() <= a.shape[1]:
                 continue
-            w = _ridge(a[fit_rows], y[fit_rows])
+            w = ridge(a[fit_rows], y[fit_rows])
             found.append(_nrmse(a[score_rows] @ w, y[score_rows]))
         scores[kind] = float(np.mean(found)) if found else None
     known = {k: s for k, s in scores.items() if s is not None and np.isfinite(s)}

@@ -32,7 +32,14 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from pipeline.config import InputParams
-from pipeline.rig.frontend import Declared, Divider, Transimpedance, conductance_us, legacy_divider
+from pipeline.rig.frontend import (
+    Declared,
+    Divider,
+    Transimpedance,
+    conductance_us,
+    legacy_divider,
+    volts_of_conductance,
+)
 
 KINDS: tuple[str, ...] = tuple(
     k for k in get_args(InputParams.model_fields["kind"].annotation) if k != "auto"
@@ -177,20 +184,42 @@ class StreamFeatures:
         return x - self._sum / self._n
 
 
+DOMAINS = ("conductance", "inputs")  # where a unit's calibration acts (InputTransform.domain)
+MIN_CONDUCTANCE_US = 1e-3  # floor of a calibrated conductance: a map must not open a loaded FSR
+
+
 @dataclass(frozen=True)
 class InputTransform:
-    """A unit's affine map on a model's inputs, x' = x A^T + b, fitted by its calibration so that the
-    shared models read the unit as they read the training units. Identity by default."""
+    """A unit's affine map, fitted by its calibration so that the shared models read the unit as
+    they read the training units. Identity by default. Where it acts (`domain`):
+
+    - "conductance" (the unit declares its circuit): on each FSR's conductance, g' = g A^T + b in µS,
+      the part-to-part quantity, before the model's inputs are computed from the volts of g' (through
+      the unit's own circuit `front_end`), whatever inputs the model reads;
+    - "inputs" (no circuit declared): on the model's inputs, x' = x A^T + b.
+    """
 
     matrix: tuple[tuple[float, ...], ...]
     offset: tuple[float, ...]
+    domain: str = "inputs"
+    front_end: Divider | Transimpedance | None = None
+
+    def __post_init__(self) -> None:
+        if self.domain not in DOMAINS:
+            raise ValueError(f"a unit's transform acts on {' or '.join(DOMAINS)}, not {self.domain!r}")
+        if self.domain == "conductance" and self.front_end is None:
+            raise ValueError("a transform on the FSRs' conductance needs the unit's circuit (front_end)")
 
     @classmethod
     def identity(cls, n: int) -> InputTransform:
         return cls(tuple(tuple(float(i == j) for j in range(n)) for i in range(n)), (0.0,) * n)
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> InputTransform:
+    def from_dict(
+        cls, d: Mapping[str, Any], front_end: Divider | Transimpedance | None = None
+    ) -> InputTransform:
+        """A stored transform (`to_dict`); a conductance-domain one reads through `front_end`, the
+        circuit its unit declares."""
         a = np.asarray(d["matrix"], dtype=np.float64)
         b = np.asarray(d["offset"], dtype=np.float64)
         if (
@@ -202,15 +231,34 @@ class InputTransform:
             raise ValueError(
                 f"an input transform is a finite square matrix and offset, got {a.shape}, {b.shape}"
             )
-        return cls(tuple(map(tuple, a.tolist())), tuple(b.tolist()))
+        domain = str(d.get("domain", "inputs"))
+        return cls(
+            tuple(map(tuple, a.tolist())),
+            tuple(b.tolist()),
+            domain,
+            front_end if domain == "conductance" else None,
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"matrix": [list(r) for r in self.matrix], "offset": list(self.offset)}
+        return {"matrix": [list(r) for r in self.matrix], "offset": list(self.offset), "domain": self.domain}
 
     @property
     def n(self) -> int:
         return len(self.offset)
 
-    def apply(self, x: np.ndarray) -> np.ndarray:
+    def _map(self, x: np.ndarray) -> np.ndarray:
         a = np.asarray(self.matrix, dtype=np.float64)
         return np.asarray(x, dtype=np.float64) @ a.T + np.asarray(self.offset, dtype=np.float64)
+
+    def on_volts(self, volts: np.ndarray) -> np.ndarray:
+        """The volts the unit would read with the calibrated conductance (a conductance-domain map;
+        else the volts themselves): what the model's inputs are computed from."""
+        if self.domain != "conductance":
+            return np.asarray(volts, dtype=np.float64)
+        fe = self.front_end
+        g = self._map(conductance_us(volts, fe))  # type: ignore[arg-type]
+        return volts_of_conductance(np.maximum(g, MIN_CONDUCTANCE_US), fe)  # type: ignore[arg-type]
+
+    def on_inputs(self, x: np.ndarray) -> np.ndarray:
+        """The model's inputs after an inputs-domain map (else unchanged)."""
+        return self._map(x) if self.domain == "inputs" else np.asarray(x, dtype=np.float64)

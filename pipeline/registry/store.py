@@ -62,7 +62,7 @@ external sets of the angles 15° / 30° away. `train_loss` / `val_loss` are the 
 To compare: group runs by the tag `angle_deg`, or filter `tags.angle_deg = '30'`, and chart
 `external_nrmse_pct_mean`. Registered models: `needle-force-<angle>`, aliases `champion` and
 `challenger`."""
-UNIT_ABOUT = """One run per estimator unit calibration document (needlecue-unit/3), named after its unit.
+UNIT_ABOUT = """One run per estimator unit calibration document (needlecue-unit/4), named after its unit.
 
 Params: the `calibrate` settings it was fitted with. Metrics: `<kind>_loss_before` / `<kind>_loss_after`,
 the standardised force error of the frozen shared models on the unit's calibration trials without and

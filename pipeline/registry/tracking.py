@@ -31,7 +31,8 @@ if TYPE_CHECKING:
 
 
 def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:
-    """The run's flat metrics: `<split>_<rmse|nrmse_pct>_<axis|mean>`, accuracy, gap NRMSE."""
+    """The run's flat metrics: `<split>_<rmse|nrmse_pct>_<axis|mean>`, accuracy, gap NRMSE, and the
+    cues of its kind (`cues_<group>_<balanced_within_s|wrong_final|wrong_frames|...>_pct`)."""
     out: dict[str, float] = {}
     for split, scores in t.scores.items():
         for what in ("rmse", "nrmse_pct"):
@@ -47,6 +48,11 @@ def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:
             vals = [c[a] for c in cells if c.get(a) is not None]
             if vals:
                 out[f"gap{float(gap):g}_nrmse_pct_{a}"] = float(np.mean(vals))
+    # What a trainee sees with this kind's cues, over every preset angle (metrics.json "cues")
+    for group, figures in (metrics.get("cues") or {}).get(t.kind, {}).items():
+        for what, v in figures.items():
+            if v is not None and what != "trials":
+                out[f"cues_{group}_{what}_pct"] = float(v)
     for key in ("best_epoch", "epochs_run", "best_val_loss"):
         if isinstance(t.train_metrics.get(key), int | float):
             out[key] = float(t.train_metrics[key])

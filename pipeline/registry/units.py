@@ -1,4 +1,4 @@
-"""Estimator units in the registry: each unit's calibration document (needlecue-unit/3, built by
+"""Estimator units in the registry: each unit's calibration document (needlecue-unit/4, built by
 `pipeline.calibration.unit`) as a run of the experiment `needle-units` and a version of
 `needle-unit-<unit_id>`, alias `@current`; which units' calibrations the current champions have
 outgrown (stale); and the champions' checkpoints that `needlecue calibrate` fits a new unit through.
@@ -184,7 +184,7 @@ def champion_predictors(
 def _describe(name: str, unit_id: str) -> str:
     return (
         f"Calibration of estimator unit {unit_id}: per model kind, the input transform that lets "
-        f"the shared needle-force models read this unit (needlecue-unit/3, `{FILE}`). "
+        f"the shared needle-force models read this unit (needlecue-unit/4, `{FILE}`). "
         f"`@{UNIT_ALIAS}` is what the simulator applies (models:/{name}@{UNIT_ALIAS}); a "
         "transform applies only to the models it was fitted through (their checkpoint sha256)."
     )

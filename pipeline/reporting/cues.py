@@ -131,6 +131,53 @@ def _f(x: float | None, spec: str = ".1f") -> str:
     return "–" if x is None else format(x, spec)
 
 
+def _pct(x: float | None, spec: str = ".1f") -> str:
+    return "–" if x is None else f"{100 * x:{spec}} %"
+
+
+def _confidence(pack: Mapping[str, Any]) -> str:
+    """The P a cue needs, per way the estimator knows a unit, and how it was chosen."""
+    chosen = (pack.get("angle_estimator") or {}).get("confidence") or {}
+    if not chosen:
+        return f"{pack['params']['min_confidence']}"
+    how = {
+        "training": "a training unit",
+        "calibrated-1": "a new unit calibrated from 1 insertion per angle",
+        "calibrated-2": "a new unit calibrated from 2 insertions per angle",
+        "calibrated-3": "a new unit calibrated from 3 or more insertions per angle",
+        "uncalibrated": "an uncalibrated one",
+    }
+    parts = [
+        f"{c['min_confidence']:g} for {how.get(reading, reading)} (cross-validated: a wrong cue in "
+        f"{_pct(c['cv_wrong_frames'], '.2f')} of insertion frames, a cue in {_pct(c['cv_coverage'])})"
+        for reading, c in chosen.items()
+    ]
+    first = next(iter(chosen.values()))
+    return "; ".join(parts) + f", {first['chosen_by']}"
+
+
+def seen_table(res: Mapping[str, Any], kinds: Sequence[str], within_s: float) -> list[str]:
+    """What a trainee sees, side by side: the balanced accuracy within `within_s`, the wrong cues
+    (at the insertion's end, at any time during it, per frame) and the coverage."""
+    lines = [
+        "What a trainee sees (a *wrong cue* is continue, correct or stop shown and not the truth; "
+        "*coverage*: the share of insertion frames showing a cue at all; *balanced*: the mean over the "
+        f"true cues of the share of trials whose cue is right, and stays right, within {within_s:g} s):",
+        "",
+        "| model | method | balanced within "
+        f"{within_s:g} s | wrong at insertion end | wrong at any time | wrong frames | coverage |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for _kind, method, label, r in _rows(res, kinds):
+        seen = r.get("seen") or {}
+        lines.append(
+            f"| {label} | {_label(method)} | {_pct(r.get('balanced_within_s'))} | "
+            f"{_pct(seen.get('wrong_final'))} | {_pct(seen.get('wrong_ever'))} | "
+            f"{_pct(seen.get('wrong_frames'))} | {_pct(seen.get('coverage_frames'))} |"
+        )
+    return lines
+
+
 def _rows(res: Mapping[str, Any], kinds: Sequence[str]) -> list[tuple[str, str, str, Mapping[str, Any]]]:
     """(kind, method, label, result) in report order, the reference-force bound last."""
     out = [(k, m, f"{k.upper()}", res[k][m]) for k in kinds for m in METHODS if m in res[k]]
@@ -164,19 +211,23 @@ def angle_cues(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str,
         "the direction in which the three FSRs' conductance moves from rest (through the unit's "
         "declared circuit; the volts where none is declared), taken each time its log-ratio to rest "
         "reaches one of the loading levels set by the training trials, differs too. "
-        "A linear discriminant per evidence stage, "
+        "Gaussian classes per evidence stage, "
         "fitted on the training splits of all angles and reading each estimator unit through its own "
-        "class means (docs/units.md; "
-        "temperature by leave-one-batch-out), gives P(angle); the cue is the most probable "
-        f"deviation class once its probability reaches {pp['min_confidence']:g}, with the profile's "
+        "class means and how sure they are (docs/units.md; "
+        "temperature by leave-one-batch-out), give P(angle); the cue is the most probable "
+        f"deviation class once its probability reaches {_confidence(some)}, with the profile's "
         f"force-in-range check (a predicted force above {pp['force_margin']:g}× the preset angle's largest "
-        "training force means stop). Both are causal, frame by frame, and debounced "
+        "training force means stop). Otherwise the trainee sees **no angle cue**, with why: an "
+        "uncalibrated unit, not enough evidence yet, or evidence outside what training covered. Both "
+        "methods are causal, frame by frame, and debounced "
         f"({pp['debounce_s']:g} s). Scored on the held-out batch: every preset angle against the "
         f"{'/'.join(str(n) for n in n_trials)} held-out trials of every angle; truth from |true − preset|: "
         "0° continue, 15° correct, ≥ 30° stop; the insertion spans the frames labelled `insertion` "
         "(from the reference force, for scoring only: the tracker never sees it).",
         "",
         *([*_NOT_DONE_HEAD, *not_done, ""] if not_done else []),
+        *seen_table(res, kinds, float(evaluation.get("within_s") or pp["cue_within_s"])),
+        "",
         "| model | method | right at insertion end | per frame during insertion | "
         "recall continue / correct / stop | force-check stops |",
         "|---|---|---|---|---|---|",

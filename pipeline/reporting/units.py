@@ -15,6 +15,9 @@ from pipeline.vocab import AXES, kind_label
 NEW_UNIT_RATIO = 1.2  # champion NRMSE on the calibrated new unit / on the training units
 CUE_BALANCED = 0.95  # balanced accuracy of the cues on the calibrated new unit, within cue_within_s
 UNCALIBRATED_RATIO = 1.5  # champion NRMSE on the new unit without its calibration / on the training units
+MAX_WRONG = (
+    0.02  # wrong angle cues a trainee may see: at the insertion's end and per insertion frame (issue 39)
+)
 MISSING = "missing"
 
 GROUP_LABELS = {
@@ -93,7 +96,32 @@ def targets(transfer: Mapping[str, Any], cue_groups: Mapping[str, Any]) -> list[
         lines.append(
             cue_line + f"best {value:.1%} ({kind_label(kind)}, {method}){_mark(value >= CUE_BALANCED)}"
         )
+    lines += _wrong_lines(cue_groups)
     return lines
+
+
+def _wrong_lines(cue_groups: Mapping[str, Any]) -> list[str]:
+    """Per unit group, the combined cue's wrong cues against MAX_WRONG (the worst model kind's)."""
+    out = []
+    for group, label in GROUP_LABELS.items():
+        seen = [
+            r["seen"]
+            for kind, methods in ((cue_groups.get(group) or {}).get("results") or {}).items()
+            if kind != "reference"
+            for method, r in methods.items()
+            if method == "combined" and r.get("seen")
+        ]
+        if not seen:
+            continue
+        end = max(s["wrong_final"] or 0.0 for s in seen)
+        frames = max(s["wrong_frames"] or 0.0 for s in seen)
+        cover = min(s["coverage_frames"] or 0.0 for s in seen)
+        out.append(
+            f"- Cues, {label}: a wrong cue at the insertion's end in at most {MAX_WRONG:.0%} of trials and "
+            f"of insertion frames: {end:.1%} and {frames:.1%}{_mark(max(end, frames) <= MAX_WRONG)} "
+            f"(a cue shown in {cover:.1%} of insertion frames)"
+        )
+    return out
 
 
 def best_cue(group: Mapping[str, Any]) -> tuple[str, str, float] | None:
@@ -109,6 +137,11 @@ def best_cue(group: Mapping[str, Any]) -> tuple[str, str, float] | None:
         return None
     value, kind, method = max(found)
     return kind, method, value
+
+
+def _seen_cell(seen: Mapping[str, Any]) -> str:
+    pct = {k: 100 * (seen.get(k) or 0.0) for k in ("wrong_final", "wrong_frames", "coverage_frames")}
+    return f"wrong {pct['wrong_final']:.1f} / {pct['wrong_frames']:.1f} %; cue {pct['coverage_frames']:.0f} %"
 
 
 def cue_table(cue_groups: Mapping[str, Any]) -> list[str]:
@@ -131,12 +164,14 @@ def cue_table(cue_groups: Mapping[str, Any]) -> list[str]:
         for group in GROUP_LABELS:
             r = ((cue_groups.get(group) or {}).get("results") or {}).get(kind, {}).get(method)
             v = None if r is None else r.get("balanced_within_s")
-            cells.append("–" if v is None else f"{v:.1%}")
+            cells.append("–" if v is None else f"{v:.1%}; {_seen_cell((r or {}).get('seen') or {})}")
         rows.append([f"{kind_label(kind)} {method}", *cells])
     header = ["cue (model, method)", *(GROUP_LABELS[g] for g in GROUP_LABELS)]
     return [
         f"Balanced accuracy over continue / correct / stop of the cue being right, and staying right, within "
-        f"{within:g} s of the insertion's start (external trials; chance is 33 %):",
+        f"{within:g} s of the insertion's start (external trials; chance is 33 %); then the wrong cues "
+        "shown at the insertion's end and per insertion frame, and the share of insertion frames with a "
+        "cue at all (the rest say *no angle cue*):",
         "",
         *table(header, rows),
     ]

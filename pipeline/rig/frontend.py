@@ -94,7 +94,17 @@ def circuit_key(circuit: Circuit | None) -> str:
 
 def volts_of(r_kohm: np.ndarray, fe: Circuit) -> np.ndarray:
     """Output volts for FSR resistances `r_kohm` (elementwise, before any rail or ADC clipping)."""
-    r = np.asarray(r_kohm, dtype=np.float64) + fe.series_kohm
+    return _output(np.asarray(r_kohm, dtype=np.float64) + fe.series_kohm, fe)
+
+
+def volts_of_conductance(g_us: Any, fe: Circuit) -> Any:
+    """Output volts for FSR conductances `g_us` (µS): `volts_of` of their resistance. Arithmetic only,
+    so that it also runs on torch tensors (a unit's calibration is fitted through it)."""
+    return _output(1e3 / g_us + fe.series_kohm, fe)
+
+
+def _output(r: Any, fe: Circuit) -> Any:
+    """The circuit's output for the total resistance `r` (kOhm) in the FSR's branch."""
     if isinstance(fe, Divider):  # written so that it rounds as the simulator always has
         if fe.fsr_at == "supply":
             return fe.supply_v / (1.0 + r / fe.fixed_kohm)

@@ -1,15 +1,18 @@
 """`evaluate` stage: every model scored within its angle and across angle gaps -> metrics.json.
 
 Input: `DATA_DIR/<angle>/{external,test}.parquet` (the truth; `DATA_DIR/manifest.json` says which
-units trained), the predict stage's `PRED_DIR` (the predictions) and the units' calibrations in
-`CAL_DIR`; nothing is predicted here. Output: `METRICS_JSON` (see `pipeline.metrics.evaluation` and,
-per estimator unit, `pipeline.metrics.units`); the report stage renders it.
+units trained), the predict stage's `PRED_DIR` (the predictions), the units' calibrations in
+`CAL_DIR` and the cues stage's `CUES_EVAL` (evaluation.json); nothing is predicted here. Output:
+`METRICS_JSON` (see `pipeline.metrics.evaluation`, per estimator unit `pipeline.metrics.units`, and
+the cues' headline `pipeline.metrics.cues`); the report stage renders it.
 
-Usage: `python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR METRICS_JSON [--params params.yaml]`.
+Usage:
+`python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR CUES_EVAL METRICS_JSON [--params params.yaml]`.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -20,6 +23,7 @@ from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.dataset.splits import unit_roles
 from pipeline.logs import setup
+from pipeline.metrics.cues import cue_headline
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
 from pipeline.metrics.units import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.predictions import Predictions
@@ -29,7 +33,12 @@ _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs a
 
 
 def main(
-    data_dir: Path, pred_dir: Path, cal_dir: Path, metrics_json_path: Path, params: Path = Path("params.yaml")
+    data_dir: Path,
+    pred_dir: Path,
+    cal_dir: Path,
+    cues_eval: Path,
+    metrics_json_path: Path,
+    params: Path = Path("params.yaml"),
 ) -> None:
     """Score the stored predictions as in the paper's sections V-VI, and per unit, into metrics.json."""
     setup("evaluate")
@@ -43,6 +52,7 @@ def main(
         scored = gather(eval_sets, predictions, list(train.models), angles, _log)
         roles = unit_roles(data_dir)
         units = read_units(cal_dir)
+        cues = json.loads(cues_eval.read_text()) if cues_eval.is_file() else None
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e
@@ -58,6 +68,9 @@ def main(
     champions = champions_by_angle(metrics["within_angle"], models)
     metrics["unit_transfer"] = unit_transfer(eval_sets, predictions, models, roles, calibrated, champions)
     metrics["calibration"] = calibration_summary(units)
+    metrics["cues"] = cue_headline(cues)
+    if cues is None:
+        _log(f"warning: no cue evaluation at {cues_eval}: metrics.json has no cue figures")
     metrics_json_path.parent.mkdir(parents=True, exist_ok=True)
     metrics_json_path.write_text(metrics_json(metrics))
     elapsed = time.perf_counter() - start

@@ -1,8 +1,9 @@
 """`report` stage: the last one; renders what the others computed into what people read.
 
 Input: `DATA_DIR` (the truth of the plotted trials), `PRED_DIR` (the stored predictions),
-`REPORTS_DIR/metrics.json` (evaluate) and `REPORTS_DIR/cues/{packs,evaluation.json}` (cues; without
-them the report has no angle-cue section).
+`REPORTS_DIR/metrics.json` (evaluate), `REPORTS_DIR/cues/{packs,evaluation.json}` (cues; without
+them the report has no angle-cue section) and `REPORTS_DIR/needs/needs.json` (needs; without it, no
+data-needs section).
 Output in REPORTS_DIR: `report.md` (assembled from the section functions of
 `pipeline.reporting.report` and `pipeline.reporting.cues`), `figures/` (Figs. 7-8 analogues, the
 angle-gap heatmap), `plots/{gap,profile}.csv` (DVC plots) and `cues/{summary.md, confusion.png,
@@ -25,6 +26,7 @@ from pipeline.metrics.evaluation import gather, load_eval_sets
 from pipeline.modelling.predictions import Predictions, read_inputs
 from pipeline.reporting import cues, figures, report, units
 from pipeline.reporting.inputs import inputs_section
+from pipeline.reporting.needs import how_much_data_you_need
 from pipeline.vocab import angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
@@ -65,6 +67,11 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     figures.plot_gaps(eval_sets, scored, models, gaps, fig_dir / figures.FIGURES[1])
     figures.plot_gap_matrix(metrics, models, fig_dir / figures.FIGURES[2])
     unit_section = inputs_section(read_inputs(pred_dir)) + units.estimator_units(metrics, evaluation)
+    needs_file = reports_dir / "needs" / "needs.json"
+    if needs_file.is_file():  # the needs stage drew its figure; the report links it
+        unit_section += "\n\n" + how_much_data_you_need(json.loads(needs_file.read_text()), "needs/needs.png")
+    else:
+        _log(f"warning: no {needs_file} (run the needs stage): no data-needs section")
     text = report.render(metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section)
     (reports_dir / "report.md").write_text(text)
     _log(f"report.md, {len(figures.FIGURES)} figures and the cue summary -> {reports_dir}")

@@ -32,6 +32,17 @@ TINY = {
 class Registered:
     uri: str  # the client tests' own MLflow store
     checkpoint: dict  # the LSTM registered there as needle-force-30@champion, version 1, with a cue pack
+    pack: dict  # that cue pack
+
+
+BENCH_UNIT = "est-bench"  # the estimator unit that records `cue_trials`
+
+
+def cue_evidence(pack: dict, unit: str = BENCH_UNIT) -> dict:
+    """A unit calibration's `cues` section whose calibration insertions read as `unit`'s training
+    trials in `pack` (a new unit that sits where the training unit does)."""
+    est = pack["angle_estimator"]
+    return {"levels": est["levels"], "evidence": est["units"][unit]}
 
 
 class Clock:
@@ -69,6 +80,7 @@ def cue_trials(
                     "trial_id": f"t{k:02d}",
                     "angle_deg": float(angle),
                     "tissue_point": "p1",
+                    "unit_id": BENCH_UNIT,
                     "t_s": t,
                     "phase": np.where(t < 1.0, "rest", "insertion"),
                     **{c: v[:, i] for i, c in enumerate(CHANNELS)},
@@ -129,9 +141,11 @@ def unit_document(
     models: Mapping[float, dict],
     matrix: list[list[float]] | None = None,
     offset: list[float] | None = None,
+    cues: dict | None = None,
 ) -> dict:
-    """A needlecue-unit/3 document of `unit_id` whose transform (one per kind of `models`, {angle:
-    checkpoint}) was "made with" those checkpoints; the identity unless `matrix` / `offset` are given."""
+    """A needlecue-unit/4 document of `unit_id` whose transform (one per kind of `models`, {angle:
+    checkpoint}) was "made with" those checkpoints; the identity unless `matrix` / `offset` are given;
+    `cues`: what its calibration insertions tell the angle estimator (`cue_evidence`; None: nothing)."""
     transforms: dict[str, dict] = {}
     for angle, checkpoint in models.items():
         n = len(checkpoint["channels"])
@@ -159,6 +173,7 @@ def unit_document(
         "set_aside": [],
         "transforms": transforms,
         "params": {"transform": "full", "ridge": 0.01},
+        **({"cues": cues} if cues is not None else {}),
     }
 
 

@@ -28,7 +28,7 @@ def registered(tmp_path_factory: pytest.TempPathFactory) -> Registered:
     checkpoint = fit("lstm", TINY["lstm"], train[30]).checkpoint
     pack = build_cue_pack(train, 30, CuesParams(), cue_predictions(checkpoint, train))
     register(uri, root, checkpoint, pack)
-    return Registered(uri, checkpoint)
+    return Registered(uri, checkpoint, pack)
 
 
 @pytest.fixture(scope="package")

@@ -45,7 +45,7 @@ TAMPERED = {
     "input setting": (_edit_mlmodel("rest_s: 0.5", "rest_s: 5.0"), "needlecue block is not the description"),
     # the cue pack's evidence levels
     "cue pack": (
-        _edit_mlmodel("needlecue-cues/4", "needlecue-cues/3"),
+        _edit_mlmodel("needlecue-cues/5", "needlecue-cues/3"),
         "needlecue block is not the description",
     ),
     "a bit of the graph": (_flip_a_bit, "graph was changed, damaged or swapped"),

@@ -62,14 +62,14 @@ def test_a_cue_pack_of_another_format_gives_force_without_cues(
     # given: the fetched model, its cue pack marked as made by an older needlecue
     old = shutil.copytree(fetched, tmp_path / "old-pack")
     mlmodel = old / "MLmodel"
-    mlmodel.write_text(mlmodel.read_text().replace("needlecue-cues/4", "needlecue-cues/3"))
+    mlmodel.write_text(mlmodel.read_text().replace("needlecue-cues/5", "needlecue-cues/3"))
     # when: a client loads it, cues asked for, the edited description run unverified
     with caplog.at_level(logging.WARNING, logger="pipeline.client"), pytest.warns(fc.UncalibratedUnit):
         client = fc.ForceClient.from_dir(old, cues_uncalibrated=True, unverified=True)
     # then: force every frame, no cue, and a warning that says why and what to do
     frame = client.step([0.6, 0.6, 0.6])
     assert frame.force_n.shape == (3,) and frame.cue is None
-    expected = "no cues: not a needlecue-cues/4 cue pack (format 'needlecue-cues/3'): made by another"
+    expected = "no cues: not a needlecue-cues/5 cue pack (format 'needlecue-cues/3'): made by another"
     assert any(expected in m and "dvc repro" in m for m in caplog.messages)
 
 

@@ -13,14 +13,15 @@ from pipeline.client.replay import cue_changes, replay, rmse
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
 from pipeline.modelling.fit import fit
-from tests.client.builders import TINY, cue_predictions, cue_trials, register
+from tests.client.builders import BENCH_UNIT, TINY, cue_predictions, cue_trials, register
 
 pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
 
 
 def test_replay_returns_one_row_per_sample_in_time_order(fetched: Path) -> None:
     # given: one trial at the preset angle, its rows shuffled
-    client = fc.ForceClient.from_dir(fetched, cues_uncalibrated=True)  # the pack's units: cues anyway
+    # the training unit, whose evidence is in the pack: its cues without a calibration of its own
+    client = fc.ForceClient.from_dir(fetched, unit_id=BENCH_UNIT, cues_uncalibrated=True)
     trial = cue_trials(30, 1, seed=4, n=60)
     shuffled = trial.sample(frac=1.0, random_state=0)
     # when: replaying it

@@ -10,7 +10,14 @@ from typer.testing import CliRunner
 
 from pipeline import client as fc
 from pipeline.cli import app
-from tests.client.builders import UNREACHABLE, Registered, cue_trials, register_unit, unit_document
+from tests.client.builders import (
+    UNREACHABLE,
+    Registered,
+    cue_evidence,
+    cue_trials,
+    register_unit,
+    unit_document,
+)
 
 pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
 
@@ -22,7 +29,8 @@ def test_replay_command_prints_the_summary_and_writes_the_plot(
     # champion, the registry and an empty model cache
     data = tmp_path / "external.parquet"
     cue_trials(45, 2, "held", seed=3).to_parquet(data)
-    register_unit(registered.uri, unit_document("est-r1", {30: registered.checkpoint}))
+    doc = unit_document("est-r1", {30: registered.checkpoint}, cues=cue_evidence(registered.pack))
+    register_unit(registered.uri, doc)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", registered.uri)
     monkeypatch.setenv(fc.CACHE_ENV, str(tmp_path / "cache"))
     runner = CliRunner()
@@ -101,7 +109,8 @@ def test_replay_takes_a_raw_trial_and_its_unit_from_the_batch_folder(
     raw = tmp_path / "raw"
     raw.mkdir()
     write_batch(SimulateParams(), BatchPlan("lab-r1", 1, (30.0,), 1, 1, "est-r1"), raw)
-    register_unit(registered.uri, unit_document("est-r1", {30: registered.checkpoint}))
+    doc = unit_document("est-r1", {30: registered.checkpoint}, cues=cue_evidence(registered.pack))
+    register_unit(registered.uri, doc)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", registered.uri)
     monkeypatch.setenv(fc.CACHE_ENV, str(tmp_path / "cache"))
     monkeypatch.chdir(Path(__file__).resolve().parents[2])  # params.yaml of the project

@@ -8,9 +8,10 @@ import math
 import numpy as np
 import pandas as pd
 
-from pipeline.cues.tracker import CueTracker
+from pipeline.cues.tracker import CueTracker, unit_evidence
 
 RATE = 30.0
+NOMINAL = "nominal"  # the unit that records `make_trial`'s trials unless told otherwise
 CHANNELS = ("fsr1", "fsr2", "fsr3")
 ANGLES = (0, 15, 30, 45)
 
@@ -57,6 +58,7 @@ def make_trial(
             "trial_id": trial_id,
             "angle_deg": float(angle),
             "tissue_point": "p1",
+            "unit_id": NOMINAL,
             "t_s": t,
             "phase": phase,
             **{c: volts[:, i] for i, c in enumerate(CHANNELS)},
@@ -100,6 +102,12 @@ def make_unit_split(
     )
     frame["unit_id"] = unit_id
     return frame
+
+
+def nominal_tracker(pack: dict, preset: float, **kw) -> CueTracker:
+    """A tracker reading the nominal unit, which recorded the training trials (its evidence is in
+    the pack), as the client reads a training unit."""
+    return CueTracker(pack, preset, unit_evidence=unit_evidence(pack, NOMINAL), **kw)
 
 
 def run_tracker(tracker: CueTracker, frame: pd.DataFrame, force: np.ndarray | None = None) -> list:

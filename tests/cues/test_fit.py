@@ -1,4 +1,4 @@
-"""Fitting cue packs: small strict JSON, the angle estimator's LDA form, what cannot be built."""
+"""Fitting cue packs: small strict JSON, what cannot be built."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.cues.tracker import discriminant
 from tests.cues.synthetic import (
     ANGLES,
     CHANNELS,
@@ -23,29 +22,13 @@ def test_pack_is_small_json_and_round_trips(pack30: dict) -> None:
     # then: nothing is lost, it is small, and it says what it is
     assert back == pack30
     assert len(text) < 100_000
-    assert pack30["format"] == "needlecue-cues/4"
+    assert pack30["format"] == "needlecue-cues/5"
     assert pack30["channels"] == list(CHANNELS)
     assert pack30["angles"] == [float(a) for a in ANGLES]
     assert pack30["rate_hz"] == pytest.approx(RATE, rel=1e-3)
     prof = pack30["standard_profile"]
     assert len(prof["mean_n"]) == len(prof["sd_n"]) and len(prof["mean_n"][0]) == 3
     assert set(pack30["thresholds"]["profile"]) == {"reference"}  # no predictor given
-
-
-def test_discriminant_scores_are_the_gaussian_log_posterior_up_to_a_constant() -> None:
-    # given: class means and a shared precision
-    rng = np.random.default_rng(0)
-    means = rng.normal(0, 1, (3, 4))
-    a = rng.normal(0, 1, (4, 4))
-    precision = a @ a.T + 4 * np.eye(4)
-    x = rng.normal(0, 1, (5, 4))
-    # when: scored as the tracker scores them
-    w, b = discriminant({"precision": precision.tolist()}, means)
-    scores = x @ w.T + b
-    # then: they differ from -1/2 Mahalanobis distance by one constant per sample (equal priors)
-    d = x[:, None, :] - means[None, :, :]
-    logp = -0.5 * np.einsum("nci,ij,ncj->nc", d, precision, d)
-    np.testing.assert_allclose(scores - logp, (scores - logp)[:, :1].repeat(3, axis=1), atol=1e-9)
 
 
 def test_two_angles_give_a_two_class_estimator(two_angle_pack: dict) -> None:

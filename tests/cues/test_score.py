@@ -23,7 +23,7 @@ from tests.cues.synthetic import (
 def test_summarise_runs_hand_checked() -> None:
     # given: three runs on a 0.5 s grid, insertion from frame 2 to frame 7
     t = np.arange(10) * 0.5
-    W, C, K, S = 0, 1, 2, 3  # wait, continue, correct, stop
+    W, C, K, S, N = 0, 1, 2, 3, 4  # wait, continue, correct, stop, none (no angle cue)
     runs = [
         # preset 30, true 30 -> continue; wrong (correct) at frame 4, right from frame 5 on: 5 -> 1.5 s
         Run("ls", "combined", 30, 30, t, np.array([W, W, C, C, K, C, C, C, C, C]), 2, 7),
@@ -31,16 +31,24 @@ def test_summarise_runs_hand_checked() -> None:
         Run("ls", "combined", 30, 45, t, np.array([W, K, K, K, K, K, K, K, S, S]), 2, 7),
         # preset 30, true 60 -> stop; ends on correct: never right
         Run("ls", "combined", 30, 60, t, np.array([W, W, W, S, S, S, K, K, K, K]), 2, 7),
-        # preset 0, true 30 -> stop; right from frame 7 (the last one): 2.5 s
-        Run("ls", "combined", 0, 30, t, np.array([W, W, W, W, W, W, W, S, C, C]), 2, 7),
+        # preset 0, true 30 -> stop; no angle cue from frame 4, right from frame 7 (the last one): 2.5 s
+        Run("ls", "combined", 0, 30, t, np.array([W, W, W, W, N, N, N, S, C, C]), 2, 7),
     ]
     # when
     res = summarise_runs(runs)["ls"]["combined"]
-    # then: the final-cue confusion (rows continue/correct/stop; columns wait/continue/correct/stop)
-    assert res["confusion_final"]["counts"] == [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]
+    # then: the final-cue confusion (rows continue/correct/stop; columns wait/continue/correct/stop/none)
+    assert res["confusion_final"]["counts"] == [[0, 1, 0, 0, 0], [0, 0, 1, 0, 0], [0, 0, 1, 1, 0]]
     assert res["accuracy_final"] == pytest.approx(3 / 4)
-    # per frame over frames 2..7: run 1: C,C,K,C,C,C; run 2: K x6; run 3: W,S,S,S,K,K; run 4: W x5, S
-    assert res["confusion_frames"]["counts"] == [[0, 5, 1, 0], [0, 0, 6, 0], [6, 0, 2, 4]]
+    # per frame over frames 2..7: run 1: C,C,K,C,C,C; run 2: K x6; run 3: W,S,S,S,K,K; run 4: W,W,N,N,N,S
+    assert res["confusion_frames"]["counts"] == [[0, 5, 1, 0, 0], [0, 0, 6, 0, 0], [3, 0, 2, 4, 3]]
+    # what the trainee saw: run 3 ends wrong; runs 1 and 3 showed a wrong cue at some frame; 3 of the
+    # 24 insertion frames show a wrong cue, 18 show a cue at all
+    assert res["seen"] == {
+        "wrong_final": 1 / 4,
+        "wrong_ever": 2 / 4,
+        "wrong_frames": 3 / 24,
+        "coverage_frames": 18 / 24,
+    }
     ttc = res["time_to_cue"]
     assert ttc["0"] == {
         "trials": 1,
@@ -72,7 +80,7 @@ def test_evaluate_cues_tiny_case(
     ev = evaluate_cues(external, params, {30: pack30}, zero_forces(external), log=lambda _m: None)
     # then: hand-checked: 0° -> stop (2), 15° and 45° -> correct (4), 30° -> continue (2), all right
     ours = ev["results"]["ls"]["combined"]
-    assert ours["confusion_final"]["counts"] == [[0, 2, 0, 0], [0, 0, 4, 0], [0, 0, 0, 2]]
+    assert ours["confusion_final"]["counts"] == [[0, 2, 0, 0, 0], [0, 0, 4, 0, 0], [0, 0, 0, 2, 0]]
     assert ours["accuracy_final"] == 1.0
     for group, n in (("0", 2), ("15", 4), ("30", 2)):
         assert ours["time_to_cue"][group] == {
@@ -85,10 +93,16 @@ def test_evaluate_cues_tiny_case(
         }
     frames = {a: int((make_split(a, ["heldout"], 2, seed=9)["phase"] == "insertion").sum()) for a in ANGLES}
     assert ours["confusion_frames"]["counts"] == [
-        [0, frames[30], 0, 0],
-        [0, 0, frames[15] + frames[45], 0],
-        [0, 0, 0, frames[0]],
+        [0, frames[30], 0, 0, 0],
+        [0, 0, frames[15] + frames[45], 0, 0],
+        [0, 0, 0, frames[0], 0],
     ]
+    assert ours["seen"] == {
+        "wrong_final": 0.0,
+        "wrong_ever": 0.0,
+        "wrong_frames": 0.0,
+        "coverage_frames": 1.0,
+    }
     assert ev["angle_estimate_at_insertion_end"]["exact"] == 1.0
     # the paper's method and its measured-force bound are scored on the same trials
     assert np.sum(ev["results"]["ls"]["paper"]["confusion_final"]["counts"]) == 8

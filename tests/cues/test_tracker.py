@@ -17,6 +17,7 @@ from tests.cues.synthetic import (
     end_of_insertion,
     make_split,
     make_trial,
+    nominal_tracker,
     run_tracker,
 )
 
@@ -26,8 +27,8 @@ def test_tracker_from_round_tripped_pack_behaves_the_same(pack30: dict) -> None:
     copy = json.loads(json.dumps(pack30))
     trial = make_trial(15, seed=77, batch_id="x", trial_id="x1")
     # when: both track the same trial
-    a = run_tracker(CueTracker(pack30, 30), trial)
-    b = run_tracker(CueTracker(copy, 30), trial)
+    a = run_tracker(nominal_tracker(pack30, 30), trial)
+    b = run_tracker(nominal_tracker(copy, 30), trial)
     # then: the same states
     assert a == b
 
@@ -36,7 +37,7 @@ def test_pack_is_only_for_its_own_preset_angle(pack30: dict) -> None:
     # given: the 30° pack / when: a tracker is asked for 45° / then: a clear error
     with pytest.raises(ValueError, match="preset angle 30"):
         CueTracker(pack30, 45)
-    with pytest.raises(ValueError, match="needlecue-cues/4"):
+    with pytest.raises(ValueError, match="needlecue-cues/5"):
         CueTracker({"format": "other"}, 30)
 
 
@@ -48,7 +49,7 @@ def test_tracker_is_causal(pack30: dict) -> None:
     rng = np.random.default_rng(0)
     other.loc[half:, list(CHANNELS)] = rng.uniform(0.2, 1.5, (len(trial) - half, 3))
     other.loc[half:, ["fx", "fy", "fz"]] = rng.uniform(-3, 3, (len(trial) - half, 3))
-    tracker = CueTracker(pack30, 30)
+    tracker = nominal_tracker(pack30, 30)
     # when: tracking both
     full = run_tracker(tracker, trial)
     changed = run_tracker(tracker, other)
@@ -63,7 +64,7 @@ def test_tracker_cues_by_deviation(pack30: dict, true_angle: int, expected: str)
     # given: a fresh (held-out) trial at the true angle, the preset being 30°
     trial = make_trial(true_angle, seed=900 + true_angle, batch_id="held", trial_id="h1")
     # when: tracking it frame by frame
-    states = run_tracker(CueTracker(pack30, 30), trial)
+    states = run_tracker(nominal_tracker(pack30, 30), trial)
     end = int(np.flatnonzero(trial["phase"].to_numpy() == "insertion")[-1])
     # then: the cue at the end of the insertion matches the deviation, with the right angle estimate
     assert states[end].cue == expected
@@ -75,7 +76,7 @@ def test_tracker_cues_by_deviation(pack30: dict, true_angle: int, expected: str)
 def test_tracker_debounces(pack30: dict) -> None:
     # given: a 30° trial tracked with the default 0.2 s debounce
     trial = make_trial(30, seed=3, batch_id="x", trial_id="x1")
-    states = run_tracker(CueTracker(pack30, 30), trial)
+    states = run_tracker(nominal_tracker(pack30, 30), trial)
     cues_seq = [s.cue for s in states]
     t = trial["t_s"].to_numpy()
     # then: every cue shown lasts at least the debounce time (or to the end of the trial)
@@ -89,7 +90,7 @@ def test_force_above_range_means_stop(pack30: dict) -> None:
     trial = make_trial(30, seed=4, batch_id="x", trial_id="x1")
     force = trial[["fx", "fy", "fz"]].to_numpy() * 10
     # when: tracking it / then: the combined cue stops for the force, the paper method too
-    states = run_tracker(CueTracker(pack30, 30), trial, force)
+    states = run_tracker(nominal_tracker(pack30, 30), trial, force)
     end = int(np.flatnonzero(trial["phase"].to_numpy() == "insertion")[-1])
     assert states[end].cue == "stop"
     assert "force" in states[end].reason
@@ -100,7 +101,7 @@ def test_two_angle_tracker_gives_the_right_cue(two_angle_pack: dict, true_angle:
     # given: a held-out trial, the preset being 30°
     trial = make_trial(true_angle, seed=700 + true_angle, batch_id="held", trial_id="h1")
     # when: tracking it
-    states = run_tracker(CueTracker(two_angle_pack, 30), trial)
+    states = run_tracker(nominal_tracker(two_angle_pack, 30), trial)
     # then: the right cue and angle estimate at the end of the insertion
     end = end_of_insertion(trial)
     assert (states[end].cue, states[end].angle_est_deg) == (expected, true_angle)
@@ -120,9 +121,9 @@ def test_without_an_estimator_the_tracker_falls_back_to_the_paper_method(
     # when: building the 30° pack and tracking an on-angle trial with both methods
     pack = build_cue_pack(train, 30, params, log=logs.append)
     trial = make_trial(30, seed=31, batch_id="held", trial_id="h1")
-    tracker = CueTracker(pack, 30)
+    tracker = nominal_tracker(pack, 30)
     states = run_tracker(tracker, trial)
-    paper = run_tracker(CueTracker(pack, 30, method="paper"), trial)
+    paper = run_tracker(nominal_tracker(pack, 30, method="paper"), trial)
     # then: a pack without an estimator that says why (strict JSON, as the registry needs), a warning,
     # and a combined cue that is the paper method's, its reason saying the angle estimate is unavailable
     assert pack["angle_estimator"] is None and why in pack["unavailable"]["angle_estimator"]
@@ -143,7 +144,7 @@ def test_without_a_contact_there_is_no_profile_and_the_tracker_says_so(params: C
     # when: building the 30° pack and tracking a trial
     pack = build_cue_pack(train, 30, params)
     states = run_tracker(
-        CueTracker(pack, 30, method="paper"), make_trial(30, seed=5, batch_id="x", trial_id="1")
+        nominal_tracker(pack, 30, method="paper"), make_trial(30, seed=5, batch_id="x", trial_id="1")
     )
     # then: no profile, no thresholds, each with its reason, and a paper method that waits saying why
     assert pack["standard_profile"] is None and pack["thresholds"]["profile"] == {}

@@ -9,45 +9,9 @@ import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker, class_means, unit_evidence
+from pipeline.cues.tracker import CueTracker, unit_evidence
 from pipeline.cues.units import evidence_of, trial_features
 from tests.cues.synthetic import ANGLES, CHANNELS, make_unit_split, run_tracker
-
-MU = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-
-
-def test_a_unit_without_evidence_is_read_as_the_average_unit() -> None:
-    # given / when: no cells / then: the average unit's means
-    np.testing.assert_array_equal(class_means(MU, [], 2.0, 1.0), MU)
-
-
-def test_a_well_measured_offset_shifts_every_class() -> None:
-    # given: many trials at two of three angles, all sitting 0.5 off the average unit
-    d = np.array([0.5, -0.5])
-    cells = [(0, 1e6, MU[0] + d), (2, 1e6, MU[2] + d)]
-    # when: no pull (k None), a wide offset spread
-    out = class_means(MU, cells, None, 1e6)
-    # then: every class moves by the offset, the angle without trials too
-    np.testing.assert_allclose(out, MU + d, atol=1e-6)
-
-
-def test_offset_is_shrunk_by_how_well_few_trials_pin_it_down() -> None:
-    # given: one trial at one angle (its variance 1/n = 1) and an offset spread of 1
-    cells = [(1, 1.0, MU[1] + np.array([1.0, 0.0]))]
-    # when / then: half the offset (spread / (spread + variance))
-    np.testing.assert_allclose(class_means(MU, cells, None, 1.0)[0], [0.5, 0.0])
-    # and with no spread known, no shift at all
-    np.testing.assert_array_equal(class_means(MU, cells, None, None), MU)
-
-
-def test_a_unit_s_trials_pull_their_class_by_count_against_the_weight() -> None:
-    # given: one trial at angle 0, k = 2, no shift
-    cells = [(0, 1.0, np.array([3.0, 3.0]))]
-    # when
-    out = class_means(MU, cells, 2.0, None)
-    # then: (1 * trial + 2 * mean) / 3 at that angle, the others unchanged
-    np.testing.assert_allclose(out[0], [1.0, 1.0])
-    np.testing.assert_array_equal(out[1:], MU[1:])
 
 
 def test_a_calibration_comes_before_the_pack_s_own_record_of_a_unit() -> None:
@@ -81,8 +45,8 @@ def _final_estimates(pack: dict, heldout: dict, evidence: dict | None) -> list[t
     out = []
     for a, frame in heldout.items():
         for _, trial in frame.groupby("trial_id", sort=True):
-            states = run_tracker(tracker, trial.reset_index(drop=True))
-            out.append((a, states[-1].angle_est_deg))
+            run_tracker(tracker, trial.reset_index(drop=True))
+            out.append((a, tracker.angle_map_deg))
     return out
 
 

@@ -18,6 +18,7 @@ from pipeline.modelling.fit import fit
 from tests.client.builders import (
     CHANNELS,
     TINY,
+    cue_evidence,
     cue_predictions,
     cue_trials,
     register,
@@ -48,7 +49,8 @@ def live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
     checkpoint = fit("ls", TINY["ls"], train[30]).checkpoint
     pack = build_cue_pack(train, 30, CuesParams(), cue_predictions(checkpoint, train))
     register(uri, root, checkpoint, pack)
-    register_unit(uri, unit_document(UNIT, {30: checkpoint}))
+    # the unit's calibration insertions read as the training unit's trials (the same synthetic unit)
+    register_unit(uri, unit_document(UNIT, {30: checkpoint}, cues=cue_evidence(pack)))
     return LiveModel(uri, fetch(30, cache_dir=root / "cache", tracking_uri=uri))
 
 

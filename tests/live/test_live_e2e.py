@@ -52,7 +52,7 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
     assert history == [
         "#1 wait → continue (end)",
         "#2 wait → correct (end)",
-        "#3 wait → stop (end)",
+        "#3 wait → none → stop (end)",  # a moment of "no angle cue" before the evidence decides
     ], out
     assert {"continue", "correct", "stop"} <= set(seen), seen
     assert len({seen["continue"], seen["correct"], seen["stop"]}) == 3  # three colours
@@ -64,7 +64,7 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
     assert recorded == [
         ("i001", "wait continue", "end"),
         ("i002", "wait correct", "end"),
-        ("i003", "wait stop", "end"),
+        ("i003", "wait none stop", "end"),
     ]
     assert (session / "i001.fsr.csv").read_text().startswith("t_ms,fsr1,fsr2,fsr3,board_ms\n")
     replayed = subprocess.run(
@@ -75,4 +75,4 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
         timeout=120,
     )
     assert replayed.returncode == 0, replayed.stdout + replayed.stderr
-    assert "insertion 3 (i003): wait -> stop (as live)" in replayed.stdout
+    assert "insertion 3 (i003): wait -> none -> stop (as live)" in replayed.stdout

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.config import EffectScales
 from pipeline.modelling.features import InputTransform, ModelInputs, StreamFeatures, features, spec_of
-from pipeline.rig.frontend import volts_of
+from pipeline.rig.frontend import Divider, conductance_us, volts_of
 from pipeline.sim import physics, rigs
 
 QUIET = EffectScales(
@@ -123,6 +123,25 @@ def test_streaming_gives_the_batch_numbers_and_is_causal(kind: str) -> None:
 def test_a_transform_round_trips_and_rejects_a_bad_matrix() -> None:
     t = InputTransform.from_dict({"matrix": [[1.1, 0.0], [0.2, 0.9]], "offset": [0.0, 0.1]})
     assert InputTransform.from_dict(t.to_dict()) == t
-    np.testing.assert_allclose(t.apply(np.array([[1.0, 2.0]])), [[1.1, 0.2 + 1.8 + 0.1]])
+    np.testing.assert_allclose(t.on_inputs(np.array([[1.0, 2.0]])), [[1.1, 0.2 + 1.8 + 0.1]])
+    np.testing.assert_array_equal(t.on_volts(np.array([[1.0, 2.0]])), [[1.0, 2.0]])  # not its domain
     with pytest.raises(ValueError, match="finite square matrix"):
         InputTransform.from_dict({"matrix": [[1.0, 0.0]], "offset": [0.0]})
+    with pytest.raises(ValueError, match="needs the unit's circuit"):
+        InputTransform.from_dict({"matrix": [[1.0]], "offset": [0.0], "domain": "conductance"})
+
+
+def test_a_conductance_map_scales_each_fsr_s_conductance_before_the_inputs() -> None:
+    # given: a 5 V, 10 kOhm divider unit whose first FSR reads 10 % more conductance than the average
+    fe = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0)
+    t = InputTransform.from_dict(
+        {"matrix": [[1 / 1.1, 0.0], [0.0, 1.0]], "offset": [0.0, 0.0], "domain": "conductance"}, fe
+    )
+    g = np.array([[110.0, 50.0], [220.0, 80.0]])  # µS
+    volts = volts_of(1e3 / g, fe)
+    # when: mapped
+    mapped = t.on_volts(volts)
+    # then: the volts of the calibrated conductance, through the unit's circuit; the inputs untouched
+    np.testing.assert_allclose(conductance_us(mapped, fe), [[100.0, 50.0], [200.0, 80.0]], rtol=1e-9)
+    np.testing.assert_array_equal(t.on_inputs(mapped), mapped)
+    assert InputTransform.from_dict(t.to_dict(), fe) == t

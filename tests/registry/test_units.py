@@ -220,7 +220,7 @@ def test_a_broken_calibration_document_fails_the_stage_before_anything_is_regist
     (tmp_path / "calibration").mkdir()
     (tmp_path / "calibration" / "est-9.json").write_text('{"format": "other"}')
     # when / then: a ValueError naming the file, and no model registered
-    with pytest.raises(ValueError, match=r"est-9\.json: not a needlecue-unit/3 document"):
+    with pytest.raises(ValueError, match=r"est-9\.json: not a needlecue-unit/4 document"):
         run_stage(tmp_path, models, RegisterParams(candidates=("ls",)), cal_dir=tmp_path / "calibration")
     assert MlflowClient().search_registered_models() == []
 

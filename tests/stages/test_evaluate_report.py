@@ -22,7 +22,14 @@ def params_file(tmp_path: Path, angles: str = "[0, 15, 30, 45]", models: str = "
 
 def run(data: Path, pred: Path, reports: Path, params: Path) -> dict:
     """evaluate, then report, as dvc.yaml runs them; returns metrics.json."""
-    evaluate.main(data, pred, data / "no-calibration", reports / "metrics.json", params)
+    evaluate.main(
+        data,
+        pred,
+        data / "no-calibration",
+        reports / "cues" / "evaluation.json",
+        reports / "metrics.json",
+        params,
+    )
     report.main(data, pred, reports, params)
     return json.loads((reports / "metrics.json").read_text())
 

@@ -1,0 +1,108 @@
+"""The pipeline on a rig nobody tuned it on: `benchmarks/independent_rig.py` (physics written apart from
+the built-in simulator, from the published facts only) as a lab's own rig logs, one cold `dvc repro`
+(every stage but register) per case.
+
+    python benchmarks/bench_independent.py [--units 1,3] [--declare yes,no] [--seed 7] [--keep DIR]
+
+Each case is a fresh copy of this checkout's code, dvc.yaml and params.yaml with the simulator off
+(`simulate.enabled: false`) and the independent lab in data/raw: `--units` training units on three
+tissue casts, the first unit's and a new unit's held-out casts, and the new unit's calibration batch
+(one insertion per angle), the circuit declared in batch.yaml or not. Printed per case, as
+`bench_family.py` prints them: the champion's force on the same unit and the new unit, uncalibrated
+and calibrated, and the combined cue as a trainee sees it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_family import BIN, _cue, _f, project
+from independent_rig import write_lab
+
+
+def run_case(units: int, declare: bool, seed: int, work: Path) -> dict:
+    """One cold `dvc repro` of the independent lab (`units` training units), and its figures."""
+    root = project(work / f"u{units}-{'declared' if declare else 'undeclared'}", {"enabled": False}, None)
+    write_lab(root / "data" / "raw", training_units=units, seed=seed, declare=declare)
+    env = dict(
+        os.environ,
+        PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
+    )
+    stages = subprocess.run(
+        ["dvc", "stage", "list", "--name-only"], cwd=root, env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    started = time.perf_counter()
+    done = subprocess.run(
+        ["dvc", "repro", *[s for s in stages if s != "register"]],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    seconds = time.perf_counter() - started
+    case = f"{units} unit(s), circuit {'declared' if declare else 'not declared'}"
+    if done.returncode:
+        return {"case": case, "error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
+    metrics = json.loads((root / "reports" / "metrics.json").read_text())
+    champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
+    cues = metrics.get("cues") or {}
+    seen = cues.get("lstm") or next(iter(cues.values()), {})
+    same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
+    return {
+        "case": case,
+        "same_unit_pct": same,
+        "new_uncalibrated_pct": uncal,
+        "new_calibrated_pct": cal,
+        "calibrated_ratio": None if not same or cal is None else cal / same,
+        "cues": {g: seen.get(g) for g in ("same_unit", "new_calibrated", "new_uncalibrated")},
+        "seconds": seconds,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--units", default="1,3")
+    ap.add_argument("--declare", default="yes,no")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--keep", type=Path, default=None)
+    args = ap.parse_args()
+    work = args.keep or Path(tempfile.mkdtemp(prefix="needlecue-independent-"))
+    rows = []
+    for units in (int(u) for u in args.units.split(",")):
+        for declare in (d == "yes" for d in args.declare.split(",")):
+            row = run_case(units, declare, args.seed, work)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    print()
+    print(
+        "| case | same unit % | new, uncal. % | new, calibrated % (×) | cues same unit "
+        "| cues new, calibrated "
+        "| cues new, uncalibrated | s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        if "error" in r:
+            print(f"| {r['case']} | error | | | | | | {r['seconds']:.0f} |")
+            continue
+        print(
+            f"| {r['case']} | {_f(r['same_unit_pct'], '.2f')} | {_f(r['new_uncalibrated_pct'], '.2f')} "
+            f"| {_f(r['new_calibrated_pct'], '.2f')} ({_f(r['calibrated_ratio'], '.2f')}) "
+            f"| {_cue(r, 'same_unit')} | {_cue(r, 'new_calibrated')} | {_cue(r, 'new_uncalibrated')} "
+            f"| {r['seconds']:.0f} |"
+        )
+    if args.keep is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""How the angle estimator reads one estimator unit: its class means, how sure we are of them, and
+the posterior over the trained angles they give.
+
+Per evidence stage, a trial's features are modelled as
+
+    the angle's mean for the average unit + the unit's offset + the unit's own departure at that angle
+    + the trial's scatter (one covariance, shared by every unit and angle)
+
+(`pipeline.cues.units` fits the average unit; docs/units.md). A unit is known by its *cells*: per
+angle, how many of its trials reached the stage and their mean features (its training trials, or a
+new unit's calibration insertions). `read_unit` turns the cells into the unit's class means and the
+variance left in them; `log_scores` scores a trial's features with both, so that a unit whose means
+are uncertain (an uncalibrated unit, one calibration insertion) gets a flatter posterior instead of
+a confident wrong one. Variances are per feature in the scatter's whitened units (1 = one trial's
+scatter). Numpy only: the simulator's client imports this module.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class UnitReading:
+    """A unit's class means (classes, features) and, per class, the variance of the unit's class
+    mean beyond the trial scatter (whitened units per feature; inf: nothing bounds it)."""
+
+    means: np.ndarray
+    extra_var: np.ndarray
+
+    @property
+    def known(self) -> bool:
+        """Whether anything bounds where this unit's classes lie."""
+        return bool(np.isfinite(self.extra_var).all())
+
+
+def read_unit(
+    mu: np.ndarray,
+    cells: Sequence[tuple[int, float, np.ndarray]],
+    k: float | None,
+    spread: float | None,
+) -> UnitReading:
+    """A unit's reading from the average unit's `mu` (classes, features) and the unit's `cells`
+    [(class, trials n, their mean features)], with the stage's template weight `k` (the scatter's
+    variance over that of a unit's own departures at an angle; None: departures not told from
+    scatter) and `spread` (the variance of the training units' offsets; None: one training unit,
+    nothing says how far a unit may sit from the average).
+
+    1. Shift: mu moves by the unit's offset, the cells' mean difference from mu. Its noise is
+       e = sum(1/n + 1/k) / cells²; the shift is shrunk by spread / (spread + e) towards zero (no
+       spread known: a flat prior, the full shift). What is left of the offset's variance is
+       spread·e / (spread + e) (e without a spread; the spread without cells; inf with neither).
+    2. Pull: each cell's class moves towards its trials, (n·trials + k·shifted) / (n + k), and its
+       variance becomes that of the two combined (k None: no pull, the shift alone).
+    """
+    mu = np.asarray(mu, dtype=np.float64)
+    tau2 = 0.0 if k is None else 1.0 / k
+    if not cells:
+        v_off = math.inf if spread is None else float(spread)
+        return UnitReading(mu, np.full(len(mu), v_off + tau2))
+    shift = np.mean([m - mu[c] for c, _, m in cells], axis=0)
+    noise = sum(1.0 / n + tau2 for _, n, _ in cells) / len(cells) ** 2
+    shrink = 1.0 if spread is None else spread / (spread + noise)
+    v_off = noise if spread is None else spread * noise / (spread + noise)
+    means = mu + shrink * shift
+    var = np.full(len(mu), v_off + tau2)
+    if k is not None:
+        for c, n, m in cells:
+            means[c] = (n * m + k * means[c]) / (n + k)
+            var[c] = 1.0 / (n + 1.0 / var[c])
+    return UnitReading(means, var)
+
+
+def distances(precision: np.ndarray, means: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(classes,) squared Mahalanobis distances of features `x` from each class mean."""
+    d = np.asarray(x, dtype=np.float64)[None, : means.shape[1]] - means
+    return np.einsum("cf,fg,cg->c", d, precision, d)
+
+
+def log_scores(d2: np.ndarray, reading: UnitReading, temperature: float) -> np.ndarray:
+    """(classes,) log posterior scores (up to a constant; equal priors) of a trial whose squared
+    distances from the unit's class means are `d2`: Gaussian, with each class's covariance the
+    scatter's times (1 + its extra variance), over the stage's temperature. All zero (a flat
+    posterior) when nothing bounds the unit's means."""
+    if not reading.known:
+        return np.zeros(len(d2))
+    scale = 1.0 + reading.extra_var
+    width = reading.means.shape[1]
+    return (-0.5 * d2 / scale - 0.5 * width * np.log(scale)) / temperature
+
+
+def outside(d2: np.ndarray, reading: UnitReading, temperature: float, limit: float | None) -> bool:
+    """Whether the features lie outside what training covered: further from every class mean, on the
+    calibrated scatter, than `limit` (the stage's `outside_limit`, None: no test). The scatter is
+    widened by the temperature where cross-validation found it too narrow (a temperature under 1
+    sharpens well separated classes, it does not narrow the scatter) and by the unit's uncertainty."""
+    if limit is None or not reading.known:
+        return False
+    return bool(np.min(d2 / (max(temperature, 1.0) * (1.0 + reading.extra_var))) > limit)

@@ -1,0 +1,140 @@
+"""Force against the training insertions per angle: LS and the networks' stand-in (the ridge regression
+that `pipeline.modelling.choice` scores inputs with), refitted per angle on a subsample and scored on
+that angle's external trials of the training units, NRMSE % (eq. 3-4). Not the trained networks: an
+LSTM per subsample would cost minutes each."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.config import FNNParams, LSParams
+from pipeline.dataset.splits import common_front_end
+from pipeline.logs import Log
+from pipeline.metrics.scores import mean_known, nrmse_pct
+from pipeline.modelling.choice import load_choice, ridge, stand_in_basis  # the stand-in as choose scores
+from pipeline.modelling.features import inputs_for
+from pipeline.modelling.fit import fit
+from pipeline.modelling.inputs import features_of, times_of, trial_codes
+from pipeline.needs.subsample import Selection, select
+from pipeline.rig.frontend import Circuit
+from pipeline.vocab import AXES, angle_name, channels_of
+
+
+@dataclass(frozen=True)
+class ForceModel:
+    """A force model refitted per angle: `predict(training rows, rows)` gives forces (n, 3) on rows."""
+
+    about: str
+    predict: Callable[[pd.DataFrame, pd.DataFrame], np.ndarray]
+
+
+def chosen_kind(model: str, section: LSParams | FNNParams, choices_dir: Path) -> str:
+    """The inputs the train stage gives `model`: pinned in params, else the choose stage's decision
+    (ValueError naming the file when there is none)."""
+    if section.inputs.kind != "auto":
+        return section.inputs.kind
+    path = Path(choices_dir) / f"{model}.json"
+    if not path.is_file():
+        raise ValueError(f"{path}: missing (run the choose stage)")
+    choice = load_choice(path, model)
+    if choice is None:
+        raise ValueError(f"{path} was written with the inputs pinned; params.yaml now says auto (run choose)")
+    return choice.chosen
+
+
+def ls_model(params: LSParams, kind: str, front_end: Circuit | None) -> ForceModel:
+    """LS (the paper's calibration matrix) on the inputs `kind`, as the train stage fits it."""
+    inputs_for(kind, params.inputs.rest_s, front_end)  # a kind needing an undeclared circuit fails here
+    pinned = params.model_copy(update={"inputs": params.inputs.model_copy(update={"kind": kind})})
+
+    def predict(train: pd.DataFrame, rows: pd.DataFrame) -> np.ndarray:
+        found = fit("ls", pinned, train, train_data_sha256="subsample", front_end=front_end)
+        return found.predictor.predict(rows.drop(columns=list(AXES)))
+
+    return ForceModel(f"LS (the paper's calibration matrix) on {kind}", predict)
+
+
+def stand_in_model(params: FNNParams, kind: str, front_end: Circuit | None) -> ForceModel:
+    """The networks' stand-in of the inputs choice: ridge on the FNN's inputs, their squares and
+    pairwise products. Not a trained network."""
+    spec = inputs_for(kind, params.inputs.rest_s, front_end)
+
+    def predict(train: pd.DataFrame, rows: pd.DataFrame) -> np.ndarray:
+        # one basis over both, standardised over both, as the inputs choice builds it for its folds
+        both = pd.concat([train, rows.drop(columns=list(AXES))], ignore_index=True)
+        x = features_of(both, channels_of(train), spec)
+        basis = stand_in_basis(x, False, True, [], trial_codes(both), times_of(both))
+        weights = ridge(basis[: len(train)], train[list(AXES)].to_numpy(np.float64))
+        return basis[len(train) :] @ weights
+
+    about = f"the networks' stand-in (ridge on the FNN's inputs {kind}, their squares and pairwise products)"
+    return ForceModel(about + ", not a trained FNN or LSTM", predict)
+
+
+def force_models(
+    ls: LSParams,
+    fnn: FNNParams,
+    choices_dir: Path,
+    circuits: Mapping[str, Circuit | None],
+    units: Sequence[str],
+) -> tuple[dict[str, ForceModel], list[dict[str, str]]]:
+    """LS and the networks' stand-in on the inputs the train stage gives LS and the FNN, read through
+    the circuit the training `units` share; what cannot be built is said instead."""
+    try:
+        front_end = common_front_end(dict(circuits), units)
+    except ValueError as e:
+        return {}, [{"what": "force against training insertions", "why": str(e)}]
+    builders: dict[str, Callable[[], ForceModel]] = {
+        "ls": lambda: ls_model(ls, chosen_kind("ls", ls, choices_dir), front_end),
+        "fnn_stand_in": lambda: stand_in_model(fnn, chosen_kind("fnn", fnn, choices_dir), front_end),
+    }
+    models, notes = {}, []
+    for name, build in builders.items():
+        try:
+            models[name] = build()
+        except ValueError as e:
+            notes.append({"what": f"force of {name}", "why": str(e)})
+    return models, notes
+
+
+def _pct(x: float | None) -> str:
+    return "unknown" if x is None else f"{x:.2f} %"
+
+
+def force_curve(
+    train: Mapping[float, pd.DataFrame],
+    same: Mapping[float, pd.DataFrame],
+    selections: Sequence[Selection],
+    models: Mapping[str, ForceModel],
+    log: Log,
+) -> tuple[list[dict[str, Any]], list[dict[str, str]]]:
+    """Per selection, {model: {"mean_nrmse_pct", "by_angle"}}: each model fitted on every angle's
+    selected training trials and scored on that angle's rows in `same`; and what could not be."""
+    steps: list[dict[str, Any]] = [{} for _ in selections]
+    if not same:
+        return steps, [
+            {"what": "force against training insertions", "why": "no external trial of a training unit"}
+        ]
+    notes = []
+    for name, model in models.items():
+        try:
+            for step, sel in zip(steps, selections, strict=True):
+                by_angle = {}
+                for a in sorted(set(sel) & set(same)):
+                    pred = model.predict(select(train[a], sel[a]), same[a])
+                    by_angle[angle_name(a)] = mean_known(nrmse_pct(pred, same[a][list(AXES)]).tolist())
+                step[name] = {"mean_nrmse_pct": mean_known(by_angle.values()), "by_angle": by_angle}
+        except ValueError as e:  # the data cannot be read the way the model reads it
+            notes.append({"what": f"force of {name}", "why": str(e)})
+            for step in steps:
+                step.pop(name, None)
+    for step, sel in zip(steps, selections, strict=True):
+        figures = ", ".join(f"{name} {_pct(f['mean_nrmse_pct'])}" for name, f in step.items())
+        log(f"force with {max(map(len, sel.values()))} training insertions per angle: {figures or 'none'}")
+    return steps, notes
