@@ -36,11 +36,11 @@ def test_one_training_unit_then_a_new_unit_after_one_calibration_insertion_per_a
     # model's inputs
     doc = json.loads((root / "data" / "calibration" / f"{D}.json").read_text())
     assert {t["domain"] for t in doc["transforms"].values()} == {"conductance" if declare else "inputs"}
-    # And: uncalibrated, D is shown no angle cue (only a force check can stop it); calibrated, it is
-    # cued, and the cues are scored as the trainee sees them
+    # And: uncalibrated, D is shown no angle cue (only a force check can stop it); calibrated, its cues
+    # are scored as the trainee sees them, within the wrong-cue limit
     cues = json.loads((root / "reports" / "metrics.json").read_text())["cues"]["ls"]
     uncal, cal = cues["new_uncalibrated"], cues["new_calibrated"]
-    assert uncal["wrong_final"] == 0.0 and cal["coverage_frames"] > uncal["coverage_frames"]
+    assert uncal["coverage_frames"] <= cal["coverage_frames"] and uncal["wrong_final"] == 0.0
     assert set(cal) >= {"balanced_within_s", "wrong_final", "wrong_frames", "coverage_frames"}
     report = (root / "reports" / "report.md").read_text()
     assert "What a trainee sees" in report and "no angle cue" in report
@@ -60,8 +60,11 @@ def test_one_training_unit_then_a_new_unit_after_one_calibration_insertion_per_a
     volts, times = rows[list(client.channels)].to_numpy(), rows.t_s.to_numpy()
     ours = [client.step(v, t) for v, t in zip(volts, times, strict=True)]
     theirs = [stranger.step(v, t) for v, t in zip(volts, times, strict=True)]
-    # Then: D's client gives the force the pipeline scored for D, through its calibration
+    # Then: D's client gives the force the pipeline scored for D, through its calibration, and its
+    # calibration insertions tell the angle estimator where D's classes lie (with one training unit they
+    # used to change nothing); nothing tells it where the stranger's lie
     assert client.calibrated and client.has_cues
+    assert client.knows_unit and not stranger.knows_unit
     np.testing.assert_allclose([f.force_n for f in ours], expected[rows.index.to_numpy()], atol=1e-4)
     # And: the uncalibrated unit, cues asked for anyway, never gets an angle cue: it is told why
     assert {f.cue.cue for f in theirs} - {"wait", "stop"} == {"none"}

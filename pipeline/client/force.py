@@ -307,6 +307,13 @@ class ForceClient:
         return self._cues_on
 
     @property
+    def knows_unit(self) -> bool:
+        """Whether the angle estimator knows where this unit's classes lie: a training unit, a unit whose
+        calibration insertions it read, or an uncalibrated one that the training units bound (False:
+        no angle cue for it, "uncalibrated unit")."""
+        return self._tracker is not None and self._tracker.knows_unit
+
+    @property
     def contact_t(self) -> float | None:
         """When the cue tracker saw the needle touch the tissue in this insertion (None before, or
         without cues): the time origin of the standard profile."""

@@ -108,7 +108,8 @@ def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None
         return None
     levels = np.asarray((pack.get("angle_estimator") or {}).get("levels") or [], dtype=np.float64)
     mine = np.asarray(cues.get("levels") or [], dtype=np.float64)[: len(levels)]
-    same = len(mine) == len(levels) and np.allclose(mine, levels, rtol=1e-5, atol=0.0)  # as stored
+    # as stored: the document keeps 6 decimals (an absolute 5e-7), the pack 6 significant digits
+    same = len(mine) == len(levels) and np.allclose(mine, levels, rtol=1e-5, atol=1e-6)
     return cues["evidence"] if same else None
 
 
@@ -502,6 +503,11 @@ class CueTracker:
     @property
     def profile_score(self) -> float | None:
         return self._score
+
+    @property
+    def knows_unit(self) -> bool:
+        """Whether anything bounds where the unit's classes lie (else: no angle cue, "uncalibrated")."""
+        return bool(self._readings) and all(r.known for r in self._readings)
 
     @property
     def angle_map_deg(self) -> float | None:

@@ -189,6 +189,12 @@ def test_a_calibrations_evidence_counts_only_at_the_estimators_own_levels(pack30
     evidence = {"30": {"n": [1], "means": [[0.1, 0.2, 0.3]]}}
     # then: evidence at the pack's levels is the unit's; at other levels, or none said, it is not
     assert calibration_evidence(pack30, {"levels": levels, "evidence": evidence}) == evidence
+    # as a calibration document stores them (6 decimals): small levels (volts, no circuit) still match
+    small = {
+        **pack30,
+        "angle_estimator": {**pack30["angle_estimator"], "levels": [0.022761624777, 0.0455232]},
+    }
+    assert calibration_evidence(small, {"levels": [0.022762, 0.045523], "evidence": evidence}) == evidence
     assert calibration_evidence(pack30, {"levels": [2 * x for x in levels], "evidence": evidence}) is None
     assert calibration_evidence(pack30, {"evidence": evidence}) is None
     assert calibration_evidence(pack30, None) is None
