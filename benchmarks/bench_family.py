@@ -106,6 +106,18 @@ def run_member(
         ] = []  # the simulator records none: the lab's batches are the new unit's
         (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
         assert new
+    row = repro_figures(root)
+    if "error" in row:
+        return {"member": member, **row}
+    inputs = json.loads((root / "data" / "predictions" / "inputs.json").read_text())
+    chosen = sorted({f"{k}:{r['inputs']['kind']}" for k, by in inputs.items() for r in by.values()})
+    return {"member": member, **row, "inputs": chosen}
+
+
+def repro_figures(root: Path) -> dict[str, Any]:
+    """One cold `dvc repro` of the project `root` (every stage but register), and its figures: the
+    champion's force on the same unit and a new unit, uncalibrated and calibrated, and the combined cue
+    as a trainee sees it per unit group; {"error", "seconds"} if it failed."""
     env = dict(
         os.environ,
         PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}",
@@ -124,23 +136,19 @@ def run_member(
     )
     seconds = time.perf_counter() - started
     if done.returncode:
-        return {"member": member, "error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
+        return {"error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
     metrics = json.loads((root / "reports" / "metrics.json").read_text())
     champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
     cues = metrics.get("cues") or {}
     seen = cues.get("lstm") or next(iter(cues.values()), {})  # the combined cue: the same for every kind
-    inputs = json.loads((root / "data" / "predictions" / "inputs.json").read_text())
-    chosen = sorted({f"{k}:{r['inputs']['kind']}" for k, by in inputs.items() for r in by.values()})
     same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
     return {
-        "member": member,
         "same_unit_pct": same,
         "new_uncalibrated_pct": uncal,
         "new_calibrated_pct": cal,
         "calibrated_ratio": None if not same or cal is None else cal / same,
         "uncalibrated_ratio": None if not same or uncal is None else uncal / same,
         "cues": {group: seen.get(group) for group in ("same_unit", "new_calibrated", "new_uncalibrated")},
-        "inputs": chosen,
         "seconds": seconds,
     }
 

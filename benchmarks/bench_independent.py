@@ -16,16 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_family import BIN, _cue, _f, project
+from bench_family import _cue, _f, project, repro_figures
 from independent_rig import write_lab
 
 
@@ -33,40 +30,8 @@ def run_case(units: int, declare: bool, seed: int, work: Path) -> dict:
     """One cold `dvc repro` of the independent lab (`units` training units), and its figures."""
     root = project(work / f"u{units}-{'declared' if declare else 'undeclared'}", {"enabled": False}, None)
     write_lab(root / "data" / "raw", training_units=units, seed=seed, declare=declare)
-    env = dict(
-        os.environ,
-        PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}",
-        MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
-    )
-    stages = subprocess.run(
-        ["dvc", "stage", "list", "--name-only"], cwd=root, env=env, capture_output=True, text=True, check=True
-    ).stdout.split()
-    started = time.perf_counter()
-    done = subprocess.run(
-        ["dvc", "repro", *[s for s in stages if s != "register"]],
-        cwd=root,
-        env=env,
-        capture_output=True,
-        text=True,
-    )
-    seconds = time.perf_counter() - started
     case = f"{units} unit(s), circuit {'declared' if declare else 'not declared'}"
-    if done.returncode:
-        return {"case": case, "error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
-    metrics = json.loads((root / "reports" / "metrics.json").read_text())
-    champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
-    cues = metrics.get("cues") or {}
-    seen = cues.get("lstm") or next(iter(cues.values()), {})
-    same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
-    return {
-        "case": case,
-        "same_unit_pct": same,
-        "new_uncalibrated_pct": uncal,
-        "new_calibrated_pct": cal,
-        "calibrated_ratio": None if not same or cal is None else cal / same,
-        "cues": {g: seen.get(g) for g in ("same_unit", "new_calibrated", "new_uncalibrated")},
-        "seconds": seconds,
-    }
+    return {"case": case, **repro_figures(root)}
 
 
 def main() -> None:
