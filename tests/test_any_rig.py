@@ -18,6 +18,7 @@ from pipeline.modelling.checkpoint import load_checkpoint
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.predict import load_predictor
 from pipeline.modelling.predictions import Predictions
+from pipeline.rig.frontend import declared
 from pipeline.sim import rig, rigs
 from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models
 
@@ -90,7 +91,8 @@ def test_a_new_unit_of_another_design_is_read_through_its_own_declared_circuit(t
     client, rows, got = _client_reproduces_the_scored_force(root, tmp_path, monkeypatch)
     # which is not what the training units' circuit would give
     predictor = load_predictor(root / "models" / client.kind / "15")
-    transform = InputTransform.from_dict(doc["transforms"][client.kind])
+    # (D's calibration, a map on its conductance, read as if D had the training units' circuit too)
+    transform = InputTransform.from_dict(doc["transforms"][client.kind], declared(training))
     wrong = predictor.predict(rows.drop(columns=["fx", "fy", "fz"]), transform)
     assert not np.allclose(wrong, got, atol=1e-3)
 

@@ -478,7 +478,7 @@ class CueTracker:
         self._map = -1
         self._z2, self._nz = 0.0, 0
         self._score: float | None = None
-        self._alarm = self._alarmed = self._outside = False
+        self._alarm = self._outside = False
         self._why: str | None = None
         self._state_key: tuple = ()
         self._paper_key: tuple = ()
@@ -589,7 +589,6 @@ class CueTracker:
             self._pdev = (p @ self._to_dev).tolist()  # type: ignore[operator]
             self._map = int(np.argmax(p))  # type: ignore[arg-type]
         self._alarm = f[0] * f[0] + f[1] * f[1] + f[2] * f[2] > self._force_limit2
-        self._alarmed |= self._alarm
 
         # combined: angle estimate -> deviation class, force-in-range check
         if self.angle_unavailable is None:
@@ -629,10 +628,9 @@ class CueTracker:
 
         A cue needs P(its deviation class) >= `min_confidence`, and to beat the shown cue's P by
         `switch_margin` to replace it; a shown cue is withdrawn (no angle cue) once its P falls below
-        `min_confidence - switch_margin`. A predicted force out of range is a stop for the rest of
-        the insertion."""
+        `min_confidence - switch_margin`. A predicted force out of range is a stop while it lasts."""
         ev, shown, p = self._ev, self._deb.shown, self.params
-        if self._alarmed:
+        if self._alarm:
             return 3
         if self._pdev is None or not ev.rest_ready(t):
             return 0
@@ -666,7 +664,7 @@ class CueTracker:
             why = self._why or "undecided"
             best = "" if self._pdev is None else f", best P={max(self._pdev):.2f}"
             return CueState("none", None, f"no angle cue: {NO_CUE_REASONS[why]} ({evidence}{best})", why)
-        if self._alarmed and cue == 3:
+        if self._alarm and cue == 3:
             return CueState("stop", est, "predicted force above the preset angle's range")
         dev = abs(est - self.preset) if est is not None else math.nan
         what = {

@@ -173,7 +173,7 @@ def test_the_server_killed_mid_register_moves_no_alias_and_the_next_run_complete
     # Given new versions to register (every model with a new cue pack: only cues, report and register
     # rerun) and the aliases now
     params = yaml.safe_load((lab / "params.yaml").read_text())
-    params["cues"]["min_confidence"] = round(params["cues"]["min_confidence"] + 0.01, 4)
+    params["cues"]["max_wrong"] = round(params["cues"]["max_wrong"] + 0.001, 6)
     (lab / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     before = _aliases(team)
     runs_before = _run_count(team)
