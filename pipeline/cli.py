@@ -170,12 +170,17 @@ def _fail(message: str, code: int = 1) -> typer.Exit:
     return typer.Exit(code)
 
 
-def _batch_rows(
-    batch_dir: Path, unit_id: str | None, params: Path, purpose: str | None = None
-) -> tuple[str, Any, list[str], Any]:
-    """`read_batch` with its problems printed: (its unit, its resampled rows, the trials set aside,
-    the circuit it declares or None). typer.Exit(1) if nothing is usable or another unit than
-    `unit_id` recorded it; a warning if its purpose is not `purpose`."""
+def _read_batch(
+    batch_dir: Path,
+    unit_id: str | None,
+    params: Path,
+    purpose: str | None = None,
+    *,
+    need_reference: bool = True,
+) -> Any:
+    """`read_batch` with its problems printed. typer.Exit(1) if nothing is usable (with
+    `need_reference`: no trial aligned with its reference; without: not even an estimator stream) or
+    another unit than `unit_id` recorded it; a warning if its purpose is not `purpose`."""
     from pipeline.config import IngestParams, ResampleParams
     from pipeline.signals.one_batch import read_batch
 
@@ -194,11 +199,11 @@ def _batch_rows(
         typer.echo(
             f"warning: {batch_dir}: purpose {batch.purpose!r}, not {purpose!r}: calibrating anyway", err=True
         )
-    if batch.rows.empty:
+    if batch.rows.empty and (need_reference or batch.estimator_only.empty):
         for line in batch.set_aside:
             typer.echo(f"set aside {line}")
         raise _fail(f"{batch_dir}: no trial could be aligned and resampled")
-    return batch.unit_id, batch.rows, batch.set_aside, batch.front_end
+    return batch
 
 
 def _print_calibration(doc: dict[str, Any], champions: dict[str, Any], aside: list[str]) -> None:
@@ -261,7 +266,8 @@ def calibrate(
         raise _fail(f"not a folder: {batch_dir}", 2)
     from pipeline.vocab import CALIBRATION
 
-    unit, rows, aside, front_end = _batch_rows(batch_dir, unit_id, params, CALIBRATION)
+    batch = _read_batch(batch_dir, unit_id, params, CALIBRATION)
+    unit, rows, aside, front_end = batch.unit_id, batch.rows, batch.set_aside, batch.front_end
     with store.patience(write=True):  # MLflow's HTTP timeouts, for as long as the registry is used
         try:
             client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
@@ -360,14 +366,20 @@ def replay(
         _replay_session(trial, angle, alias, model_dir, unit_id, unverified)
         return
     suffix = next((s for s in STREAM_SUFFIXES if trial.name.endswith(s)), None)
+    unaligned: set[str] = set()  # trials replayed from their estimator stream alone
+    batch_aside: list[str] = []
     if trial.is_dir() or suffix:  # rig-log/1: checked, ingested and resampled like the pipeline does
         batch_dir = trial.parent if suffix else trial
         if not (batch_dir / BATCH_FILE).is_file():
             raise fail(f"{batch_dir}: not a rig-log/1 batch folder (no {BATCH_FILE})")
         if suffix:
             trial_id = trial_id or f"{batch_dir.name}/{trial.name.removesuffix(suffix)}"
-        batch_unit, frame, _aside, _circuit = _batch_rows(batch_dir, None, Path("params.yaml"))
-        unit_id = unit_id or batch_unit
+        batch = _read_batch(batch_dir, None, Path("params.yaml"), need_reference=False)
+        unit_id = unit_id or batch.unit_id
+        frame = pd.concat([batch.rows, batch.estimator_only], ignore_index=True)
+        if not batch.estimator_only.empty:
+            unaligned = set(batch.estimator_only["trial_id"].astype(str))
+        batch_aside = batch.set_aside
     elif trial.suffix == ".parquet":
         try:
             frame = pd.read_parquet(trial)
@@ -388,6 +400,15 @@ def replay(
         raise fail(f"{trial}: no trial {key!r} (BATCH/TRIAL_ID); it has {len(keys)}: {shown}")
     batch, tid = key.split("/", 1)
     rows = frame[(frame["batch_id"].astype(str) == batch) & (frame["trial_id"].astype(str) == tid)]
+    if tid in unaligned:
+        rows = rows.dropna(axis=1, how="all")  # the aligned trials' force columns: not this one's
+        line = next((a for a in batch_aside if a.startswith(f"{key}: ")), "")
+        why = line.removeprefix(f"{key}: ").removeprefix("set aside: ") or "set aside by resample"
+        typer.echo(
+            f"warning: {key}: its reference could not be aligned ({why}); replaying the estimator "
+            "stream alone, no RMSE",
+            err=True,
+        )
 
     try:
         client = load_client(angle, alias, model_dir, unit_id, unverified=unverified)

@@ -48,6 +48,7 @@ class Entry:
     use: str | None = None  # train | val | test | external | calibration (USED only)
     unit_id: str | None = None  # calibration trials: the unit they calibrate
     note: str | None = None
+    flag: str | None = None  # USED only: kept, but looked at (resample's flag: a low alignment quality)
     where: tuple[Where, ...] = field(default_factory=tuple)
 
 
@@ -161,13 +162,14 @@ def _after_ingest(key: Key, source: str, later: _Later, trained: set[str]) -> En
     if status != "ok":
         reason = status.removeprefix(RESAMPLE_ASIDE)
         return Entry(batch_id, trial, source, SET_ASIDE, "resample", angle, where=(Where(files, reason),))
+    flag = str(row.get("flag") or "") or None
     if key in later.split_aside:
         reason = str(later.split_aside[key]["reason"])
         return Entry(batch_id, trial, source, SET_ASIDE, "split", angle, where=(Where(files, reason),))
     if key in later.calibrating:
         unit = later.calibrating[key]
         if key in later.calibrated:
-            return Entry(batch_id, trial, source, USED, "calibrate", angle, "calibration", unit)
+            return Entry(batch_id, trial, source, USED, "calibrate", angle, "calibration", unit, flag=flag)
         s = later.calibrate_aside.get(key)
         reason = str(s["reason"]) if s else "split gave it to calibration, but no unit calibration used it"
         file = str(s["file"]) if s else files
@@ -179,7 +181,7 @@ def _after_ingest(key: Key, source: str, later: _Later, trained: set[str]) -> En
         note = None
         if at not in trained:
             note = f"no model is trained at {at}° (train.angles): only other angles' models are scored on it"
-        return Entry(batch_id, trial, source, USED, "split", at, split, note=note)
+        return Entry(batch_id, trial, source, USED, "split", at, split, note=note, flag=flag)
     reason = "resampled, but split placed it nowhere"
     return Entry(batch_id, trial, source, SET_ASIDE, "split", angle, where=(Where(files, reason),))
 
@@ -199,6 +201,7 @@ def counts(entries: Sequence[Entry]) -> dict[str, Any]:
         "used": sum(used.values()),
         "used_by_split": dict(sorted(used.items())),
         "set_aside": sum(aside.values()),
+        "flagged": sum(1 for e in trials if e.flag),
         "set_aside_by_stage": aside,
         "batches_set_aside_whole": sorted(
             {f"{e.batch_id} ({e.source})" for e in entries if e.trial_id is None}

@@ -8,7 +8,13 @@ none yet, starting one for the next stage. The stage process is the server's for
 one would have: the caller's stdin, stdout and stderr (passed over the socket), working directory,
 environment, CPU affinity and arguments, the project's own code imported afresh from its folder, and
 the default signal handlers; the caller waits for it, forwards Ctrl-C and exits with its status, and a
-stage whose caller dies is stopped. Results are the same bytes either way: the server runs with the
+stage whose caller dies is killed at once.
+
+A stage runs as its caller: the server serves only a caller with its own identity (user and group
+ids, groups, capabilities, no-new-privileges, seccomp, umask and resource limits, `identity`). That
+identity is part of the key, so a caller who has given something up finds its own server, and the
+server checks each caller's (the socket's peer) before forking; a caller it refuses runs the stage
+in a fresh interpreter. Results are the same bytes either way: the server runs with the
 pinned environment of the stages it serves (part of its key, as is everything a library could read
 when it loads), has run no numeric code, and started no thread but the allocator's.
 
@@ -58,7 +64,8 @@ PRELOAD = (
     "great_expectations",
 )
 IDLE_S = 90.0  # a server with no stage for this long exits (the gaps of a `dvc repro` are seconds)
-PROTOCOL = "needlecue-preload/1"
+PROTOCOL = "needlecue-preload/2"
+REFUSED = "refused"  # the server's answer to a caller whose identity is not its own
 OFF = "NEEDLECUE_PRELOAD"  # "0": no server, every stage a fresh interpreter
 MODULES_ENV = "NEEDLECUE_PRELOAD_MODULES"  # comma-separated, instead of PRELOAD (the tests' servers)
 DIR_ENV = "NEEDLECUE_PRELOAD_DIR"  # where the sockets live (default: a private folder in the temp dir)
@@ -75,14 +82,44 @@ def enabled(env: Mapping[str, str]) -> bool:
     return env.get(OFF, "1") != "0" and hasattr(os, "fork") and hasattr(socket, "send_fds")
 
 
+IDENTITY_FIELDS = ("Uid", "Gid", "Groups", "CapInh", "CapPrm", "CapEff", "CapBnd", "CapAmb", "NoNewPrivs")
+IDENTITY_FIELDS += ("Seccomp", "Umask")  # /proc/<pid>/status lines that say what a process may do
+
+
+def identity(pid: int | str = "self") -> dict[str, str]:
+    """What process `pid` may do, from /proc (Linux): its ids, groups, capabilities, no-new-privileges,
+    seccomp mode, umask and resource limits. {} where /proc cannot say (then no server serves)."""
+    folder = Path("/proc") / str(pid)
+    try:
+        status, limits = (folder / "status").read_text(), (folder / "limits").read_text()
+    except OSError:
+        return {}
+    out = {}
+    for line in status.splitlines():
+        name, _, value = line.partition(":")
+        if name in IDENTITY_FIELDS:
+            words = value.split()
+            out[name] = " ".join(sorted(words) if name == "Groups" else words)
+    out["limits"] = "\n".join(" ".join(line.split()) for line in limits.splitlines())
+    return out
+
+
+def _differs(mine: Mapping[str, str], theirs: Mapping[str, str]) -> list[str]:
+    """The identity fields that differ (all of them when either is unknown)."""
+    if not mine or not theirs:
+        return ["unknown identity"]
+    return sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+
+
 def key(env: Mapping[str, str]) -> str:
     """What a server must share with its callers: this Python and its installed packages, the code of
-    this module, and every environment variable a library could read as it loads."""
+    this module, every environment variable a library could read as it loads, and the caller's
+    identity (a stage runs as its caller)."""
     loading = {k: v for k, v in env.items() if k not in RUNTIME_NAMES and not k.startswith(RUNTIME_PREFIXES)}
     # an install or upgrade changes its site-packages folder: a new server, never a stale library
     installed = [os.stat(p).st_mtime_ns for p in site.getsitepackages() if os.path.isdir(p)]
     code = Path(__file__).read_text()
-    doc = [PROTOCOL, sys.executable, sys.version, installed, code, sorted(loading.items())]
+    doc = [PROTOCOL, sys.executable, sys.version, installed, code, sorted(loading.items()), identity()]
     return hashlib.sha256(json.dumps(doc).encode()).hexdigest()[:32]
 
 
@@ -115,16 +152,30 @@ def run_stage(argv: list[str], env: Mapping[str, str]) -> int | None:
     server is being started for the next one)."""
     if not enabled(env) or (path := socket_path(env)) is None:
         return None
+    status = ask(path, argv, env)
+    if status == REFUSED:
+        return None  # a server of this key that does not serve this caller: a fresh interpreter
+    if status is None:
+        _start_server(path, env)
+    return status
+
+
+def ask(path: Path, argv: list[str], env: Mapping[str, str]) -> int | str | None:
+    """The stage run by the server at `path`: its exit status, REFUSED (the server does not serve
+    this caller), or None (no server there, or it went away before starting the stage)."""
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         conn.connect(str(path))
         request = {"argv": argv, "cwd": os.getcwd(), "env": dict(env), "cpus": _cpus()}
         payload = json.dumps(request).encode()
         socket.send_fds(conn, [struct.pack("!I", len(payload)) + payload], [0, 1, 2])
-        pid = int(_read_line(conn).removeprefix("pid "))
-    except (OSError, ValueError):  # none there, or it went away before starting the stage
+        answer = _read_line(conn)
+        if answer.startswith(REFUSED):
+            conn.close()
+            return REFUSED
+        pid = int(answer.removeprefix("pid "))
+    except (OSError, ValueError):
         conn.close()
-        _start_server(path, env)
         return None
     return _wait(conn, pid)
 
@@ -260,6 +311,15 @@ def serve(path: Path) -> _Stage | None:
 def _supervise(conn: socket.socket) -> _Stage | None:
     """One stage: receive the request and the caller's stdio, fork the stage process, report its pid
     and then its exit status; stop it if the caller goes away. Returns only in the stage process."""
+    size = struct.calcsize("3i")
+    peer, _uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, size))
+    if differs := _differs(identity(), identity(peer)):  # not its caller's rights: a fresh interpreter
+        print(
+            f"preload: refused caller {peer}: its {', '.join(differs)} differ from the server's", flush=True
+        )
+        with contextlib.suppress(OSError):
+            conn.sendall(f"{REFUSED} {', '.join(differs)}\n".encode())
+        os._exit(0)
     try:
         data, fds, _, _ = socket.recv_fds(conn, 1 << 16, 3)
         if len(data) < 4 or len(fds) != 3:
@@ -292,13 +352,12 @@ def _supervise(conn: socket.socket) -> _Stage | None:
             with contextlib.suppress(OSError):
                 conn.sendall(f"{reply}\n".encode())
             os._exit(0)
-        if conn in ready and not conn.recv(1, socket.MSG_PEEK):  # the caller is gone: so is its stage
-            for sig, grace in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 0.0)):
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, sig)
-                deadline = time.monotonic() + grace
-                while time.monotonic() < deadline and not os.waitpid(pid, os.WNOHANG)[0]:
-                    time.sleep(0.05)
+        if conn in ready and not conn.recv(1, socket.MSG_PEEK):
+            # the caller is gone, killed outright (its signals are forwarded): so is its stage, at once,
+            # as a fresh interpreter (the caller's own process) would be
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
             os._exit(0)
 
 

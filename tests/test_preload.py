@@ -40,6 +40,40 @@ sys.exit(99 if status is None else status)  # 99: no server took it
 """
 
 
+RIGHTS = """
+import json, sys
+out = {}
+try:
+    open(sys.argv[1]).read()
+    out["read"] = "read"
+except PermissionError:
+    out["read"] = "refused"
+try:
+    open(sys.argv[2], "a").write("x")
+    out["write"] = "written"
+except PermissionError:
+    out["write"] = "refused"
+print(json.dumps(out), flush=True)
+"""
+LAUNCH = """import os, sys
+from pipeline import preload
+if preload.run_stage(sys.argv[1:], dict(os.environ)) is None:  # as pipeline.run: else fresh
+    os.execv(sys.executable, [sys.executable, "-m", *sys.argv[1:]])
+"""
+ASK = """import json, os, sys
+from pathlib import Path
+from pipeline import preload
+print(json.dumps(preload.ask(Path(sys.argv[1]), sys.argv[2:], dict(os.environ))))
+"""
+WITHOUT_DAC = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search", "--"]
+
+
+def _has_dac_override() -> bool:
+    """Whether this process may ignore file permissions (CAP_DAC_OVERRIDE, bit 1), as root does."""
+    eff = preload.identity().get("CapEff")
+    return eff is not None and bool(int(eff, 16) & 0b10)
+
+
 @pytest.fixture
 def sockets() -> Iterator[str]:
     """A private folder for the tests' servers, short enough for a Unix socket's address."""
@@ -131,6 +165,57 @@ def test_ctrl_c_reaches_the_stage_and_a_killed_caller_takes_its_stage_along(
     while Path(f"/proc/{stage}").exists() and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not Path(f"/proc/{stage}").exists()
+
+
+@pytest.mark.skipif(not (_has_dac_override() and shutil.which("setpriv")), reason="needs root and setpriv")
+def test_a_caller_without_a_capability_of_the_server_gets_what_a_fresh_interpreter_gives(
+    warm: dict[str, str], tmp_path: Path
+) -> None:
+    # given: a warm server of a root caller, a file nobody may read (000), a read-only store (0444)
+    (tmp_path / "rights_stage.py").write_text(RIGHTS)
+    secret, store = tmp_path / "secret", tmp_path / "mlflow.db"
+    secret.write_text("s")
+    store.write_text("")
+    secret.chmod(0o000)
+    store.chmod(0o444)
+    launch = [sys.executable, "-c", LAUNCH, "rights_stage", str(secret), str(store)]
+
+    def run(prefix: list[str], env: dict[str, str]) -> dict[str, str]:
+        done = subprocess.run([*prefix, *launch], cwd=tmp_path, env=env, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+    # when: a caller that has given up overriding file permissions runs the stage, preload on and off
+    warm_run = run(WITHOUT_DAC, warm)
+    fresh_run = run(WITHOUT_DAC, {**warm, "NEEDLECUE_PRELOAD": "0"})
+    # then: the same: refused both, as the caller's own rights say; while the server's own kind of
+    # caller (root) reads and writes both through it
+    assert warm_run == fresh_run == {"read": "refused", "write": "refused"}
+    assert run([], warm) == {"read": "read", "write": "written"}
+    # and the server itself refuses such a caller that knocks on its socket, in one line of its log
+    socket = preload.socket_path(warm)
+    assert socket is not None
+    asked = subprocess.run(
+        [*WITHOUT_DAC, sys.executable, "-c", ASK, str(socket), "rights_stage", str(secret), str(store)],
+        cwd=tmp_path,
+        env=warm,
+        capture_output=True,
+        text=True,
+    )
+    assert json.loads(asked.stdout) == "refused", asked.stderr
+    assert "refused caller" in socket.with_suffix(".log").read_text()
+
+
+def test_the_key_follows_the_callers_umask() -> None:
+    env = launcher.pinned_env({"PATH": "/usr/bin"})
+    before = preload.key(env)
+    old = os.umask(0o077)
+    try:
+        changed = preload.key(env)
+    finally:
+        os.umask(old)
+    assert changed != before == preload.key(env)
+    assert {"Uid", "Gid", "Groups", "CapEff", "CapBnd", "Umask", "limits"} <= set(preload.identity())
 
 
 def test_a_socket_path_too_long_for_unix_means_no_server(tmp_path: Path) -> None:

@@ -105,8 +105,17 @@ def mlmodel_metadata(mlmodel: Path) -> dict[str, Any]:
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
     try:
         spec = yaml.load(mlmodel.read_text(), Loader=loader) or {}
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise ValueError(f"not valid YAML: {e}") from e
+    except yaml.YAMLError as e:  # one line: the problem and where, not PyYAML's multi-line text
+        mark, what = getattr(e, "problem_mark", None), getattr(e, "problem", None) or str(e)
+        where = "" if mark is None else f"line {mark.line + 1}, column {mark.column + 1}: "
+        tag = (
+            " (a tag that builds an object: refused, plain YAML only)"
+            if "constructor for the tag" in what
+            else ""
+        )
+        raise ValueError(" ".join(f"not valid YAML: {where}{what}{tag}".split())) from e
+    except UnicodeDecodeError as e:
+        raise ValueError(f"not valid YAML: not UTF-8 ({e.reason} at byte {e.start})") from e
     if not isinstance(spec, dict) or not isinstance(spec.get("metadata") or {}, dict):
         raise ValueError("not an MLmodel file (a mapping with a metadata mapping)")
     return spec.get("metadata") or {}

@@ -56,6 +56,10 @@ def markdown(doc: Mapping[str, Any]) -> str:
         lines.append(f"| {angle}° | " + " | ".join(str(table[angle].get(s, 0)) for s in SPLIT_ORDER) + " |")
     notes = sorted({e["note"] for e in used if e.get("note")})
     lines += [f"- {n}" for n in notes]
+    flagged = [e for e in used if e.get("flag")]
+    if flagged:
+        lines += ["", f"## Used, flagged ({len(flagged)})", ""]
+        lines += [f"- `{e['batch_id']}/{e['trial_id']}`: {e['flag']}" for e in flagged]
     aside = [e for e in entries if e["outcome"] != "used"]
     lines += ["", f"## Set aside ({len(aside)})", ""]
     if not aside:

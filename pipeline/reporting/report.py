@@ -29,6 +29,8 @@ from pipeline.metrics.scores import mean_over_axes
 from pipeline.reporting.style import fmt, table
 from pipeline.vocab import AXES, kind_label, sorted_angles
 
+FLAGGED_SHOWN = 5  # flagged trials named in report.md; the ledger lists them all
+
 SIMULATOR_NOTE = """\
 The data come from the project's pipeline, normally fed by its built-in rig simulator
 (`pipeline/sim/physics.py`, see `docs/physics.md`): Okamura's needle–tissue force model, a
@@ -77,8 +79,9 @@ def title(metrics: Mapping[str, Any]) -> list[str]:
     return out
 
 
-def datasets(metrics: Mapping[str, Any]) -> list[str]:
-    """## Datasets: which set each angle is scored on."""
+def datasets(metrics: Mapping[str, Any], flagged: Sequence[Mapping[str, Any]] = ()) -> list[str]:
+    """## Datasets: which set each angle is scored on, and the trials used with a flag (ledger
+    entries)."""
     datasets = metrics.get("datasets", {})
     out = [
         "## Datasets",
@@ -115,6 +118,15 @@ def datasets(metrics: Mapping[str, Any]) -> list[str]:
             + ("it" if len(without) == 1 else "them")
             + " is on the test split, trials of the training batches' casts, and says nothing about "
             "data never seen in training. `reports/ledger` says where each trial went.",
+        ]
+    if flagged:
+        shown = [f"`{e['batch_id']}/{e['trial_id']}` ({e['flag']})" for e in flagged[:FLAGGED_SHOWN]]
+        more = f", and {len(flagged) - FLAGGED_SHOWN} more" if len(flagged) > FLAGGED_SHOWN else ""
+        out += [
+            "",
+            f"**{len(flagged)} trial(s) used with a flag**, kept because nothing shows their files "
+            "disagree; the validation figures include them: " + "; ".join(shown) + more + ". "
+            "`reports/ledger/ledger.md` lists them all.",
         ]
     return out
 
@@ -328,14 +340,16 @@ def render(
     figures: Sequence[str] = (),
     cue_sections: Sequence[str] = (),
     unit_section: str = "",
+    flagged: Sequence[Mapping[str, Any]] = (),
 ) -> str:
     """report.md: the sections in order; `cue_sections` (the angle cues' Markdown), then
-    `unit_section` (the estimator units') come last."""
+    `unit_section` (the estimator units') come last; `flagged`: the ledger's entries used with a
+    flag."""
     models = models_in(metrics)
     angles = sorted_angles(
         list(metrics.get("datasets", {})) + [a for m in metrics.get("within_angle", {}).values() for a in m]
     )
-    out = title(metrics) + datasets(metrics)
+    out = title(metrics) + datasets(metrics, flagged)
     out += table1(metrics, models, angles) + test_split(metrics, models, angles)
     out += table2(metrics, models) + table3(metrics, angles) + accuracy(metrics, models)
     out += figures_section(figures) + agreement(metrics, models)

@@ -146,6 +146,11 @@ class Problem:
     line: int | None = None
     column: str | None = None
 
+    def __post_init__(self) -> None:
+        # line numbers often come from numpy arrays; what is written to JSON must be plain int
+        if self.line is not None:
+            object.__setattr__(self, "line", int(self.line))
+
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 

@@ -114,9 +114,10 @@ def estimate_offset(
     n_min = max(20, 4 * (2 * volts.shape[1] + 1))
     if n_use < n_min:
         raise SetAside(
-            f"streams overlap too little to estimate the clock offset "
-            f"({n_use} estimator samples within ±{0 if shared_clock else max_offset_s:g} s of the "
-            f"reference; need {n_min})"
+            f"streams overlap too little to estimate the clock offset ({n_use} estimator samples within "
+            f"±{0 if shared_clock else max_offset_s:g} s of the reference; need {n_min}): the estimator is "
+            f"stamped {t_fsr_s[0]:.2f} to {t_fsr_s[-1]:.2f} s, the reference {t_ref_s[0]:.2f} to "
+            f"{t_ref_s[-1]:.2f} s; a reference from another recording?"
         )
     # Differences over ~DIFF_SPAN_S rather than one sample: on smooth stretches a one-sample
     # step is mostly sensor noise; on sharp events the longer span costs little.

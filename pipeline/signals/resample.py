@@ -36,6 +36,7 @@ from pipeline.signals.phases import label_phases, phase_durations
 from pipeline.signals.scaling import to_newtons, to_volts
 from pipeline.vocab import AXES, PHASES, angle_name
 
+WIDE_STEP_S = 0.02  # offsets tried when a trial's own reference is searched wider (see wider)
 TRUTH_COLUMN = "sim_clock_offset_s"  # written by the simulator only; a lab's data has no truth
 OFFSET_CSV_COLUMNS = (
     "batch_id",
@@ -51,6 +52,7 @@ OFFSET_CSV_COLUMNS = (
     "n_dropped_gap",
     "peer_quality",  # below min_quality only: the best quality another trial's reference gave
     "status",
+    "flag",  # kept, but looked at: why (a low alignment quality, pipeline.signals.pairing)
 )
 
 logger = logging.getLogger(__name__)
@@ -131,6 +133,9 @@ def align(fsr: Streams, ref: Streams, p: ResampleParams, *, shared_clock: bool =
         shared_clock=shared_clock,
     )
     if est.on_edge:
+        shift = wider(Streams(fsr.t_fsr_s, fsr.volts, ref.t_ref_s, ref.force_n), p)
+        if shift is not None and pairing.clearly_better(shift.outside, shift.inside):
+            raise SetAside(pairing.shifted(shift, shared=shared_clock))
         raise SetAside(
             f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
             f"(quality {est.quality:.2f}): the true offset is probably outside it"
@@ -147,18 +152,67 @@ def resample_trial(
     *,
     shared_clock: bool = False,
 ) -> ResampledTrial:
-    """Align, resample and label one trial on its own (inputs already in s, V and N): with no other
-    trial to compare with, a quality below `min_quality` sets it aside. Raises SetAside."""
+    """Align, resample and label one trial on its own (inputs already in s, V and N). With no other
+    trial to compare with, only its own reference fitting clearly better outside the search window
+    sets a low-quality trial aside (pipeline.signals.pairing). Raises SetAside."""
     streams = Streams(t_fsr_s, volts, t_ref_s, force_n)
     check_response(streams)
     est = align(streams, streams, p, shared_clock=shared_clock)
-    if est.quality < p.min_quality:  # the streams do not record the same insertion, or not in this window
-        raise SetAside(
-            f"clock alignment quality {est.quality:.2f} below resample.min_quality = {p.min_quality:g}: "
-            "do the two files record the same insertion (reference files swapped?), within "
-            f"±{p.max_offset_s:g} s of each other?"
-        )
+    if est.quality < p.min_quality:
+        verdict = _judged(streams, est, {}, p, shared_clock)
+        if verdict.reason is not None:
+            raise SetAside(verdict.reason)
     return on_grid(streams, est, p)
+
+
+def _judged(
+    streams: Streams, est: OffsetEstimate, peers: dict[str, float], p: ResampleParams, shared_clock: bool
+) -> pairing.Verdict:
+    """The verdict on a low-quality trial (pipeline.signals.pairing): its stamps on one clock, then
+    the peers' references and its own reference searched wider."""
+    if shared_clock:
+        ends = (float(streams.t_fsr_s[0]), float(streams.t_fsr_s[-1]))
+        reason = pairing.stamps_shifted(
+            ends, (float(streams.t_ref_s[0]), float(streams.t_ref_s[-1])), p.max_offset_s
+        )
+        if reason is not None:
+            return pairing.Verdict(reason, max(peers.values(), default=None))
+    return pairing.judge(est.quality, peers, p.min_quality, wider(streams, p), shared=shared_clock)
+
+
+def wider(streams: Streams, p: ResampleParams) -> pairing.Shift | None:
+    """A trial's own reference tried at offsets up to `pairing.WIDE_FACTOR` times the search window,
+    every `WIDE_STEP_S`, each scored on the samples the two streams share at that offset (at least
+    half the estimator's): the best quality inside the window and outside it. None: no offset
+    outside the window leaves enough overlap."""
+    window = pairing.WIDE_FACTOR * p.max_offset_s
+    lags = np.arange(-window, window + WIDE_STEP_S / 2, WIDE_STEP_S)
+    scores = np.full(lags.size, np.nan)
+    t_fsr = streams.t_fsr_s
+    for i, lag in enumerate(lags):
+        t_ref = streams.t_ref_s + lag
+        if np.mean((t_fsr >= t_ref[0]) & (t_fsr <= t_ref[-1])) < 0.5:
+            continue
+        try:
+            scores[i] = estimate_offset(
+                t_fsr,
+                streams.volts,
+                t_ref,
+                streams.force_n,
+                0.0,
+                p.offset_step_s,
+                p.lowpass_order,
+                shared_clock=True,
+            ).quality
+        except SetAside:
+            continue
+    inner = np.abs(lags) <= p.max_offset_s + 1e-9
+    if np.all(np.isnan(scores[~inner])) or np.all(np.isnan(scores[inner])):
+        return None
+    best = int(np.nanargmax(np.where(inner, np.nan, scores)))
+    return pairing.Shift(
+        float(lags[best]), float(scores[best]), float(np.nanmax(scores[inner])), p.max_offset_s
+    )
 
 
 def on_grid(streams: Streams, est: OffsetEstimate, p: ResampleParams) -> ResampledTrial:
@@ -247,6 +301,20 @@ def _by_trial(df: pd.DataFrame, time_col: str) -> dict[str, pd.DataFrame]:
     return {str(k): g for k, g in df.groupby("trial_id", sort=True)}
 
 
+def estimator_only(
+    t_fsr_s: np.ndarray, volts: np.ndarray, p: ResampleParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """An estimator stream alone on the common grid (t_s from 0 at its first sample, gaps dropped):
+    what a trial whose reference cannot be aligned still gives to a replay. Raises SetAside."""
+    t, v = _clean_time(np.asarray(t_fsr_s, dtype=np.float64), np.asarray(volts, dtype=np.float64))
+    if t.size < 2 or not np.all(np.isfinite(v)):
+        raise SetAside("the estimator stream has fewer than two samples or missing values")
+    n = math.floor((t[-1] - t[0]) * p.rate_hz + 1e-6) + 1
+    grid = t[0] + np.arange(n) / p.rate_hz
+    keep = ~gap_mask(t, grid, p.max_gap_s)
+    return np.arange(n)[keep] / p.rate_hz, resample_stream(t, v, grid, p.rate_hz, p.lowpass_order)[keep]
+
+
 def _clean_time(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     """Drop repeated time stamps (keep the first), so every stream is strictly increasing."""
     keep = np.ones(t.size, dtype=bool)
@@ -288,6 +356,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
             "n_dropped_gap": 0,
             "peer_quality": "",
             "status": "ok",
+            "flag": "",
         }
         rows.append(row)
         try:
@@ -322,6 +391,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
         streams, est = usable[tid]
         if (verdict := verdicts.get(tid)) is not None:
             row["peer_quality"] = _num(verdict.best_peer, ".4f")
+            row["flag"] = verdict.flag or ""
         try:
             if verdict is not None and verdict.reason is not None:
                 raise SetAside(verdict.reason)
@@ -361,7 +431,8 @@ def _judge_pairings(
     p: ResampleParams,
 ) -> dict[str, pairing.Verdict]:
     """Per trial below `min_quality`, the batch's verdict on its pairing (pipeline.signals.pairing):
-    its estimator stream aligned with the references of up to MAX_PEERS other usable trials."""
+    its estimator stream aligned with the references of up to MAX_PEERS other usable trials, and
+    with its own reference over a wider window."""
     out: dict[str, pairing.Verdict] = {}
     usable_angles = {t: angles[t] for t in usable}
     for tid, (streams, est) in usable.items():
@@ -373,7 +444,7 @@ def _judge_pairings(
                 peers[other] = align(streams, usable[other][0], p, shared_clock=info.shared_clock).quality
             except SetAside:  # too little overlap or an edge: that reference explains nothing here
                 peers[other] = 0.0
-        out[tid] = pairing.judge(est.quality, peers, p.min_quality)
+        out[tid] = _judged(streams, est, peers, p, info.shared_clock)
     return out
 
 

@@ -3,7 +3,7 @@
 Input: `DATA_DIR` (the truth of the plotted trials), `PRED_DIR` (the stored predictions),
 `REPORTS_DIR/metrics.json` (evaluate), `REPORTS_DIR/cues/{packs,evaluation.json}` (cues; without
 them the report has no angle-cue section) and `REPORTS_DIR/needs/needs.json` (needs; without it, no
-data-needs section).
+data-needs section) and `REPORTS_DIR/ledger/ledger.json` (ledger: the trials used with a flag).
 Output in REPORTS_DIR: `report.md` (assembled from the section functions of
 `pipeline.reporting.report` and `pipeline.reporting.cues`), `figures/` (Figs. 7-8 analogues, the
 angle-gap heatmap), `plots/{gap,profile}.csv` (DVC plots) and `cues/{summary.md, confusion.png,
@@ -72,7 +72,15 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
         unit_section += "\n\n" + how_much_data_you_need(json.loads(needs_file.read_text()), "needs/needs.png")
     else:
         _log(f"warning: no {needs_file} (run the needs stage): no data-needs section")
-    text = report.render(metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section)
+    ledger_file = reports_dir / "ledger" / "ledger.json"
+    flagged: list[dict] = []
+    if ledger_file.is_file():  # the trials used with a flag (a low alignment quality, kept)
+        flagged = [e for e in json.loads(ledger_file.read_text())["entries"] if e.get("flag")]
+    else:
+        _log(f"warning: no {ledger_file} (run the ledger stage): flagged trials not listed")
+    text = report.render(
+        metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section, flagged
+    )
     (reports_dir / "report.md").write_text(text)
     _log(f"report.md, {len(figures.FIGURES)} figures and the cue summary -> {reports_dir}")
 

@@ -127,6 +127,11 @@ MALFORMED = {
         "[volts]",
         r"field needlecue\.inputs is \['volts'\]; expected the input settings",
     ),
+    "a python object tag": (
+        "kind",
+        "!!python/object/apply:os.system ['true']",
+        r"not valid YAML: line \d+, column \d+: could not determine a constructor for the tag .* refused",
+    ),
 }
 
 

@@ -139,3 +139,40 @@ def test_replay_of_something_else_is_a_clear_error(tmp_path: Path, name: str) ->
     result = CliRunner().invoke(app, ["replay", str(path), "--angle", "30"])
     assert result.exit_code == 1
     assert "not a processed parquet file, a rig-log/1 trial file" in result.output
+
+
+def test_replay_of_a_raw_trial_whose_reference_cannot_be_aligned_plays_the_estimator_stream(
+    registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: a raw batch of one trial at 30° whose reference is stamped 2 s late (a shifted clock:
+    # resample sets it aside), recorded by a calibrated unit
+    import pandas as pd
+
+    from pipeline.config import SimulateParams
+    from pipeline.sim.rig import BatchPlan, write_batch
+
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    write_batch(SimulateParams(), BatchPlan("lab-r2", 1, (30.0,), 1, 1, "est-r1"), raw)
+    register_unit(
+        registered.uri,
+        unit_document("est-r1", {30: registered.checkpoint}, cues=cue_evidence(registered.pack)),
+    )
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", registered.uri)
+    monkeypatch.setenv(fc.CACHE_ENV, str(tmp_path / "cache"))
+    monkeypatch.chdir(Path(__file__).resolve().parents[2])
+    fsr_file = next((raw / "lab-r2").glob("*.fsr.csv"))
+    ref_file = fsr_file.with_name(fsr_file.name.replace(".fsr.", ".ref."))
+    ref = pd.read_csv(ref_file)
+    ref.assign(t_s=ref["t_s"] + 2.0).to_csv(ref_file, index=False, float_format="%.6f")
+    # when: replaying the raw trial file
+    result = CliRunner().invoke(
+        app, ["replay", str(fsr_file), "--angle", "30", "--out", str(tmp_path / "r.png")]
+    )
+    # then: exit 0, a warning naming why, the force and cues of the estimator stream, and no RMSE
+    assert result.exit_code == 0, result.output
+    assert "its reference could not be aligned (shifted clock: " in result.output
+    assert "replaying the estimator stream alone, no RMSE" in result.output
+    assert "unit est-r1: calibrated" in result.output
+    assert "RMSE vs reference: no reference force" in result.output
+    assert (tmp_path / "r.png").is_file()

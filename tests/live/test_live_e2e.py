@@ -30,19 +30,25 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
     # when: needlecue live reads it with the unit's calibration, and a browser shows its page
     live_args = ["--angle", "30", "--insertions", "3", "--give-up", "10"]
     with rig_and_live(live_model, tmp_path, [30, 45, 60], [], live_args) as run:
-        seen: dict[str, str] = {}  # cue shown -> its background colour
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=["--disable-gpu"], timeout=30_000)
             page = browser.new_page(viewport={"width": 1200, "height": 700})
             page.goto(run.url)
             end = time.monotonic() + 90
             while time.monotonic() < end and not _all_ended(page, 3):
-                cue = page.locator("#cue")
-                seen[cue.get_attribute("data-cue") or ""] = cue.evaluate(
-                    "e => getComputedStyle(e).backgroundColor"
-                )
-                time.sleep(0.05)
+                time.sleep(0.1)
             history = page.locator("#history li").all_text_contents()
+            # what the page records: each insertion's cues in the history, each in its cue's colour
+            # (not a sample of the big cue taken at the right moment: a busy machine may start the
+            # browser after the first insertion has ended)
+            chips = page.locator("#history span[data-cue]")
+            seen = dict(
+                zip(
+                    chips.evaluate_all("es => es.map(e => e.dataset.cue)"),
+                    chips.evaluate_all("es => es.map(e => getComputedStyle(e).backgroundColor)"),
+                    strict=True,
+                )
+            )
             unit_text = page.locator("#unit").text_content()
             page.screenshot(path=str(tmp_path / "page.png"))
             browser.close()
@@ -55,7 +61,7 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
         "#3 wait → none → stop (end)",  # a moment of "no angle cue" before the evidence decides
     ], out
     assert {"continue", "correct", "stop"} <= set(seen), seen
-    assert len({seen["continue"], seen["correct"], seen["stop"]}) == 3  # three colours
+    assert len({seen["continue"], seen["correct"], seen["stop"], seen["none"]}) == 4  # four colours
     assert unit_text == f"unit {UNIT} (calibrated)"
     # and the recording holds the same insertions, which needlecue replay plays back the same
     session = run.session

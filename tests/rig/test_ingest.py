@@ -120,6 +120,30 @@ def test_crash_while_writing_leaves_no_matching_fingerprint(raw_dir, tmp_path, m
     assert sorted(p.name for p in out.iterdir()) == [A]
 
 
+def test_a_batch_naming_two_units_beside_one_whose_unit_is_a_list_is_written_not_crashed(
+    raw_dir, lab_bench_a, tmp_path
+):
+    # Given a batch whose trials.csv names two units, beside a batch whose sensor.unit_id is a list
+    trials = raw_dir / A / "trials.csv"
+    rows = trials.read_text().splitlines()
+    units = ["unit_id", "est-bench-01", "est-other", "est-bench-01"]
+    trials.write_text("\n".join(f"{r},{u}" for r, u in zip(rows, units, strict=True)) + "\n")
+    listed = copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    meta = listed / "batch.yaml"
+    meta.write_text(meta.read_text().replace("unit_id: est-bench-01", "unit_id: [est-bench-01, est-other]"))
+    out = tmp_path / "out"
+    # When both are ingested
+    result = run([raw_dir], out)
+    # Then the other unit's trial is set aside at its line, the listed batch as a whole, and every
+    # JSON written holds plain values (line numbers are ints)
+    assert result.accepted == [A] and result.set_aside == ["lab-bench-b"]
+    problems = json.loads((out / A / ingest.PROBLEMS).read_text())
+    assert [(p["trial_id"], p["line"], p["column"]) for p in problems] == [("t002", 3, "unit_id")]
+    assert json.loads((out / A / ingest.FINGERPRINT).read_text())["outcome"]["trials_set_aside"] == ["t002"]
+    listed_problems = json.loads((out / "lab-bench-b" / ingest.PROBLEMS).read_text())
+    assert "sensor.unit_id" in listed_problems[0]["reason"]
+
+
 # --------------------------------------------------------------------------- check
 
 

@@ -247,3 +247,47 @@ def fabricate_tactile(
     ref = np.stack([np.interp(t_s + offset_s, t, force[:, k]) for k in range(3)], axis=1)
     ref += rng.normal(0.0, 0.01, ref.shape)
     return Fabricated(np.round(t_sample * 1e3, 3), counts, t_s, ref, offset_s, (0.0, 0.0, 0.0, 0.0))
+
+
+def fabricate_presses(
+    seed: int, offset_s: float, *, start_s: float = 0.0, duration_s: float = 8.0
+) -> Fabricated:
+    """A cut of a longer recording, as a public tactile data set gives it: a 4-channel sensor pressed
+    again and again at a steady pace (every 1.2 to 1.8 s, similar depths), so that any other cut's
+    reference lines up with it a little; saturating, creeping, hysteretic (0.15 N backlash) and
+    noisy. Both streams carry the recording's time from `start_s` (the reference's `offset_s` behind
+    on its own clock; 0 for one clock)."""
+    rng = np.random.default_rng(seed)
+    dt = 0.001
+    t = np.arange(-1.0, duration_s + 1.0, dt)
+    push = np.zeros_like(t)
+    period = rng.uniform(1.2, 1.8)
+    start = rng.uniform(-0.5 * period, 0.5 * period)
+    while start < duration_s:
+        width = period * rng.uniform(0.5, 0.7)
+        inside = (t >= start) & (t < start + width)
+        push[inside] += rng.uniform(1.0, 1.4) * np.sin(np.pi * (t[inside] - start) / width) ** 2
+        start += period * rng.uniform(0.95, 1.05)
+    shear = 0.2 * push * np.sin(2 * np.pi * t / rng.uniform(5.0, 9.0))
+    force = np.stack([shear, 0.5 * shear, -push], axis=1)
+    az = np.radians(45.0 + 90.0 * np.arange(4))
+    load = push[:, None] / 4 + 0.8 * (shear[:, None] * np.cos(az) + 0.5 * shear[:, None] * np.sin(az))
+    a = np.exp(-dt / 2.0)
+    lagged = lfilter([1 - a], [1, -a], load - load[0], axis=0) + load[0]
+    load = np.clip(0.5 * load + 0.5 * lagged, 0.0, None)
+    held = np.empty_like(load)
+    h = load[0].copy()
+    for i, row in enumerate(load):
+        h = np.clip(h, row - 0.15, row)
+        held[i] = h
+    volts = 4.5 * (1.0 - np.exp(-held / 0.2))
+    t_sample = np.arange(0.0, duration_s, 1.0 / 100.0)
+    v = np.stack([np.interp(t_sample, t, volts[:, k]) for k in range(4)], axis=1)
+    v += rng.normal(0.0, 0.06, v.shape)
+    counts = np.clip(np.round(v / 5.0 * 1023), 0, 1023)
+    t_s = np.arange(0.0, duration_s, 1.0 / REF_HZ)
+    ref = np.stack([np.interp(t_s + offset_s, t, force[:, k]) for k in range(3)], axis=1)
+    ref += rng.normal(0.0, 0.01, ref.shape)
+    return Fabricated(
+        np.round((t_sample + start_s) * 1e3, 3), counts, t_s + start_s, ref, offset_s, (0.0,) * 4
+    )

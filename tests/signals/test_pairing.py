@@ -1,5 +1,6 @@
-"""Do a trial's two files record one insertion? A low alignment quality is judged against the batch's
-other references: good data from a nonlinear, noisy sensor is kept; swapped files are not."""
+"""Do a trial's two files record one insertion? Set aside only on evidence: good data from a nonlinear,
+noisy, hysteretic sensor, pressed by hand or again and again at a steady pace, is kept (flagged);
+swapped files, a reference from another recording and a shifted clock are not, each named."""
 
 from __future__ import annotations
 
@@ -9,7 +10,14 @@ import pytest
 
 from pipeline.signals import pairing
 from pipeline.signals.resample import process_batch
-from tests.signals.fabricate import PARAMS, Fabricated, fabricate, fabricate_tactile, write_ingested
+from tests.signals.fabricate import (
+    PARAMS,
+    Fabricated,
+    fabricate,
+    fabricate_presses,
+    fabricate_tactile,
+    write_ingested,
+)
 
 TACTILE = ["left", "right", "top", "bottom"]
 
@@ -25,6 +33,20 @@ def _swap_references(trials: dict[str, Fabricated], a: str, b: str) -> None:
     ta, tb = trials[a], trials[b]
     trials[a] = Fabricated(ta.t_ms, ta.counts, tb.t_s, tb.force, tb.offset_s, ta.bounds)
     trials[b] = Fabricated(tb.t_ms, tb.counts, ta.t_s, ta.force, ta.offset_s, tb.bounds)
+
+
+def _shifted(fab: Fabricated, by_s: float) -> Fabricated:
+    """The trial with its reference stamped `by_s` later (its clock shifted)."""
+    return Fabricated(fab.t_ms, fab.counts, fab.t_s + by_s, fab.force, fab.offset_s, fab.bounds)
+
+
+def _cuts(first: int, clock: str | None) -> dict[str, Fabricated]:
+    """Eight 8 s cuts of one recording of steady presses, 9 s apart in the recording's time; on two
+    clocks the reference runs up to 0.2 s behind."""
+    return {
+        f"c{k}": fabricate_presses(first + k, 0.0 if clock else 0.1 * (k % 5) - 0.2, start_s=9.0 * k)
+        for k in range(8)
+    }
 
 
 def _statuses(folder) -> dict[str, dict]:
@@ -87,19 +109,88 @@ def test_a_shared_clock_estimates_no_offset(tmp_path):
     assert any(abs(float(r["offset_s"])) > 0.05 for r in _statuses(folder).values())
 
 
+@pytest.mark.parametrize("clock", [None, "shared"])
+@pytest.mark.parametrize("first", [0, 50])
+def test_steady_presses_of_a_hysteretic_sensor_keep_every_trial_flagged(tmp_path, first, clock):
+    # Given cuts of a recording of steady presses: any cut's reference lines up a little with any
+    # other's, and every cut aligns below the quality gate (far below on one clock, which leaves
+    # the sensor's own lag in)
+    trials = _cuts(first, clock)
+    folder = write_ingested(tmp_path, "presses", trials, channels=TACTILE, clock=clock)
+    # When the batch is resampled
+    rows = _statuses(folder)
+    # Then every trial is kept, and each one below the gate is flagged with why it was kept
+    assert {t: r["status"] for t, r in rows.items()} == dict.fromkeys(trials, "ok")
+    assert all(float(r["quality"]) < PARAMS.min_quality for r in rows.values())
+    assert all("kept: no other trial's reference fits it better" in r["flag"] for r in rows.values())
+
+
+def test_a_shifted_clock_is_named_as_one(tmp_path):
+    # Given three kinds of batch, each with one reference stamped 2 s late: insertions of the
+    # simulator-like rig, a hand-pressed tactile sensor, and steady presses said to share one clock
+    cases = [
+        ("sim-like", {f"a{k}": fabricate(40 + k, 0.05 * k - 0.15) for k in range(6)}, "a1", None),
+        ("tactile", {f"t{s}": fabricate_tactile(s, 0.1) for s in range(6)}, "t1", None),
+        ("presses", _cuts(0, "shared"), "c2", "shared"),
+    ]
+    for name, trials, moved, clock in cases:
+        trials[moved] = _shifted(trials[moved], 2.0)
+        channels = ["fsr1", "fsr2", "fsr3"] if name == "sim-like" else TACTILE
+        # When each is resampled
+        rows = _statuses(write_ingested(tmp_path, name, trials, channels=channels, clock=clock))
+        # Then only that trial is set aside, as a shifted clock
+        assert [t for t, r in rows.items() if r["status"] != "ok"] == [moved], name
+        assert rows[moved]["status"].startswith("set aside: shifted clock: "), name
+    # (on one clock by the stamps: "+2.00 s from the estimator at its start and +2.00 s at its end")
+    assert "+2.00 s from the estimator at its start and +2.00 s at its end" in rows[moved]["status"]
+
+
+def test_a_reference_from_another_recording_is_set_aside_for_its_stamps(tmp_path):
+    # Given cuts of one recording on one clock, one of them given the reference of a cut of another
+    # recording (stamped in that recording's time)
+    trials = _cuts(0, "shared")
+    other = fabricate_presses(99, 0.0, start_s=200.0)
+    c = trials["c3"]
+    trials["c3"] = Fabricated(c.t_ms, c.counts, other.t_s, other.force, 0.0, c.bounds)
+    # When resampled
+    rows = _statuses(write_ingested(tmp_path, "presses", trials, channels=TACTILE, clock="shared"))
+    # Then it alone is set aside, the stamps of both files named
+    assert [t for t, r in rows.items() if r["status"] != "ok"] == ["c3"]
+    assert (
+        "the estimator is stamped 27.00 to 34.99 s, the reference 200.00 to 207.99 s" in rows["c3"]["status"]
+    )
+    assert "a reference from another recording?" in rows["c3"]["status"]
+
+
 def test_judge_keeps_a_trial_its_own_reference_explains_best():
-    assert pairing.judge(0.3, {"x": 0.05, "y": 0.1, "z": 0.42}, 0.7) == pairing.Verdict(None, 0.42)
+    verdict = pairing.judge(0.3, {"x": 0.05, "y": 0.1, "z": 0.42}, 0.7)
+    assert verdict.reason is None and verdict.best_peer == 0.42
+    assert verdict.flag is not None and "best of 3: 0.42" in verdict.flag
 
 
-def test_judge_names_the_swap_and_refuses_a_reference_no_better_than_unrelated_ones():
+def test_judge_sets_aside_on_evidence_only():
     swapped = pairing.judge(0.2, {"x": 0.05, "y": 0.8}, 0.7)
     assert (
         swapped.reason is not None and "reference of trial y" in swapped.reason and swapped.best_peer == 0.8
     )
+    # no better than unrelated references, or nothing to compare with: kept, flagged
     unrelated = pairing.judge(0.12, {"x": 0.05, "y": 0.1, "z": 0.08}, 0.7)
-    assert unrelated.reason is not None and "no better than other trials' references" in unrelated.reason
+    assert unrelated.reason is None and unrelated.flag is not None
     alone = pairing.judge(0.5, {}, 0.7)
-    assert alone.reason is not None and "no other trial" in alone.reason and alone.best_peer is None
+    assert alone.reason is None and alone.flag is not None and "no other trial" in alone.flag
+    # its own reference clearly better outside the window: a shifted clock, unless a peer fits better
+    shift = pairing.Shift(offset_s=-2.0, outside=0.8, inside=0.2, window_s=0.5)
+    moved = pairing.judge(0.2, {"x": 0.3}, 0.7, shift)
+    assert moved.reason is not None and moved.reason.startswith("shifted clock: ")
+    assert "swapped?" in str(pairing.judge(0.2, {"x": 0.9}, 0.7, shift).reason)
+    assert pairing.judge(0.3, {"x": 0.3}, 0.7, pairing.Shift(-2.0, 0.5, 0.3, 0.5)).reason is None
+
+
+def test_stamps_on_one_clock_name_a_shift_only_when_both_ends_move_alike():
+    assert pairing.stamps_shifted((10.0, 18.0), (12.0, 20.0), 0.5) is not None
+    assert pairing.stamps_shifted((10.0, 18.0), (10.1, 18.1), 0.5) is None  # within the window
+    assert pairing.stamps_shifted((10.0, 18.0), (12.0, 25.0), 0.5) is None  # a longer recording
+    assert pairing.stamps_shifted((10.0, 18.0), (8.0, 20.0), 0.5) is None  # starts earlier, ends later
 
 
 def test_peers_are_the_same_angle_first_then_the_rest_at_most_max_peers():
