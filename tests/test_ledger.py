@@ -172,3 +172,19 @@ def test_a_trial_ingest_accepted_that_no_later_record_holds_is_set_aside_not_los
     t1 = next(e for e in entries if e.trial_id == "t1")
     assert (t1.outcome, t1.stage) == ("set aside", "resample")
     assert "resample has no row" in t1.where[0].reason
+
+
+def test_a_trial_kept_with_a_low_alignment_quality_is_used_and_flagged() -> None:
+    from pipeline.reporting.ledger import markdown
+
+    # given: resample kept t1 but flagged it (a low alignment quality, nothing showing its files disagree)
+    r = records()
+    flag = "alignment quality 0.31 below resample.min_quality = 0.7; kept: no other trial in its batch"
+    r["offsets"] = [{**o, "flag": flag} if o["trial_id"] == "t1" else o for o in r["offsets"]]
+    # when: the ledger is built and written
+    doc = ledger.document(ledger.build(**r, trained=[15]))
+    # then: t1 is used, with the flag, counted, and listed for people
+    t1 = next(e for e in doc["entries"] if e.get("trial_id") == "t1")
+    assert (t1["outcome"], t1["use"], t1["flag"]) == ("used", "train", flag)
+    assert doc["counts"]["flagged"] == 1
+    assert f"## Used, flagged (1)\n\n- `cast/t1`: {flag}" in markdown(doc)

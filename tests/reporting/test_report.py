@@ -71,3 +71,18 @@ def test_an_angle_without_an_external_set_is_said_in_words():
     # and says nothing of the kind when every angle has one
     m["datasets"]["30"]["source"] = "external"
     assert "No external set" not in render(m)
+
+
+def test_trials_used_with_a_flag_are_named_in_the_datasets_section():
+    # Given seven trials the ledger lists as used with a flag (a low alignment quality, kept)
+    m = in_memory_metrics(network_error(0.20, 0.05, 0.06))
+    flagged = [
+        {"batch_id": "b", "trial_id": f"t{k}", "flag": "alignment quality 0.31, kept"} for k in range(7)
+    ]
+    # When the report is rendered with them
+    report = render(m, flagged=flagged)
+    # Then the Datasets section counts them, names the first few with why, and points to the ledger
+    assert "**7 trial(s) used with a flag**" in report
+    assert "`b/t0` (alignment quality 0.31, kept)" in report and "and 2 more" in report
+    assert "`reports/ledger/ledger.md` lists them all" in report
+    assert "used with a flag" not in render(m)
