@@ -23,6 +23,7 @@ from pipeline.signals.scaling import to_volts
 
 FSR_HZ = 30.0
 REF_HZ = 100.0
+FINE_DT = 0.001  # s: the fine grid the tactile sensor's force is made on
 PARAMS = ResampleParams()
 NEEDLE = np.array([0.4, 0.5, -0.77]) / np.linalg.norm([0.4, 0.5, -0.77])  # into the tissue
 _E1 = np.cross(NEEDLE, [0.0, 0.0, 1.0])
@@ -215,38 +216,14 @@ def fabricate_tactile(
     it lags by a backlash of 0.15 N, and it is noisy (60 mV): with the right files, the alignment's R² is
     far below the simulator's."""
     rng = np.random.default_rng(seed)
-    dt = 0.001
-    t = np.arange(-1.0, duration_s + 1.0, dt)
+    t = np.arange(-1.0, duration_s + 1.0, FINE_DT)
     push = np.zeros_like(t)
     for start in np.sort(rng.uniform(1.0, duration_s - 4.0, 4)):
         width = rng.uniform(1.0, 2.5)
         inside = (t >= start) & (t < start + width)
         push[inside] += rng.uniform(0.5, 2.0) * np.sin(np.pi * (t[inside] - start) / width) ** 2
     shear = 0.3 * np.sin(2 * np.pi * t / rng.uniform(5.0, 9.0) + rng.uniform(0, 2 * np.pi)) * push
-    force = np.stack([shear, 0.5 * shear, -push], axis=1)  # on the tissue, tissue frame
-
-    az = np.radians(45.0 + 90.0 * np.arange(4))
-    load = push[:, None] / 4 + 0.8 * (shear[:, None] * np.cos(az) + 0.5 * shear[:, None] * np.sin(az))
-    a = np.exp(-dt / 2.0)
-    lagged = lfilter([1 - a], [1, -a], load - load[0], axis=0) + load[0]
-    load = np.clip(0.5 * load + 0.5 * lagged, 0.0, None)
-    # hysteresis (backlash, the silicone's friction): a channel's load lags the true one by up to
-    # 0.15 N, following it only once it has moved that far in the new direction
-    held = np.empty_like(load)
-    h = load[0].copy()
-    for i, row in enumerate(load):
-        h = np.clip(h, row - 0.15, row)
-        held[i] = h
-    volts = 4.5 * (1.0 - np.exp(-held / 0.2))
-
-    t_sample = np.arange(0.0, duration_s, 1.0 / rate_hz)
-    v = np.stack([np.interp(t_sample, t, volts[:, k]) for k in range(4)], axis=1)
-    v += rng.normal(0.0, 0.06, v.shape)
-    counts = np.clip(np.round(v / 5.0 * 1023), 0, 1023)
-    t_s = np.arange(0.0, duration_s, 1.0 / REF_HZ)
-    ref = np.stack([np.interp(t_s + offset_s, t, force[:, k]) for k in range(3)], axis=1)
-    ref += rng.normal(0.0, 0.01, ref.shape)
-    return Fabricated(np.round(t_sample * 1e3, 3), counts, t_s, ref, offset_s, (0.0, 0.0, 0.0, 0.0))
+    return _tactile(rng, t, push, shear, offset_s, duration_s, rate_hz)
 
 
 def fabricate_presses(
@@ -258,8 +235,7 @@ def fabricate_presses(
     noisy. Both streams carry the recording's time from `start_s` (the reference's `offset_s` behind
     on its own clock; 0 for one clock)."""
     rng = np.random.default_rng(seed)
-    dt = 0.001
-    t = np.arange(-1.0, duration_s + 1.0, dt)
+    t = np.arange(-1.0, duration_s + 1.0, FINE_DT)
     push = np.zeros_like(t)
     period = rng.uniform(1.2, 1.8)
     start = rng.uniform(-0.5 * period, 0.5 * period)
@@ -269,19 +245,38 @@ def fabricate_presses(
         push[inside] += rng.uniform(1.0, 1.4) * np.sin(np.pi * (t[inside] - start) / width) ** 2
         start += period * rng.uniform(0.95, 1.05)
     shear = 0.2 * push * np.sin(2 * np.pi * t / rng.uniform(5.0, 9.0))
-    force = np.stack([shear, 0.5 * shear, -push], axis=1)
+    return _tactile(rng, t, push, shear, offset_s, duration_s, 100.0, start_s)
+
+
+def _tactile(
+    rng: np.random.Generator,
+    t: np.ndarray,
+    push: np.ndarray,
+    shear: np.ndarray,
+    offset_s: float,
+    duration_s: float,
+    rate_hz: float,
+    start_s: float = 0.0,
+) -> Fabricated:
+    """What the 4-channel tactile sensor and the F/T sensor log of a pressing force (`push` normal,
+    `shear` lateral, N, on the fine grid `t`, FINE_DT apart): saturating channels, half of each load
+    change through a 2 s creep, a 0.15 N backlash, 60 mV of noise; both streams in the recording's
+    time from `start_s`, the reference `offset_s` behind."""
+    force = np.stack([shear, 0.5 * shear, -push], axis=1)  # on the tissue, tissue frame
     az = np.radians(45.0 + 90.0 * np.arange(4))
     load = push[:, None] / 4 + 0.8 * (shear[:, None] * np.cos(az) + 0.5 * shear[:, None] * np.sin(az))
-    a = np.exp(-dt / 2.0)
+    a = np.exp(-FINE_DT / 2.0)
     lagged = lfilter([1 - a], [1, -a], load - load[0], axis=0) + load[0]
     load = np.clip(0.5 * load + 0.5 * lagged, 0.0, None)
+    # hysteresis (backlash, the silicone's friction): a channel's load lags the true one by up to
+    # 0.15 N, following it only once it has moved that far in the new direction
     held = np.empty_like(load)
     h = load[0].copy()
     for i, row in enumerate(load):
         h = np.clip(h, row - 0.15, row)
         held[i] = h
     volts = 4.5 * (1.0 - np.exp(-held / 0.2))
-    t_sample = np.arange(0.0, duration_s, 1.0 / 100.0)
+    t_sample = np.arange(0.0, duration_s, 1.0 / rate_hz)
     v = np.stack([np.interp(t_sample, t, volts[:, k]) for k in range(4)], axis=1)
     v += rng.normal(0.0, 0.06, v.shape)
     counts = np.clip(np.round(v / 5.0 * 1023), 0, 1023)
