@@ -144,11 +144,14 @@ def _print_trials(
     """One batch's accounting: each trial passes ingest's checks or is set aside (the problems above
     say why); for a trial the last run's ledger knows, where it ended up."""
     from pipeline.reporting.ledger import entry_text
+    from pipeline.vocab import one_line
 
     n = len(c.trials_accepted) + len(c.trials_set_aside)
     typer.echo(
-        f"{c.batch_id} ({c.folder}): {n} trial(s), {len(c.trials_accepted)} pass ingest's checks, "
-        f"{len(c.trials_set_aside)} set aside" + ("" if n else "; the batch is set aside as a whole")
+        one_line(
+            f"{c.batch_id} ({c.folder}): {n} trial(s), {len(c.trials_accepted)} pass ingest's checks, "
+            f"{len(c.trials_set_aside)} set aside" + ("" if n else "; the batch is set aside as a whole")
+        )
     )
     for trial in sorted([*c.trials_accepted, *c.trials_set_aside]):
         state = "passes ingest" if trial in c.trials_accepted else "set aside at ingest (problems above)"

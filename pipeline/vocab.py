@@ -129,3 +129,12 @@ def file_sha256(paths: Sequence[Path]) -> str:
     for p in paths:
         h.update(Path(p).read_bytes())
     return h.hexdigest()
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def one_line(text: str) -> str:
+    """`text` with its control characters (a newline in a folder's name) written as escapes: a
+    reason or a log line stays one line."""
+    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], text)

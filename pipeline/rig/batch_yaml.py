@@ -86,6 +86,33 @@ def _duplicate_key(node: yaml.Node | None) -> tuple[str, int] | None:
     return None
 
 
+NOT_PLAIN = {  # YAML types that JSON (and so every record the stages write) has no word for
+    "tag:yaml.org,2002:binary": "binary data (!!binary)",
+    "tag:yaml.org,2002:set": "a set (!!set)",
+    "tag:yaml.org,2002:omap": "an ordered map (!!omap)",
+    "tag:yaml.org,2002:pairs": "a list of pairs (!!pairs)",
+}
+
+
+def _not_plain(root: yaml.Node | None) -> tuple[str, int] | None:
+    """(what, line) of the first value that is not a plain value (text, number, true/false, null, a
+    date, a list or a mapping of those): binary data, a set, a non-finite number. batch.yaml is
+    copied into JSON records, and a set would make the channel order depend on the hash seed."""
+    stack = [root] if root is not None else []
+    while stack:
+        node = stack.pop()
+        line = node.start_mark.line + 1
+        if node.tag in NOT_PLAIN:
+            return f"{NOT_PLAIN[node.tag]}: batch.yaml holds plain values only", line
+        if node.tag == "tag:yaml.org,2002:float" and str(node.value).lower().lstrip("+-") in (".inf", ".nan"):
+            return f"{node.value} is not a finite number", line
+        if isinstance(node, yaml.MappingNode):
+            stack.extend(child for pair in reversed(node.value) for child in reversed(pair))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend(reversed(node.value))
+    return None
+
+
 def _without_tags(loc: tuple[Any, ...]) -> tuple[Any, ...]:
     """A pydantic error location without the tag a tagged union puts after its field
     (`sensor.front_end.divider.fixed_kohm` -> `sensor.front_end.fixed_kohm`): the key as written."""
@@ -123,7 +150,13 @@ def read_meta(batch_dir: Path, probs: ProblemLog) -> BatchMeta | None:
         if dup := _duplicate_key(node):
             probs.add(file, f"key {dup[0]!r} appears twice in one mapping", line=dup[1])
             return None
+        if odd := _not_plain(node):
+            probs.add(file, odd[0], line=odd[1])
+            return None
         data = yaml.safe_load(text)
+    except RecursionError:  # nested thousands of levels deep: PyYAML's composer recurses per level
+        probs.add(file, "not valid YAML: nested too deep to read (a real batch.yaml has a few levels)")
+        return None
     except ValueError as e:  # a well-formed but impossible value, e.g. `recorded: 2026-13-45`
         probs.add(file, f"not valid YAML: {e}")
         return None

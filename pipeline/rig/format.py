@@ -16,7 +16,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from pipeline.rig.frontend import FrontEnd
-from pipeline.vocab import ID_PATTERN
+from pipeline.vocab import ID_PATTERN, one_line
 
 FORMAT = "rig-log/1"
 BATCH_FILE = "batch.yaml"
@@ -80,7 +80,8 @@ class _Meta(BaseModel):
 class SensorMeta(_Meta):
     """`sensor`: the estimator unit, its channels and their units."""
 
-    unit_id: str
+    # a unit's id names files (its calibration document) and registered models: an id, not a path
+    unit_id: str = Field(pattern=rf"^{ID_PATTERN.pattern}$")
     channels: list[str] = Field(min_length=1)
     units: Literal["counts", "volts"]
     adc_bits: int | None = Field(None, ge=1, le=32)
@@ -160,7 +161,7 @@ class Problem:
             where += f":{self.line}"
         if self.column is not None:
             where += f" column {self.column!r}"
-        return f"{where}: {self.reason}"
+        return one_line(f"{where}: {self.reason}")
 
 
 def batch_dirs(root: Path) -> list[Path]:

@@ -60,6 +60,7 @@ from pipeline.rig.format import (
 )
 from pipeline.rig.reader import ParsedBatch, parse_batch
 from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
+from pipeline.vocab import one_line
 from pipeline.workers import ordered_imap, workers_for
 
 FINGERPRINT = "fingerprint.json"
@@ -341,11 +342,11 @@ def _log_outcome(log: Log, i: int, n: int, b: BatchOutcome, seconds: float | Non
         if b.accepted
         else "SET ASIDE"
     )
-    log(f"ingest [{i}/{n}] {b.batch_id}: {how[b.action]}, {status} ({b.source_dir})")
+    log(one_line(f"ingest [{i}/{n}] {b.batch_id}: {how[b.action]}, {status} ({b.source_dir})"))
     for p in b.problems:
         log(f"    {p}")
     for w in b.warnings:
-        log(f"    warning: {w}")
+        log(one_line(f"    warning: {w}"))
 
 
 _VALIDATOR: list[Validator] = []  # this process's GX context for the batches it parses
@@ -359,7 +360,13 @@ def _parse_job(job: tuple[Path, Path, IngestParams, dict[str, Any]]) -> tuple[Ba
     """Parse, validate and write one batch (a job for `ordered_imap`): its outcome and seconds."""
     out_dir, batch_dir, params, fp = job
     start = time.perf_counter()
-    outcome = write_batch(out_dir, parse_batch(batch_dir, params, _VALIDATOR[0]), fp)
+    try:
+        outcome = write_batch(out_dir, parse_batch(batch_dir, params, _VALIDATOR[0]), fp)
+    except (ValueError, TypeError, OverflowError, RecursionError) as e:
+        # input nothing caught before writing: this batch is set aside, saying so; the others go on
+        why = " ".join(f"cannot be ingested: {type(e).__name__}: {e}".split())
+        problem = Problem(batch_dir.name, str(batch_dir / BATCH_FILE), f"{why} (please report it)")
+        outcome = write_batch(out_dir, ParsedBatch(batch_dir.name, batch_dir, [problem], []), fp)
     return outcome, time.perf_counter() - start
 
 

@@ -4,20 +4,22 @@ The alignment's quality (`pipeline.signals.clock`, R² of the reference's change
 estimator's) is high on the simulator's rig, but a nonlinear, hysteretic or noisy sensor, or a
 repeated-press motion, gives a low R² with the right files, and then any other insertion's
 reference explains a little of it too: neither an absolute gate nor "no better than the others"
-shows that anything is wrong. So a trial below `resample.min_quality` is set aside for its pairing
-only when something shows the files disagree:
+shows that anything is wrong. So a trial is set aside for its pairing only on evidence that its
+files disagree:
 
-- its own reference fits it clearly better (`SWAP_RATIO` times and by `MARGIN`) at an offset
-  outside the search window than inside it: a shifted clock (`Shift`, searched up to `WIDE_FACTOR`
-  times wider); on one clock (`reference.clock: shared`), also both files' ends displaced alike
-  beyond the window (`stamps_shifted`). A steady, periodic motion fits itself a period away, so
-  there a shift inside a period is told by the stamps alone; or
-- another trial's reference of its batch (up to `MAX_PEERS`, same angle first) fits it clearly
-  better than its own: reference files swapped.
+- one of its streams is a copy of another trial's (the trial its own files fit worse is set aside);
+- below `resample.min_quality`, another trial's reference of its batch (up to `MAX_PEERS`, same
+  angle first) fits it clearly better than its own (`SWAP_RATIO` times and by `MARGIN`), or better
+  by `MARGIN` while that trial is set aside as swapped with this one (`mutual_swaps`): swapped files;
+- below `resample.min_quality`, its own reference fits it clearly better outside the search window
+  than inside it, and well (`SHIFT_FLOOR`; searched up to `WIDE_FACTOR` times wider): a shifted
+  clock. On one clock (`reference.clock: shared`) also a reference stamped alike late or early at
+  both ends where the batch's other trials' files start and end together (`stamps_shifted`). A
+  steady, periodic motion fits itself a period away: there a shift is told by the stamps alone.
 
 (No overlap of the stamps, or a best offset at the window's edge, is set aside where the offset is
-estimated.) Otherwise it is kept and flagged: offsets.csv, the ledger and the report say so, and
-the models' validation shows whether it hurts.
+estimated.) Otherwise a low-quality trial is kept and flagged: offsets.csv, the ledger and the
+report say so, and the models' validation shows whether it hurts.
 """
 
 from __future__ import annotations
@@ -25,10 +27,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import numpy as np
+
 MAX_PEERS = 8  # other references a low-quality trial is scored against (same angle first)
 MARGIN = 0.1  # R² points the own reference must exceed the peers' median by (or a swap beat it by)
 WIDE_FACTOR = 10.0  # a low-quality trial's own reference is searched this many times wider (see Shift)
-STAMP_AGREEMENT = 0.1  # share of a trial's span within which both ends' displacements must agree
+STAMP_TOLERANCE_S = 0.05  # on one clock, a trial's two files cut together start and end this close
+SHIFT_FLOOR = 0.5  # a shift is evidence only where its own reference explains at least this much there
 SWAP_RATIO = 2.0  # how many times the own R² another reference must reach to call the files swapped:
 # with few, random events (a hand pressing a few times) one press of another trial can line up by
 # chance and beat a noisy trial's own reference a little; a swapped file's true partner wins by far
@@ -56,6 +61,11 @@ class Shift:
     window_s: float  # the usual search window, ±
 
 
+def is_shift(shift: Shift) -> bool:
+    """Whether its own reference fits a trial well, and clearly better, outside the search window."""
+    return shift.outside >= SHIFT_FLOOR and clearly_better(shift.outside, shift.inside)
+
+
 def clearly_better(other: float, own: float) -> bool:
     """Whether a fit of quality `other` beats `own` by enough to be evidence, not chance."""
     return other >= max(own + MARGIN, SWAP_RATIO * own)
@@ -71,18 +81,62 @@ def peers_of(trial_id: str, angles: Mapping[str, str]) -> list[str]:
     return (same + rest)[:MAX_PEERS]
 
 
-def stamps_shifted(fsr_s: tuple[float, float], ref_s: tuple[float, float], window_s: float) -> str | None:
-    """On one clock (`reference.clock: shared`), a trial's two files cut from one recording start
-    and end together; both ends displaced alike, by more than the search window, is a shifted clock
-    (the reason), whatever the signals say. None: the stamps show no such shift."""
-    start, end = ref_s[0] - fsr_s[0], ref_s[1] - fsr_s[1]
-    span = max(fsr_s[1] - fsr_s[0], 1e-9)
-    if min(abs(start), abs(end)) <= window_s or start * end <= 0 or abs(start - end) > STAMP_AGREEMENT * span:
+Ends = tuple[tuple[float, float], tuple[float, float]]  # (first, last) stamps: estimator, reference
+
+
+def stamps_shifted(own: Ends, others: list[Ends]) -> str | None:
+    """On one clock (`reference.clock: shared`): where the batch's other trials' two files start and
+    end together (within STAMP_TOLERANCE_S: cut from one recording at the same times), a reference
+    stamped alike late or early at both ends is a shifted clock (the reason). None: no such
+    evidence (the batch's files are not cut together, or this one's ends are not displaced alike)."""
+    displaced = [(r[0] - f[0], r[1] - f[1]) for f, r in others]
+    if len(displaced) < 2 or np.median([max(abs(a), abs(b)) for a, b in displaced]) > STAMP_TOLERANCE_S:
+        return None
+    (f0, f1), (r0, r1) = own
+    start, end = r0 - f0, r1 - f1
+    if (
+        min(abs(start), abs(end)) <= STAMP_TOLERANCE_S
+        or start * end <= 0
+        or abs(start - end) > STAMP_TOLERANCE_S
+    ):
         return None
     return (
-        f"shifted clock: reference.clock: shared, but the reference is stamped {start:+.2f} s from the "
-        f"estimator at its start and {end:+.2f} s at its end (more than ±{window_s:g} s); fix the stamps"
+        f"shifted clock: reference.clock: shared, and the batch's other trials' files start and end "
+        f"together, but this reference is stamped {start:+.2f} s from the estimator at its start and "
+        f"{end:+.2f} s at its end; fix the stamps"
     )
+
+
+def swapped(partner: str, theirs: float, own: float) -> str:
+    """The reason a trial is set aside for another trial's reference."""
+    return (
+        f"the reference of trial {partner} explains its estimator stream better ({theirs:.2f}) than its "
+        f"own ({own:.2f}): reference files swapped?"
+    )
+
+
+def mutual_swaps(
+    verdicts: Mapping[str, Verdict], peers: Mapping[str, Mapping[str, float]], own: Mapping[str, float]
+) -> list[tuple[str, str]]:
+    """(trial, partner) for each trial kept whose partner was set aside as swapped with it, when the
+    partner's reference also fits it better (by MARGIN) than its own: a swap seen from both sides
+    needs no SWAP_RATIO (the ratio guards against one chance match, not two that agree)."""
+    out = []
+    for partner, verdict in sorted(verdicts.items()):
+        named = _swap_partner(verdict.reason)
+        if named is None or named not in verdicts or verdicts[named].reason is not None:
+            continue
+        theirs = peers.get(named, {}).get(partner)
+        if theirs is not None and theirs >= own[named] + MARGIN:
+            out.append((named, partner))
+    return out
+
+
+def _swap_partner(reason: str | None) -> str | None:
+    prefix = "the reference of trial "
+    if reason is None or not reason.startswith(prefix) or "swapped?" not in reason:
+        return None
+    return reason.removeprefix(prefix).split(" explains ", 1)[0]
 
 
 def shifted(shift: Shift, *, shared: bool) -> str:
@@ -108,18 +162,14 @@ def judge(
     wider (`shift`; `shared`: batch.yaml says one clock stamped both streams)."""
     best_id = max(sorted(peers), key=lambda t: peers[t]) if peers else None
     best = peers[best_id] if best_id is not None else -1.0
-    moved = shift is not None and clearly_better(shift.outside, shift.inside)
+    moved = shift is not None and is_shift(shift)
     # the better of the two explanations wins: another file, or its own file at another offset
     if best_id is not None and clearly_better(best, own) and not (moved and shift.outside > best):
-        return Verdict(
-            f"the reference of trial {best_id} explains its estimator stream better ({best:.2f}) than its "
-            f"own ({own:.2f}): reference files swapped?",
-            best,
-        )
+        return Verdict(swapped(best_id, best, own), best)
     if shift is not None and moved and shift.outside > best:
         return Verdict(shifted(shift, shared=shared), best if best_id is not None else None)
     compared = (
-        f"no other trial's reference fits it better (best of {len(peers)}: {best:.2f})"
+        f"no other trial's reference fits it clearly better (best of {len(peers)}: {best:.2f})"
         if best_id is not None
         else "no other trial in its batch to compare with"
     )

@@ -14,6 +14,7 @@ with its reason in that row.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -134,7 +135,7 @@ def align(fsr: Streams, ref: Streams, p: ResampleParams, *, shared_clock: bool =
     )
     if est.on_edge:
         shift = wider(Streams(fsr.t_fsr_s, fsr.volts, ref.t_ref_s, ref.force_n), p)
-        if shift is not None and pairing.clearly_better(shift.outside, shift.inside):
+        if shift is not None and pairing.is_shift(shift):
             raise SetAside(pairing.shifted(shift, shared=shared_clock))
         raise SetAside(
             f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
@@ -166,15 +167,18 @@ def resample_trial(
 
 
 def _judged(
-    streams: Streams, est: OffsetEstimate, peers: dict[str, float], p: ResampleParams, shared_clock: bool
+    streams: Streams,
+    est: OffsetEstimate,
+    peers: dict[str, float],
+    p: ResampleParams,
+    shared_clock: bool,
+    others: list[tuple[tuple[float, float], tuple[float, float]]] | None = None,
 ) -> pairing.Verdict:
-    """The verdict on a low-quality trial (pipeline.signals.pairing): its stamps on one clock, then
+    """The verdict on a low-quality trial (pipeline.signals.pairing): on one clock, its stamps against
+    the batch's other trials' (`others`, their (estimator, reference) first and last stamps); then
     the peers' references and its own reference searched wider."""
-    if shared_clock:
-        ends = (float(streams.t_fsr_s[0]), float(streams.t_fsr_s[-1]))
-        reason = pairing.stamps_shifted(
-            ends, (float(streams.t_ref_s[0]), float(streams.t_ref_s[-1])), p.max_offset_s
-        )
+    if shared_clock and others:
+        reason = pairing.stamps_shifted(_ends(streams), others)
         if reason is not None:
             return pairing.Verdict(reason, max(peers.values(), default=None))
     return pairing.judge(est.quality, peers, p.min_quality, wider(streams, p), shared=shared_clock)
@@ -430,13 +434,16 @@ def _judge_pairings(
     info: BatchInfo,
     p: ResampleParams,
 ) -> dict[str, pairing.Verdict]:
-    """Per trial below `min_quality`, the batch's verdict on its pairing (pipeline.signals.pairing):
-    its estimator stream aligned with the references of up to MAX_PEERS other usable trials, and
-    with its own reference over a wider window."""
-    out: dict[str, pairing.Verdict] = {}
+    """The batch's verdicts on its trials' pairings (pipeline.signals.pairing): a stream that is a
+    copy of another trial's, then, per trial below `min_quality`, its estimator stream aligned with
+    the references of up to MAX_PEERS other usable trials and with its own reference over a wider
+    window, its stamps against the batch's on one clock, and last a swap seen from both sides."""
+    out = _copied_streams(usable)
     usable_angles = {t: angles[t] for t in usable}
+    ends = {t: _ends(streams) for t, (streams, _) in usable.items()}
+    peers_of: dict[str, dict[str, float]] = {}
     for tid, (streams, est) in usable.items():
-        if est.quality >= p.min_quality:
+        if est.quality >= p.min_quality or tid in out:
             continue
         peers: dict[str, float] = {}
         for other in pairing.peers_of(tid, usable_angles):
@@ -444,8 +451,55 @@ def _judge_pairings(
                 peers[other] = align(streams, usable[other][0], p, shared_clock=info.shared_clock).quality
             except SetAside:  # too little overlap or an edge: that reference explains nothing here
                 peers[other] = 0.0
-        out[tid] = _judged(streams, est, peers, p, info.shared_clock)
+        peers_of[tid] = peers
+        others = [e for t, e in ends.items() if t != tid] if info.shared_clock else None
+        out[tid] = _judged(streams, est, peers, p, info.shared_clock, others)
+    for tid, partner in pairing.mutual_swaps(out, peers_of, {t: e.quality for t, (_, e) in usable.items()}):
+        out[tid] = pairing.Verdict(
+            pairing.swapped(partner, peers_of[tid][partner], usable[tid][1].quality), None
+        )
     return out
+
+
+def _ends(streams: Streams) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(first, last) stamp of the estimator stream and of the reference."""
+    fsr, ref = streams.t_fsr_s, streams.t_ref_s
+    return (float(fsr[0]), float(fsr[-1])), (float(ref[0]), float(ref[-1]))
+
+
+def _copied_streams(usable: dict[str, tuple[Streams, OffsetEstimate]]) -> dict[str, pairing.Verdict]:
+    """Trials one of whose streams is a copy of another trial's (same stamps, same values) while
+    the other stream differs: the one its own reference fits worse is set aside, naming the other.
+    (Both streams copied is a copied trial: the split stage names it.)"""
+    out: dict[str, pairing.Verdict] = {}
+    for what, digest in (("estimator stream", _fsr_digest), ("reference", _ref_digest)):
+        groups: dict[str, list[str]] = {}
+        for tid, (streams, _) in usable.items():
+            groups.setdefault(digest(streams), []).append(tid)
+        for group in groups.values():
+            if (
+                len(group) < 2
+                or len({_fsr_digest(usable[t][0]) + _ref_digest(usable[t][0]) for t in group}) < 2
+            ):
+                continue
+            best = max(group, key=lambda t: (usable[t][1].quality, t))
+            for tid in group:
+                if tid != best and tid not in out:
+                    out[tid] = pairing.Verdict(
+                        f"its {what} is a copy of trial {best}'s (which its own files fit better: "
+                        f"{usable[best][1].quality:.2f} against {usable[tid][1].quality:.2f}): a file copied "
+                        "for another trial?",
+                        None,
+                    )
+    return out
+
+
+def _fsr_digest(streams: Streams) -> str:
+    return hashlib.sha256(streams.t_fsr_s.tobytes() + streams.volts.tobytes()).hexdigest()
+
+
+def _ref_digest(streams: Streams) -> str:
+    return hashlib.sha256(streams.t_ref_s.tobytes() + streams.force_n.tobytes()).hexdigest()
 
 
 def _truth(value: Any) -> float | None:

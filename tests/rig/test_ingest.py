@@ -144,6 +144,28 @@ def test_a_batch_naming_two_units_beside_one_whose_unit_is_a_list_is_written_not
     assert "sensor.unit_id" in listed_problems[0]["reason"]
 
 
+def test_a_batch_that_fails_unexpectedly_is_set_aside_and_the_others_go_on(
+    raw_dir, lab_bench_a, tmp_path, monkeypatch
+):
+    # Given two batches, one of which the reader cannot take for a reason no check foresaw
+    copy_batch(lab_bench_a, raw_dir, "lab-bench-b")
+    real = ingest.parse_batch
+
+    def parse(batch_dir, *args):
+        if batch_dir.name == "lab-bench-b":
+            raise ValueError("Out of range float values are not JSON compliant: inf")
+        return real(batch_dir, *args)
+
+    monkeypatch.setattr(ingest, "parse_batch", parse)
+    # When ingested
+    result = run([raw_dir], tmp_path / "out")
+    # Then that batch is set aside with the error in one line naming its batch.yaml; the other is in
+    assert result.accepted == [A] and result.set_aside == ["lab-bench-b"]
+    (problem,) = [p for p in result.problems if p.batch_id == "lab-bench-b"]
+    assert problem.file == str(raw_dir / "lab-bench-b" / "batch.yaml")
+    assert problem.reason.startswith("cannot be ingested: ValueError: Out of range float values")
+
+
 # --------------------------------------------------------------------------- check
 
 
@@ -187,3 +209,16 @@ def test_a_batch_removed_on_purpose_still_leaves_the_store(raw_dir, lab_bench_a,
     # When ingest runs again / Then that batch leaves the store, the other stays
     result = run([raw_dir], out)
     assert result.removed == ["lab-bench-b"] and result.accepted == [A]
+
+
+def test_a_folder_name_with_a_line_break_is_reported_on_one_line(raw_dir, lab_bench_a, tmp_path):
+    # Given a batch folder whose name holds a line break
+    copy_batch(lab_bench_a, raw_dir, "lab\nbench")
+    logged: list[str] = []
+    # When ingested
+    result = ingest.ingest_batches([raw_dir], tmp_path / "out", IngestParams(), log=logged.append)
+    # Then it is set aside, and every line said of it is one line, the break written as \n
+    assert result.set_aside == ["lab\nbench"]
+    said = [line for line in logged if "lab\\nbench" in line]
+    assert said and all("\n" not in line for line in logged)
+    assert all("\n" not in str(p) for p in result.problems)

@@ -508,6 +508,49 @@ BAD = [
         batch=True,
     ),
     Bad(
+        "batch.yaml nested thousands of levels deep",
+        lambda b: replace_in(
+            b / "batch.yaml", "operator:", "deep: " + "[" * 3000 + "]" * 3000 + "\noperator:"
+        ),
+        "batch.yaml",
+        "nested too deep to read",
+        batch=True,
+    ),
+    Bad(
+        "a non-finite number in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "insertion_time_s: 5.0", "insertion_time_s: .nan"),
+        "batch.yaml",
+        ".nan is not a finite number",
+        line=14,
+        batch=True,
+    ),
+    Bad(
+        "binary data in batch.yaml",
+        lambda b: replace_in(b / "batch.yaml", "operator:", "blob: !!binary /w==\noperator:"),
+        "batch.yaml",
+        "binary data (!!binary): batch.yaml holds plain values only",
+        line=15,
+        batch=True,
+    ),
+    Bad(
+        "channels as a YAML set",
+        lambda b: replace_in(
+            b / "batch.yaml", "[left, right, top, bottom]", "!!set {left, right, top, bottom}"
+        ),
+        "batch.yaml",
+        "a set (!!set)",
+        line=7,
+        batch=True,
+    ),
+    Bad(
+        "a unit id that is a path",
+        lambda b: replace_in(b / "batch.yaml", "unit_id: est-bench-01", 'unit_id: "../../tmp/escaped"'),
+        "batch.yaml",
+        "key sensor.unit_id: String should match pattern",
+        line=6,
+        batch=True,
+    ),
+    Bad(
         "channel named like a reference axis",
         lambda b: replace_in(b / "batch.yaml", "bottom]", "fx]"),
         "batch.yaml",
