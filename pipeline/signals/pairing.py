@@ -14,8 +14,11 @@ files disagree:
 - below `resample.min_quality`, its own reference fits it clearly better outside the search window
   than inside it, and well (`SHIFT_FLOOR`; searched up to `WIDE_FACTOR` times wider): a shifted
   clock. On one clock (`reference.clock: shared`) also a reference stamped alike late or early at
-  both ends where the batch's other trials' files start and end together (`stamps_shifted`). A
-  steady, periodic motion fits itself a period away: there a shift is told by the stamps alone.
+  both ends where the batch's other trials' files start and end together (`stamps_shifted`), or
+  one that fits clearly better off 0 at a lag apart from the lag every other trial of the batch
+  fits best at (`lag_off_the_batch`: a sensor's own lag is the same in every trial). A steady,
+  periodic motion fits itself a period away: there a shift beyond the window is told by the stamps
+  alone.
 
 (No overlap of the stamps, or a best offset at the window's edge, is set aside where the offset is
 estimated.) Otherwise a low-quality trial is kept and flagged: offsets.csv, the ledger and the
@@ -32,6 +35,7 @@ import numpy as np
 MAX_PEERS = 8  # other references a low-quality trial is scored against (same angle first)
 MARGIN = 0.1  # R² points the own reference must exceed the peers' median by (or a swap beat it by)
 WIDE_FACTOR = 10.0  # a low-quality trial's own reference is searched this many times wider (see Shift)
+LAG_TOLERANCE_S = 0.1  # on one clock, how far one trial's best lag may sit from its batch's
 STAMP_TOLERANCE_S = 0.05  # on one clock, a trial's two files cut together start and end this close
 SHIFT_FLOOR = 0.5  # a shift is evidence only where its own reference explains at least this much there
 SWAP_RATIO = 2.0  # how many times the own R² another reference must reach to call the files swapped:
@@ -104,6 +108,26 @@ def stamps_shifted(own: Ends, others: list[Ends]) -> str | None:
         f"shifted clock: reference.clock: shared, and the batch's other trials' files start and end "
         f"together, but this reference is stamped {start:+.2f} s from the estimator at its start and "
         f"{end:+.2f} s at its end; fix the stamps"
+    )
+
+
+def lag_off_the_batch(lag: float, there: float, at_zero: float, others: list[float]) -> str | None:
+    """On one clock: a reference that fits its trial clearly better (and well) at `lag` than at 0,
+    where the batch's other trials fit best at lags within LAG_TOLERANCE_S of each other and `lag`
+    lies beyond that from theirs, is a shifted clock (the reason). A sensor's own lag is its batch's:
+    the same in every trial. None: no such evidence."""
+    if len(others) < 2:
+        return None
+    centre = float(np.median(others))
+    spread = float(np.median(np.abs(np.asarray(others) - centre)))
+    if spread > LAG_TOLERANCE_S or abs(lag - centre) <= LAG_TOLERANCE_S + 3 * spread:
+        return None
+    if there < SHIFT_FLOOR or not clearly_better(there, at_zero):
+        return None
+    return (
+        f"shifted clock: reference.clock: shared, yet its reference fits best {lag:+.2f} s off (quality "
+        f"{there:.2f}, against {at_zero:.2f} at 0), where the batch's other trials fit best at "
+        f"{centre:+.2f} s; fix the stamps"
     )
 
 

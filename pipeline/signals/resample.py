@@ -441,6 +441,7 @@ def _judge_pairings(
     out = _copied_streams(usable)
     usable_angles = {t: angles[t] for t in usable}
     ends = {t: _ends(streams) for t, (streams, _) in usable.items()}
+    lags = _best_lags(usable, p) if info.shared_clock else {}
     peers_of: dict[str, dict[str, float]] = {}
     for tid, (streams, est) in usable.items():
         if est.quality >= p.min_quality or tid in out:
@@ -453,11 +454,35 @@ def _judge_pairings(
                 peers[other] = 0.0
         peers_of[tid] = peers
         others = [e for t, e in ends.items() if t != tid] if info.shared_clock else None
-        out[tid] = _judged(streams, est, peers, p, info.shared_clock, others)
+        off = None  # on one clock: its own reference fits at a lag none of the batch's other trials do
+        if tid in lags:
+            other_lags = [lag for t, (lag, _) in lags.items() if t != tid]
+            off = pairing.lag_off_the_batch(lags[tid][0], lags[tid][1], est.quality, other_lags)
+        if off is not None and lags[tid][1] > max(peers.values(), default=0.0):  # the better explanation
+            out[tid] = pairing.Verdict(off, max(peers.values(), default=None))
+        else:
+            out[tid] = _judged(streams, est, peers, p, info.shared_clock, others)
     for tid, partner in pairing.mutual_swaps(out, peers_of, {t: e.quality for t, (_, e) in usable.items()}):
         out[tid] = pairing.Verdict(
             pairing.swapped(partner, peers_of[tid][partner], usable[tid][1].quality), None
         )
+    return out
+
+
+def _best_lags(
+    usable: dict[str, tuple[Streams, OffsetEstimate]], p: ResampleParams
+) -> dict[str, tuple[float, float]]:
+    """On one clock: each trial's (lag, quality) where its reference fits best within the window, as if
+    the clocks were separate (a sensor's own lag is the batch's; one trial's apart is its stamps')."""
+    out = {}
+    for tid, (s, _) in usable.items():
+        try:
+            est = estimate_offset(
+                s.t_fsr_s, s.volts, s.t_ref_s, s.force_n, p.max_offset_s, p.offset_step_s, p.lowpass_order
+            )
+        except SetAside:
+            continue
+        out[tid] = (est.offset_s, est.quality)
     return out
 
 

@@ -240,3 +240,26 @@ def test_every_trial_has_one_row_in_batch_order(tmp_path):
     assert [r["trial_id"] for r in rows] == sorted(trials)
     kept = [r["trial_id"] for r in rows if r["status"] == "ok"]
     assert sorted(pd.unique(table.column("trial_id").to_numpy(zero_copy_only=False))) == kept
+
+
+def test_on_one_clock_a_trial_fitting_apart_from_its_batch_is_a_shifted_clock(tmp_path):
+    # Given insertions stamped by one clock, one reference whose stamps run 0.4 s behind what it
+    # recorded (inside the window; its files still start and end with the estimator's)
+    trials = {f"a30-t{k:02d}": fabricate(seed=70 + k, offset_s=0.4 if k == 2 else 0.0) for k in range(5)}
+    rows = _statuses(
+        write_ingested(tmp_path, "one-clock", trials, channels=["fsr1", "fsr2", "fsr3"], clock="shared")
+    )
+    # Then that trial alone is set aside, as a shifted clock against its batch
+    assert [t for t, r in rows.items() if r["status"] != "ok"] == ["a30-t02"]
+    assert (
+        "shifted clock: reference.clock: shared, yet its reference fits best +0.40 s off"
+        in rows["a30-t02"]["status"]
+    )
+
+
+def test_a_lag_every_trial_shares_is_the_sensors_not_a_shift():
+    assert pairing.lag_off_the_batch(-0.4, 0.9, 0.2, [0.0, 0.01, -0.01]) is not None
+    assert pairing.lag_off_the_batch(0.13, 0.6, 0.25, [0.12, 0.14, 0.15]) is None  # the sensor's lag
+    assert pairing.lag_off_the_batch(-0.4, 0.9, 0.2, [0.0]) is None  # nothing to compare with
+    assert pairing.lag_off_the_batch(-0.4, 0.9, 0.2, [0.3, -0.3, 0.0]) is None  # the batch disagrees
+    assert pairing.lag_off_the_batch(-0.4, 0.35, 0.1, [0.0, 0.01]) is None  # explains too little there
