@@ -37,8 +37,8 @@ def summary_markdown(rows: list[dict[str, Any]], durations: pd.DataFrame, p: Res
         f"Grid {p.rate_hz:g} Hz; offset search ±{p.max_offset_s:g} s in {p.offset_step_s * 1e3:g} ms steps; "
         f"grid points in gaps > {p.max_gap_s:g} s dropped.",
         "",
-        f"- trials: {len(rows)} ({len(ok)} ok, {len(aside)} set aside; "
-        f"{sum(1 for r in ok if r.get('flag'))} of the ok flagged)",
+        f"- trials: {len(rows)} ({len(ok)} ok, {len(aside)} set aside)"
+        + (f"; {n_flagged} of the ok flagged" if (n_flagged := sum(1 for r in ok if r.get("flag"))) else ""),
         f"- batches: {len({r['batch_id'] for r in rows})}",
         f"- grid samples written: {sum(int(r['n_grid']) for r in ok)}; "
         f"dropped in gaps: {sum(int(r['n_dropped_gap']) for r in ok)}",
