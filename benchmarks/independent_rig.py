@@ -1,6 +1,6 @@
 """An independent rig simulator: writes `rig-log/1` batches from physics nobody tuned the pipeline on.
 
-Written from the published facts only (/work/shared/physics.md = [F], the paper, Tang et al. 2024 =
+Written from the published facts only (docs/physics.md = [F], the paper, Tang et al. 2024 =
 [paper]) and docs/rig-log-format.md; every other number is an assumption [A] of this module. It does
 not import the pipeline. Everything is drawn from `seed`: the same seed writes the same bytes.
 

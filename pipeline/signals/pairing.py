@@ -52,6 +52,7 @@ class Verdict:
     reason: str | None
     best_peer: float | None
     flag: str | None = None
+    swapped_with: str | None = None  # set aside as swapped: the trial whose reference fits it
 
 
 @dataclass(frozen=True)
@@ -147,20 +148,13 @@ def mutual_swaps(
     needs no SWAP_RATIO (the ratio guards against one chance match, not two that agree)."""
     out = []
     for partner, verdict in sorted(verdicts.items()):
-        named = _swap_partner(verdict.reason)
+        named = verdict.swapped_with
         if named is None or named not in verdicts or verdicts[named].reason is not None:
             continue
         theirs = peers.get(named, {}).get(partner)
         if theirs is not None and theirs >= own[named] + MARGIN:
             out.append((named, partner))
     return out
-
-
-def _swap_partner(reason: str | None) -> str | None:
-    prefix = "the reference of trial "
-    if reason is None or not reason.startswith(prefix) or "swapped?" not in reason:
-        return None
-    return reason.removeprefix(prefix).split(" explains ", 1)[0]
 
 
 def shifted(shift: Shift, *, shared: bool) -> str:
@@ -189,7 +183,7 @@ def judge(
     moved = shift is not None and is_shift(shift)
     # the better of the two explanations wins: another file, or its own file at another offset
     if best_id is not None and clearly_better(best, own) and not (moved and shift.outside > best):
-        return Verdict(swapped(best_id, best, own), best)
+        return Verdict(swapped(best_id, best, own), best, swapped_with=best_id)
     if shift is not None and moved and shift.outside > best:
         return Verdict(shifted(shift, shared=shared), best if best_id is not None else None)
     compared = (

@@ -463,9 +463,9 @@ def _judge_pairings(
         else:
             out[tid] = _judged(streams, est, peers, p, info.shared_clock, others)
     for tid, partner in pairing.mutual_swaps(out, peers_of, {t: e.quality for t, (_, e) in usable.items()}):
-        out[tid] = pairing.Verdict(
-            pairing.swapped(partner, peers_of[tid][partner], usable[tid][1].quality), None
-        )
+        theirs = peers_of[tid][partner]
+        reason = pairing.swapped(partner, theirs, usable[tid][1].quality)
+        out[tid] = pairing.Verdict(reason, max(peers_of[tid].values()), swapped_with=partner)
     return out
 
 
@@ -497,15 +497,13 @@ def _copied_streams(usable: dict[str, tuple[Streams, OffsetEstimate]]) -> dict[s
     the other stream differs: the one its own reference fits worse is set aside, naming the other.
     (Both streams copied is a copied trial: the split stage names it.)"""
     out: dict[str, pairing.Verdict] = {}
-    for what, digest in (("estimator stream", _fsr_digest), ("reference", _ref_digest)):
+    digests = {t: (_fsr_digest(s), _ref_digest(s)) for t, (s, _) in usable.items()}
+    for which, what in enumerate(("estimator stream", "reference")):
         groups: dict[str, list[str]] = {}
-        for tid, (streams, _) in usable.items():
-            groups.setdefault(digest(streams), []).append(tid)
+        for tid, both in digests.items():
+            groups.setdefault(both[which], []).append(tid)
         for group in groups.values():
-            if (
-                len(group) < 2
-                or len({_fsr_digest(usable[t][0]) + _ref_digest(usable[t][0]) for t in group}) < 2
-            ):
+            if len(group) < 2 or len({digests[t] for t in group}) < 2:
                 continue
             best = max(group, key=lambda t: (usable[t][1].quality, t))
             for tid in group:

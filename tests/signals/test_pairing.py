@@ -210,7 +210,7 @@ def test_a_copied_estimator_file_is_set_aside_naming_the_trial_it_copies(tmp_pat
 
 
 def test_mutual_swaps_need_both_sides():
-    swapped = pairing.Verdict(pairing.swapped("b", 0.9, 0.3), 0.9)
+    swapped = pairing.Verdict(pairing.swapped("b", 0.9, 0.3), 0.9, swapped_with="b")
     kept = pairing.Verdict(None, 0.9, "flag")
     peers = {"a": {"b": 0.9}, "b": {"a": 0.92}}
     assert pairing.mutual_swaps({"a": swapped, "b": kept}, peers, {"a": 0.3, "b": 0.58}) == [("b", "a")]
