@@ -311,15 +311,6 @@ def serve(path: Path) -> _Stage | None:
 def _supervise(conn: socket.socket) -> _Stage | None:
     """One stage: receive the request and the caller's stdio, fork the stage process, report its pid
     and then its exit status; stop it if the caller goes away. Returns only in the stage process."""
-    size = struct.calcsize("3i")
-    peer, _uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, size))
-    if differs := _differs(identity(), identity(peer)):  # not its caller's rights: a fresh interpreter
-        print(
-            f"preload: refused caller {peer}: its {', '.join(differs)} differ from the server's", flush=True
-        )
-        with contextlib.suppress(OSError):
-            conn.sendall(f"{REFUSED} {', '.join(differs)}\n".encode())
-        os._exit(0)
     try:
         data, fds, _, _ = socket.recv_fds(conn, 1 << 16, 3)
         if len(data) < 4 or len(fds) != 3:
@@ -334,6 +325,23 @@ def _supervise(conn: socket.socket) -> _Stage | None:
         request = json.loads(body)
     except (OSError, ValueError):
         os._exit(2)
+    cred = struct.calcsize("3i")
+    peer, _uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, cred))
+    if differs := _differs(identity(), identity(peer)):  # not its caller's rights: a fresh interpreter
+        for fd in fds:
+            os.close(fd)
+        print(
+            f"preload: refused caller {peer}: its {', '.join(differs)} differ from the server's", flush=True
+        )
+        # the whole request was read first and the caller closes after reading the answer: an answer
+        # sent to a caller still writing, or a close with its data unread, would reach it as a broken
+        # connection (no server) instead of a refusal
+        with contextlib.suppress(OSError):
+            conn.sendall(f"{REFUSED} {', '.join(differs)}\n".encode())
+            conn.settimeout(5.0)
+            while conn.recv(64):
+                pass
+        os._exit(0)
     pid = os.fork()
     if pid == 0:
         conn.close()
