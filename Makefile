@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup setup-system repro verify test test-team ci lint bench ui clean team-start team-stop team-status firmware
+.PHONY: setup setup-system setup-node repro verify test test-team ci lint bench ui clean team-start team-stop team-status firmware
 
 setup: $(VENV)/.installed
 
@@ -26,6 +26,16 @@ setup-system:
 	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; }
 	@dpkg -s $(AVR_PACKAGES) >/dev/null 2>&1 || \
 	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(AVR_PACKAGES); }
+	@command -v npm >/dev/null || \
+	  { apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q nodejs npm; }
+
+# The JavaScript client of deploy/node (onnxruntime for Node.js, pinned by its package-lock.json);
+# --ignore-scripts: the package ships its CPU runtime, its install script only fetches CUDA's.
+setup-node: deploy/node/node_modules/.installed
+
+deploy/node/node_modules/.installed: deploy/node/package.json deploy/node/package-lock.json
+	cd deploy/node && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error
+	touch $@
 
 firmware: setup-system  ## the estimator's firmware (firmware/build/needlecue.hex, to flash) and its emulated board
 	$(MAKE) -C firmware hex board
@@ -44,7 +54,7 @@ verify: repro         ## the pipeline, then: nothing out of date; dvc.lock and m
 	$(BIN)/dvc status --quiet || { $(BIN)/dvc status; echo "verify: dvc status: stages out of date"; exit 1; }
 	git diff --exit-code --stat -- dvc.lock reports/metrics.json || { echo "verify: this machine wrote another dvc.lock (docs/reproducibility.md)"; exit 1; }
 
-test: setup setup-system  ## lint and run the test suite, the team stack's included (on both cores; its tests on one)
+test: setup setup-system setup-node  ## lint and run the test suite, the team stack's included (on both cores; its tests on one)
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q -n 2 --dist loadgroup
 

@@ -137,7 +137,7 @@ def repro_figures(root: Path) -> dict[str, Any]:
     seconds = time.perf_counter() - started
     if done.returncode:
         return {"error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
-    metrics = json.loads((root / "reports" / "metrics.json").read_text())
+    metrics = json.loads((root / "reports" / "evaluation.json").read_text())
     champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
     cues = metrics.get("cues") or {}
     seen = cues.get("lstm") or next(iter(cues.values()), {})  # the combined cue: the same for every kind

@@ -72,6 +72,12 @@ def repro(root: Path) -> tuple[float, dict[str, float]]:
     return end - start, stages
 
 
+def evaluation(root: Path) -> dict:
+    """The full evaluation of a revision (evaluation.json; before it existed, metrics.json held it)."""
+    path = root / "reports" / "evaluation.json"
+    return json.loads((path if path.is_file() else root / "reports" / "metrics.json").read_text())
+
+
 def outputs(root: Path) -> dict[str, str]:
     """{output path: md5} of every stage output in dvc.lock."""
     lock = yaml.safe_load((root / "dvc.lock").read_text())["stages"]
@@ -95,9 +101,8 @@ def main(old: str, new: str = "HEAD", save_lock: Path | None = None) -> None:
         print(f"outputs with the same bytes: {len(same)}; differing: {differ or 'none'}")
         only_old, only_new = sorted(a.keys() - b.keys()), sorted(b.keys() - a.keys())
         print(f"only in old: {only_old or 'none'}; only in new: {only_new or 'none'}")
-        m_old = json.loads((old_root / "reports" / "metrics.json").read_text())
-        m_new = json.loads((new_root / "reports" / "metrics.json").read_text())
-        print(f"metrics.json numbers identical: {m_old == m_new}")
+        m_old, m_new = evaluation(old_root), evaluation(new_root)
+        print(f"evaluation numbers identical: {m_old == m_new}")
         if save_lock is not None:
             shutil.copy(new_root / "dvc.lock", save_lock)
             print(f"{new}'s dvc.lock saved to {save_lock}")

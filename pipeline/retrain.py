@@ -39,6 +39,7 @@ from typing import Any
 from pipeline.config import DataParams, IngestParams, load_section
 from pipeline.ledger import USED, of_batches
 from pipeline.logs import Log
+from pipeline.metrics.evaluation import EVALUATION_FILE
 from pipeline.reporting.ledger import entry_text
 
 EXIT_NOTHING, EXIT_FAILED, EXIT_RETRAINED, EXIT_SET_ASIDE, EXIT_BUSY = 0, 1, 2, 3, 4
@@ -203,7 +204,7 @@ def _read_json(path: Path) -> dict[str, Any]:
 
 
 def _mean_nrmse(metrics: dict[str, Any]) -> dict[str, dict[str, float]]:
-    """{angle: {model: external NRMSE, mean of axes}} from metrics.json's within_angle."""
+    """{angle: {model: external NRMSE, mean of axes}} from evaluation.json's within_angle."""
     out: dict[str, dict[str, float]] = {}
     for model, angles in (metrics.get("within_angle") or {}).items():
         for angle, axes in angles.items():
@@ -383,14 +384,14 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
         log(f"checked {p.batch_id} ({p.status}): {state}")
         for problem in p.problems[:5]:
             log(f"    {problem}")
-    before = _read_json(root / "reports" / "metrics.json")
+    before = _read_json(root / "reports" / EVALUATION_FILE)
     log(f"dvc repro ({len(changed)} stage(s) out of date)")
     code, ran, tail = dvc_repro(root, log)
     report = summarise(
         pending,
         ran,
         before,
-        _read_json(root / "reports" / "metrics.json"),
+        _read_json(root / "reports" / EVALUATION_FILE),
         _read_json(root / "reports" / "registry.json"),
         _read_json(root / LEDGER),
     )

@@ -35,9 +35,14 @@ KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
 # /2: the graph reads the model's inputs (`inputs` in the metadata says how they are computed from
 # volts: pipeline.modelling.features); /1 graphs read raw volts. Clients read both.
 # /3: the description carries its graph's sha256 and the graph its description's (`description_sha256`)
-DEPLOY_FORMAT = "needlecue-deploy/3"
-DEPLOY_FORMATS = ("needlecue-deploy/1", "needlecue-deploy/2", DEPLOY_FORMAT)
-INPUT_NAME = "inputs"
+# /4: the graph reads what the estimator sends (raw volts and their rest reading) and the unit's
+# calibration as data, and computes the model's inputs itself (docs/deploy.md). Clients run /4 only.
+DEPLOY_FORMAT = "needlecue-deploy/4"
+DEPLOY_FORMATS = ("needlecue-deploy/1", "needlecue-deploy/2", "needlecue-deploy/3", DEPLOY_FORMAT)
+# the graph's inputs, in order: raw volts (batch, window, channels), the rest reading in effect at each
+# of those samples (same shape), and the unit: matrix (channels, channels), offset (channels,),
+# circuit (6,) (pipeline.modelling.features.unit_inputs)
+INPUT_NAMES = ("volts", "rest_volts", "unit_matrix", "unit_offset", "unit_circuit")
 OUTPUT_NAME = "force_n"
 
 

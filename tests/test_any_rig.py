@@ -77,7 +77,7 @@ def test_a_new_unit_of_another_design_is_read_through_its_own_declared_circuit(t
         assert ck["inputs_choice"]["only"] == f"the conductance kinds: {D} declares another circuit"
         assert set(ck["inputs_choice"]["scores"]) == {"conductance", "rest_conductance"}
     # and through its own circuit and calibration, D's force is within the target of the same units'
-    transfer = json.loads((root / "reports" / "metrics.json").read_text())["unit_transfer"]["champion"]
+    transfer = json.loads((root / "reports" / "evaluation.json").read_text())["unit_transfer"]["champion"]
     assert transfer["new_calibrated"] <= 1.2 * transfer["same_unit"]
     doc = json.loads((root / "data" / "calibration" / f"{D}.json").read_text())
     assert doc["front_end"] == new

@@ -38,7 +38,7 @@ def test_one_training_unit_then_a_new_unit_after_one_calibration_insertion_per_a
     assert {t["domain"] for t in doc["transforms"].values()} == {"conductance" if declare else "inputs"}
     # And: uncalibrated, D is shown no angle cue (only a force check can stop it); calibrated, its cues
     # are scored as the trainee sees them, within the wrong-cue limit
-    cues = json.loads((root / "reports" / "metrics.json").read_text())["cues"]["ls"]
+    cues = json.loads((root / "reports" / "evaluation.json").read_text())["cues"]["ls"]
     uncal, cal = cues["new_uncalibrated"], cues["new_calibrated"]
     assert uncal["coverage_frames"] <= cal["coverage_frames"] and uncal["wrong_final"] == 0.0
     assert set(cal) >= {"balanced_within_s", "wrong_final", "wrong_frames", "coverage_frames"}

@@ -34,7 +34,7 @@ def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
             frame = pd.read_parquet(root / "data" / "processed" / angle / f"{split}.parquet")
             assert not set(frame.batch_id) & set(cal.batch_id)
     # And D's held-out batch is scored as a calibrated unit, next to the training units
-    metrics = json.loads((root / "reports" / "metrics.json").read_text())
+    metrics = json.loads((root / "reports" / "evaluation.json").read_text())
     assert metrics["by_unit"][D]["calibrated"] is True
     assert {metrics["by_unit"][u]["role"] for u in (A, B, C) if u in metrics["by_unit"]} == {"training"}
     assert set(metrics["calibration"][D]["angles_used"]) == {"15", "45"}

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CalibrateParams
-from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform
+from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform, rest_reading
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
 from pipeline.modelling.predict import Predictor
@@ -56,7 +56,7 @@ class AngleData:
     y: np.ndarray  # (n, 3) reference force, N
     windows: np.ndarray | None  # (n, window) row positions of each row's LSTM window, or None
     front_end: Circuit | None = None  # the unit's circuit: the map acts on conductance
-    rest: tuple[np.ndarray, np.ndarray] | None = None  # per row, its rest reading's first and last row
+    rest: np.ndarray | None = None  # (n, c) per row, the conductance of its rest reading (raw volts)
 
     @property
     def domain(self) -> str:
@@ -73,41 +73,32 @@ class AngleData:
         if front_end is None:
             x = features_of(frame, list(predictor.channels), predictor.inputs)[order]
             return cls(predictor, x, y, windows)
-        g = conductance_us(frame[list(predictor.channels)].to_numpy(np.float64)[order], front_end)
-        rest = (
-            _rest_rows(t[order], start, predictor.inputs.rest_s)
-            if predictor.inputs.kind.startswith("rest_")
-            else None
-        )
-        return cls(predictor, g, y, windows, front_end, rest)
+        volts = frame[list(predictor.channels)].to_numpy(np.float64)[order]
+        rest = None
+        if predictor.inputs.kind.startswith("rest_"):  # the raw rest reading, as `features` takes it
+            resting = rest_reading(volts, codes[order], t[order], predictor.inputs.rest_s)
+            rest = conductance_us(resting, front_end)
+        return cls(predictor, conductance_us(volts, front_end), y, windows, front_end, rest)
 
-    def inputs(self, mapped: Any) -> Any:
-        """The model's inputs (torch) from `x` after the unit's map: in the conductance domain, the
-        inputs the model's own kind computes from that conductance (as `features` does from volts)."""
+    def inputs(self, transform: Any) -> Any:
+        """The model's inputs (torch) with the unit's map `transform` (torch, on `x`): in the
+        conductance domain, the inputs the model's own kind computes from the mapped conductance of
+        the reading, less those of its rest reading (as `features` does from volts)."""
+        import torch
+
+        mapped = transform(torch.from_numpy(self.x))
         if self.front_end is None:
             return mapped
+        out = self._absolute(mapped)
+        if self.rest is None:
+            return out
+        return out - self._absolute(transform(torch.from_numpy(self.rest)))
+
+    def _absolute(self, mapped: Any) -> Any:
         import torch
 
         g = torch.clamp(mapped, min=MIN_CONDUCTANCE_US)
-        a = g if self.predictor.inputs.kind in NEEDS_CIRCUIT else volts_of_conductance(g, self.front_end)
-        if self.rest is None:
-            return a
-        first, last = (torch.from_numpy(i) for i in self.rest)
-        cum = torch.cat([torch.zeros_like(a[:1]), torch.cumsum(a, dim=0)])
-        count = (last - first + 1).to(a.dtype)[:, None]
-        return a - (cum[last + 1] - cum[first]) / count
-
-
-def _rest_rows(t: np.ndarray, start: np.ndarray, rest_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per row in trial-time order, the first and last row of its rest reading: the running mean of
-    its trial's rows within `rest_s` of the first, frozen after (`features.rest_reading`)."""
-    pos = np.arange(len(t)) - start
-    within = t - t[start] < rest_s - 1e-9
-    n_rest = np.zeros(len(t), dtype=np.int64)
-    for s0 in np.unique(start):
-        rows = np.flatnonzero(start == s0)
-        n_rest[rows] = max(int(np.sum(within[rows])), 1)  # a prefix: t is sorted within a trial
-    return start.astype(np.int64), (start + np.minimum(pos, n_rest - 1)).astype(np.int64)
+        return g if self.predictor.inputs.kind in NEEDS_CIRCUIT else volts_of_conductance(g, self.front_end)
 
 
 def _losses(data: list[AngleData], forwards: list[Any], transform: Any) -> list[Any]:
@@ -117,7 +108,7 @@ def _losses(data: list[AngleData], forwards: list[Any], transform: Any) -> list[
 
     out = []
     for d, forward in zip(data, forwards, strict=True):
-        x = d.inputs(transform(torch.from_numpy(d.x)))
+        x = d.inputs(transform)
         if d.windows is not None:
             x = x[torch.from_numpy(d.windows)]
         out.append((((forward(x) - torch.from_numpy(d.y)) / force_scale(d.y)) ** 2).mean())

@@ -17,7 +17,7 @@ from pipeline.client.model import Model
 from pipeline.modelling.features import InputTransform
 from pipeline.registry import store
 from pipeline.rig.frontend import declared
-from pipeline.vocab import DEPLOY_FORMAT, angle_name, file_sha256
+from pipeline.vocab import angle_name, file_sha256
 
 CALIBRATE_FIX = "record a calibration batch with the unit and run `needlecue calibrate BATCH_DIR`"
 NO_UNIT = "no estimator unit named (unit_id)"
@@ -109,9 +109,6 @@ def decide(model: Model, source: Source) -> Decision:
 
 def transform_of(model: Model, doc: Mapping[str, Any]) -> tuple[InputTransform | None, str | None]:
     """The unit's transform for `model`, or (None, why it does not apply)."""
-    fmt = model.metadata.get("format")
-    if fmt != DEPLOY_FORMAT:
-        return None, f"the model is a {fmt} model, made before unit calibrations (it reads raw volts)"
     angle, sha = angle_name(model.angle_deg), str(model.metadata.get("checkpoint_sha256"))
     transform = transform_for(doc, model.kind, angle, sha)
     if transform is None:

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.registry import store
-from pipeline.vocab import DEPLOY_FORMAT, DEPLOY_FORMATS, description_sha256
+from pipeline.vocab import DEPLOY_FORMAT, DEPLOY_FORMATS, INPUT_NAMES, description_sha256
 
 log = logging.getLogger("pipeline.client")
 
@@ -62,7 +62,7 @@ FIELDS: dict[str, tuple[Any, str]] = {
     "targets": (_names, "a list of force axes, e.g. [fx, fy, fz]"),
     "rate_hz": (lambda v: v is None or (_number(v) and v > 0), "the sample rate in Hz (> 0) or null"),
     "window": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1, "an integer >= 1"),
-    "input": (lambda v: isinstance(v, str) and bool(v), "the graph's input name"),
+    "graph_inputs": (lambda v: v == list(INPUT_NAMES), f"the graph's inputs {list(INPUT_NAMES)}"),
     "output": (lambda v: isinstance(v, str) and bool(v), "the graph's output name"),
     "checkpoint_sha256": (
         lambda v: isinstance(v, str) and len(v) == SHA_HEX,
@@ -89,9 +89,12 @@ def read_metadata(model_dir: Path) -> dict[str, Any]:
             f"{mlmodel}: no {DEPLOY_FORMAT} block under metadata.needlecue (found format {found!r}); "
             "was this model logged with pipeline.modelling.export.log_onnx_model?"
         )
+    if meta["format"] != DEPLOY_FORMAT:
+        raise ModelFolderError(
+            f"{mlmodel}: a {meta['format']} model, whose graph reads the model's inputs rather than what "
+            f"the estimator sends; this client runs {DEPLOY_FORMAT} graphs: register it again (dvc repro)"
+        )
     for field, (fits, expected) in FIELDS.items():
-        if field in ("inputs", "cues") and field not in meta:
-            continue  # older formats: volts as read, no cue pack
         if field not in meta:
             raise ModelFolderError(f"{mlmodel}: field needlecue.{field} is missing; expected {expected}")
         if not fits(meta[field]):

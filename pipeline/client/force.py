@@ -42,7 +42,7 @@ from pipeline.client.calibration import (
 )
 from pipeline.client.follow import Follower
 from pipeline.client.model import Model, StreamMismatch, log
-from pipeline.modelling.features import ModelInputs, StreamFeatures
+from pipeline.modelling.features import ModelInputs, RestReading, unit_inputs
 from pipeline.registry import store
 
 if TYPE_CHECKING:
@@ -125,13 +125,16 @@ class ForceClient:
         """Run `model` from now on: its cue tracker and per-frame state, made afresh."""
         self._model = model
         self._n = len(model.channels)
-        # Pre-allocated per-frame state: `step` writes into these arrays instead of allocating.
-        self._x = np.zeros((1, *model.input_shape), dtype=np.float32)
-        self._feed = {model.metadata["input"]: self._x}
+        # Pre-allocated per-frame state: `step` writes into these arrays instead of allocating. The
+        # graph reads the raw window, the rest reading at each of its samples and the unit (as data).
+        self._volts = np.zeros((1, *model.input_shape), dtype=np.float64)
+        self._rests = np.zeros_like(self._volts)
+        names = model.metadata["graph_inputs"]
+        unit = unit_inputs(None, None, self._n)
+        self._feed = dict(zip(names, (self._volts, self._rests, *unit), strict=True))
         self._outputs = [model.session.get_outputs()[0].name]
-        self._features = StreamFeatures(model.inputs, self._n)
+        self._rest = RestReading(model.inputs.rest_s, self._n)
         self._tracker: Any = model.cue_tracker()
-        self._transform = None
         self._cues_on = False  # decided with the unit (`_decide_unit`)
         self.reset(poll=False)
 
@@ -241,10 +244,9 @@ class ForceClient:
         decision, first = decide(self._model, source), self._decision is None
         before = None if first else (self.calibrated, self.uncalibrated_reason, self.calibration)
         self._decision = decision
-        self._transform = decision.transform
-        spec = self._model.inputs.through(decision.circuit)
-        if spec != self._features.spec:  # the unit is decided before its first insertion's samples
-            self._features = StreamFeatures(spec, self._n)
+        names = self._model.metadata["graph_inputs"]
+        unit = unit_inputs(decision.transform, decision.circuit, self._n)
+        self._feed.update(zip(names[2:], unit, strict=True))
         self._cues_on = self._tracker is not None and (decision.calibrated or self._cues_uncalibrated)
         if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
             from pipeline.cues.tracker import calibration_evidence, reading_of, unit_evidence
@@ -429,7 +431,7 @@ class ForceClient:
             self.refresh()
         self._frames = 0
         self._last_t = math.nan
-        self._features.reset()
+        self._rest.reset()
         if self._tracker is not None:
             self._tracker.reset()
 
@@ -444,18 +446,13 @@ class ForceClient:
             raise ValueError(f"non-finite volts {list(sample)} for channels {list(self.channels)}")
         if t_s is None:
             t_s = 0.0 if self._frames == 0 else self._last_t + 1.0 / (self.rate_hz or 1.0)
-        if self._transform is None:
-            inputs = self._features.push(float(t_s), sample)
-        else:
-            inputs = self._transform.on_inputs(
-                self._features.push(float(t_s), self._transform.on_volts(sample))
-            )
-        x = self._x[0]
-        if self._model.window > 1 and self._frames > 0:
-            x[:-1] = x[1:]  # slide the window by one sample (numpy handles the overlap)
-            x[-1] = inputs
-        else:
-            x[...] = inputs  # first sample of an insertion fills the window, as training padded it
+        rest = self._rest.push(float(t_s), sample)
+        for window, now in ((self._volts[0], sample), (self._rests[0], rest)):
+            if len(window) > 1 and self._frames > 0:
+                window[:-1] = window[1:]  # slide the window by one sample (numpy handles the overlap)
+                window[-1] = now
+            else:
+                window[...] = now  # first sample of an insertion fills the window, as training padded it
         force = self._model.session.run(self._outputs, self._feed)[0][0].astype(np.float64)
         self._frames += 1
         self._last_t = float(t_s)

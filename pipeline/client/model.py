@@ -42,11 +42,13 @@ class Model:
         metadata, session = open_model(model_dir, unverified=unverified)
         model = cls(model_dir, metadata, session, read_version(model_dir))
         inputs = session.get_inputs()
-        if [i.name for i in inputs] != [metadata["input"]] or tuple(inputs[0].shape[1:]) != model.input_shape:
+        names = metadata["graph_inputs"]
+        shapes = [tuple(i.shape[1:]) for i in inputs[:2]]
+        if [i.name for i in inputs] != names or any(s != model.input_shape for s in shapes):
             found = [(i.name, i.shape) for i in inputs]
             raise ValueError(
                 f"{model_dir / ONNX_FILE}: inputs {found} do not match its MLmodel metadata "
-                f"({metadata['input']!r} of shape (batch, {', '.join(map(str, model.input_shape))}))"
+                f"({names[:2]} of shape (batch, {', '.join(map(str, model.input_shape))}))"
             )
         return model
 
@@ -80,13 +82,13 @@ class Model:
 
     @property
     def inputs(self) -> ModelInputs:
-        """How volts become the model's inputs (deploy/1 models read raw volts)."""
+        """How its graph computes the model's inputs from volts (its rest period: `rest_s`)."""
         return spec_of(self.metadata.get("inputs"))
 
     @property
     def input_shape(self) -> tuple[int, ...]:
-        n = len(self.channels)
-        return (self.window, n) if self.kind == "lstm" else (n,)
+        """(window, channels): the raw samples a graph row reads (one for ls and fnn)."""
+        return (self.window, len(self.channels))
 
     @property
     def cue_pack(self) -> dict[str, Any] | None:

@@ -1,4 +1,4 @@
-"""metrics.json: every model scored within its angle and across angle gaps, from the stored
+"""evaluation.json: every model scored within its angle and across angle gaps, from the stored
 predictions (the paper's Tables I-III in numbers; rendering lives in `pipeline.reporting`).
 
 Per axis fx, fy, fz, over all samples of the evaluated set with its trials concatenated
@@ -26,6 +26,7 @@ from pipeline.metrics.scores import axis_scores, gap_summary, gaps_present, mean
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import AXES, TRIAL_KEY, dump_json, sorted_angles
 
+EVALUATION_FILE = "evaluation.json"  # the full evaluation, in the reports folder (metrics.json: its headline)
 DIGITS = 4  # metrics.json precision: 0.1 mN for RMSE, 0.0001 % for NRMSE
 
 

@@ -1,17 +1,22 @@
 """Deployable force models: a needlecue checkpoint as a self-contained ONNX graph, logged to MLflow.
 
-The graph reads the model's inputs and returns newtons, with the checkpoint's standardisation inside
-it, so the simulator's client needs onnxruntime, numpy and `pipeline.modelling.features` (which turns
-volts into inputs, and applies a unit's calibration) and never a pickle:
+The graph reads what the estimator sends and returns newtons. It computes the model's inputs from the
+raw volts (`pipeline.modelling.front`), reads the unit through its calibration, given as data, and
+holds the checkpoint's standardisation, so that `mlflow models serve`, MLflow's pyfunc and a simulator
+in any language need no needlecue code, and the Python client no pickle (docs/deploy.md):
 
-    input  `inputs`  float32 (N, C) for ls/fnn, (N, window, C) for lstm, in `channels` order
-    output `force_n` float32 (N, 3): fx, fy, fz in N
+    inputs  `volts`        float64 (N, window, C)  raw volts, oldest sample first, in `channels` order
+            `rest_volts`   float64 (N, window, C)  the rest reading in effect at each of those samples
+            `unit_matrix`  float64 (C, C)          the unit's calibration (identity: uncalibrated)
+            `unit_offset`  float64 (C,)
+            `unit_circuit` float64 (6,)            the unit's circuit (zeros: the model's own)
+    output  `force_n`      float32 (N, 3)          fx, fy, fz in N
 
-The same checkpoint gives the same ONNX bytes, in any process (a test checks it), and the MLflow model
-carries a `needlecue` metadata block (`deploy_metadata`) with everything the client needs to feed it.
-What a simulator runs is verified as one (`pipeline.client.folder`): the graph's own metadata holds
-the sha256 of that block, and the block the sha256 of the graph (`onnx_sha256`), both recorded when
-the model is logged.
+`window` is 1 for ls and fnn. The same checkpoint gives the same ONNX bytes, in any process (a test
+checks it), and the MLflow model carries a `needlecue` metadata block (`deploy_metadata`) with what a
+client needs besides: the rest period, the channels and rate, the cue pack. What a simulator runs is
+verified as one (`pipeline.client.folder`): the graph's own metadata holds the sha256 of that block,
+and the block the sha256 of the graph (`onnx_sha256`), both recorded when the model is logged.
 
 torch, onnx and mlflow are imported inside the functions, so importing this module is cheap.
 """
@@ -28,9 +33,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpoint_sha256
-from pipeline.modelling.features import spec_of
+from pipeline.modelling.features import features_at, rest_reading, spec_of, unit_inputs
+from pipeline.modelling.front import front_module
 from pipeline.modelling.networks import build_network
-from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAME, OUTPUT_NAME, description_sha256
+from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, description_sha256
 
 if TYPE_CHECKING:
     import torch
@@ -52,7 +58,8 @@ _EXPORTER_NOISE = (
 
 
 def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
-    """The checkpoint's network as one float32 module, model inputs in, newtons out (eval mode)."""
+    """The checkpoint's network as one module, the graph's inputs (`INPUT_NAMES`) in, newtons out (eval
+    mode): the front (float64) computes the model's inputs, the network runs in float32."""
     import torch
     from torch import nn
 
@@ -80,12 +87,28 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
                 for key in ("x_mean", "x_std", "y_mean", "y_std"):
                     self.register_buffer(key, pre[key].float().clone())
 
-        def forward(self, volts: torch.Tensor) -> torch.Tensor:
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
             if not self.scaled:
-                return self.net(volts)
-            return self.net((volts - self.x_mean) / self.x_std) * self.y_std + self.y_mean
+                return self.net(x)
+            return self.net((x - self.x_mean) / self.x_std) * self.y_std + self.y_mean
 
-    return Deployable().float().eval()
+    network = Deployable().float().eval()
+    front = front_module(spec_of(checkpoint.get("inputs")), cfg.window if cfg.kind == "lstm" else 1)
+
+    class Graph(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.front, self.network = front, network
+
+        def forward(self, *graph_inputs: torch.Tensor) -> torch.Tensor:
+            return self.network(self.front(*graph_inputs).float())
+
+    return Graph().eval()
+
+
+def graph_window(checkpoint: dict[str, Any]) -> int:
+    """Samples per row of the graph's `volts` (the LSTM's window, else 1)."""
+    return int(checkpoint["config"].get("window", 1)) if checkpoint["kind"] == "lstm" else 1
 
 
 def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes:
@@ -95,10 +118,9 @@ def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes
     import torch
 
     module = deployable_module(checkpoint)
-    cfg = ModelConfig.from_dict(checkpoint["config"])
-    n_in = len(checkpoint["channels"])
+    n_in, window = len(checkpoint["channels"]), graph_window(checkpoint)
     # a batch of 2 in the trace: no dimension of size 1 the exporter might specialise on
-    dummy = torch.zeros((2, cfg.window, n_in) if cfg.kind == "lstm" else (2, n_in))
+    dummy = tuple(torch.from_numpy(a) for a in _steady(2, window, n_in, 2.5))
     buffer = io.BytesIO()
     with warnings.catch_warnings(), torch.no_grad():
         for message in _EXPORTER_NOISE:
@@ -107,16 +129,17 @@ def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
         torch.onnx.export(
             module,
-            (dummy,),
+            dummy,
             buffer,
             dynamo=False,
             opset_version=OPSET,
-            input_names=[INPUT_NAME],
+            input_names=list(INPUT_NAMES),
             output_names=[OUTPUT_NAME],
-            dynamic_axes={INPUT_NAME: {0: BATCH_DIM}, OUTPUT_NAME: {0: BATCH_DIM}},
+            dynamic_axes={name: {0: BATCH_DIM} for name in (*INPUT_NAMES[:2], OUTPUT_NAME)},
             do_constant_folding=True,
         )
     proto = onnx.load_from_string(buffer.getvalue())
+    _keep_every_input(proto, dummy)
     # The graph alone says what it is: whoever finds a bare model.onnx can still feed it correctly.
     keys = ("format", "kind", "angle_deg", "channels", "targets", "rate_hz", "window", "checkpoint_sha256")
     info = {k: v for k, v in deploy_metadata(checkpoint, None).items() if k in keys}
@@ -129,6 +152,23 @@ def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes
         node.doc_string = ""
     onnx.checker.check_model(proto, full_check=True)
     return proto.SerializeToString(deterministic=True)
+
+
+def _keep_every_input(proto: Any, dummy: tuple[Any, ...]) -> None:
+    """Put back, in order, the inputs the exporter dropped because this model does not read them
+    (`rest_volts` for absolute inputs): every graph takes the same five, whatever its kind."""
+    import onnx
+
+    found = {i.name: i for i in proto.graph.input}
+    inputs = []
+    for name, tensor in zip(INPUT_NAMES, dummy, strict=True):
+        if name in found:
+            inputs.append(found[name])
+            continue
+        shape = [BATCH_DIM if k == 0 and name in INPUT_NAMES[:2] else d for k, d in enumerate(tensor.shape)]
+        inputs.append(onnx.helper.make_tensor_value_info(name, onnx.TensorProto.DOUBLE, shape))
+    del proto.graph.input[:]
+    proto.graph.input.extend(inputs)
 
 
 def _json_float(value: Any) -> float | None:
@@ -156,9 +196,9 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
         "channels": list(checkpoint["channels"]),
         "targets": list(checkpoint["targets"]),
         "rate_hz": _json_float(checkpoint["rate_hz"]),
-        "window": int(checkpoint["config"].get("window", 1)),
+        "window": graph_window(checkpoint),
         "inputs": spec_of(checkpoint.get("inputs")).model_dump(mode="json"),
-        "input": INPUT_NAME,
+        "graph_inputs": list(INPUT_NAMES),
         "output": OUTPUT_NAME,
         "checkpoint_sha256": checkpoint_sha256(checkpoint),
         "train_data_sha256": checkpoint.get("train_data_sha256"),
@@ -167,35 +207,62 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
     }
 
 
-def input_example(checkpoint: dict[str, Any]) -> np.ndarray:
-    """Three plausible inputs: the training mean of the inputs and one std either side (raw volts
-    never below 0 V). For ls, whose preprocessing is the identity, that is -1, 0 and 1 on every channel."""
-    pre = checkpoint["preprocessing"]
-    mean, std = pre["x_mean"].double().numpy(), pre["x_std"].double().numpy()
-    rows = mean[None, :] + np.array([-1.0, 0.0, 1.0])[:, None] * std[None, :]
-    if spec_of(checkpoint.get("inputs")).kind == "volts":
-        rows = np.clip(rows, 0.0, None)
-    window = int(checkpoint["config"].get("window", 1))
-    if checkpoint["kind"] == "lstm":
-        rows = np.repeat(rows[:, None, :], window, axis=1)  # a steady reading over the whole window
-    return rows.astype(np.float32)
+def _steady(n: int, window: int, n_in: int, volts: float) -> tuple[np.ndarray, ...]:
+    """Graph inputs of `n` rows of a steady reading at `volts`, uncalibrated."""
+    v = np.full((n, window, n_in), volts, dtype=np.float64)
+    return (v, v.copy(), *unit_inputs(None, None, n_in))
 
 
-def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: np.ndarray) -> None:
-    """Run the graph on `example` with onnxruntime, as the client will, and check that it gives the
-    checkpoint's own newtons (the Predictor's, within float32 rounding); ValueError if not."""
+def raw_windows(checkpoint: dict[str, Any], volts: np.ndarray, t: np.ndarray, rows: Any) -> np.ndarray:
+    """(len(rows), window, C) windows of one trial's raw `volts` (n, C) at times `t`, each ending at
+    one of `rows`; the first sample repeated before the trial's start, as training pads them."""
+    window = graph_window(checkpoint)
+    idx = np.maximum(np.asarray(rows)[:, None] - (window - 1) + np.arange(window)[None, :], 0)
+    return np.asarray(volts, dtype=np.float64)[idx]
+
+
+def graph_feed(
+    checkpoint: dict[str, Any], volts: np.ndarray, t: np.ndarray, rows: Any, unit: tuple[np.ndarray, ...]
+) -> dict[str, np.ndarray]:
+    """The graph's inputs for rows `rows` of one trial (raw `volts` (n, C) at times `t`), its unit read
+    through `unit` (`features.unit_inputs`): what a simulator sends, computed from a recording."""
+    one_trial = np.zeros(len(volts), dtype=np.int64)
+    rest = rest_reading(volts, one_trial, t, spec_of(checkpoint.get("inputs")).rest_s)
+    arrays = (raw_windows(checkpoint, volts, t, rows), raw_windows(checkpoint, rest, t, rows), *unit)
+    return dict(zip(INPUT_NAMES, arrays, strict=True))
+
+
+def input_example(
+    checkpoint: dict[str, Any], trial: tuple[np.ndarray, np.ndarray] | None = None
+) -> dict[str, np.ndarray]:
+    """The graph's inputs for three rows of a real trial (raw volts (n, C) and times (n,)): its first
+    sample, its half-way sample and its last, uncalibrated. Without a trial, a steady 2.5 V reading."""
+    n_in = len(checkpoint["channels"])
+    if trial is None or len(trial[0]) == 0:
+        return dict(zip(INPUT_NAMES, _steady(3, graph_window(checkpoint), n_in, 2.5), strict=True))
+    volts, t = trial
+    rows = [0, len(volts) // 2, len(volts) - 1]
+    return graph_feed(checkpoint, volts, t, rows, unit_inputs(None, None, n_in))
+
+
+def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: dict[str, np.ndarray]) -> None:
+    """Run the graph on `example` with onnxruntime, as a simulator will, and check that it gives the
+    checkpoint's own newtons (the Predictor's on the same raw volts, within float32 rounding); ValueError
+    if not."""
     import onnxruntime as ort
 
     from pipeline.modelling.predict import Predictor
 
     session = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
-    got = session.run(None, {INPUT_NAME: example})[0]
-    n_in = example.shape[-1]
-    # the LSTM's example rows are windows: predict each as a trial of its own, keep its last sample
-    x = example.reshape(-1, n_in).astype(np.float64)
-    trials = np.repeat(np.arange(len(example)), x.shape[0] // len(example))
-    expected = Predictor(checkpoint).predict_inputs(x, trials)
-    expected = expected.reshape(len(example), -1, expected.shape[-1])[:, -1]
+    got = session.run(None, example)[0]
+    predictor = Predictor(checkpoint)
+    expected = []
+    for volts, rest in zip(example[INPUT_NAMES[0]], example[INPUT_NAMES[1]], strict=True):
+        # each row as a trial of its own, its window's samples with their own rest readings: the inputs
+        # are the features of the volts less those of the rest, row by row, as `features` computes them
+        x = features_at(volts, rest, predictor.inputs)
+        expected.append(predictor.predict_inputs(x, np.zeros(len(x), dtype=np.int64))[-1])
+    expected = np.asarray(expected)
     tolerance = 1e-5 * max(float(np.abs(expected).max()), 1.0)
     if got.shape != expected.shape or not np.allclose(got, expected, rtol=0, atol=tolerance):
         raise ValueError(
@@ -204,11 +271,46 @@ def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: np.ndarray) -
         )
 
 
+SIGNATURE_DOC = {
+    "volts": "raw estimator volts, V, (batch, window, channels), oldest sample first",
+    "rest_volts": (
+        "the rest reading in effect at each sample, V, same shape: the running mean of the "
+        "insertion's volts over its first rest_s seconds"
+    ),
+    "unit_matrix": "the unit's calibration matrix (channels, channels); identity: uncalibrated",
+    "unit_offset": "the unit's calibration offset (channels,); zeros: uncalibrated",
+    "unit_circuit": (
+        "the unit's circuit (6,): [circuit, a, b, series_kohm, offset_v, on_conductance]; "
+        "zeros: the model's own"
+    ),
+}
+
+
+def describe(checkpoint: dict[str, Any]) -> str:
+    """The registered version's description: what the graph takes and returns."""
+    n, window = len(checkpoint["channels"]), graph_window(checkpoint)
+    rest_s = spec_of(checkpoint.get("inputs")).rest_s
+    return (
+        f"{checkpoint['kind']} force model for {checkpoint['angle_deg']:g}° insertions. Takes the "
+        f"estimator's raw volts `volts` float64 (batch, {window}, {n}) for channels "
+        f"{', '.join(checkpoint['channels'])} at {checkpoint['rate_hz']:g} Hz, oldest sample first; "
+        "`rest_volts`, the same shape, the running mean of "
+        f"the insertion's volts over its first {rest_s:g} s in effect at each sample; and the unit's "
+        f"calibration `unit_matrix` ({n}, {n}), `unit_offset` ({n},), `unit_circuit` (6,) (identity, zeros "
+        "and zeros: uncalibrated). Returns `force_n` float32 (batch, 3): fx, fy, fz in N. docs/deploy.md."
+    )
+
+
 def log_onnx_model(
-    checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None, *, name: str = "model"
+    checkpoint: dict[str, Any],
+    cue_pack: dict[str, Any] | None,
+    *,
+    name: str = "model",
+    trial: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ModelInfo:
-    """Log the checkpoint's ONNX graph as an MLflow model in the active run; returns its ModelInfo
-    (`.model_uri` is what `mlflow.register_model` takes)."""
+    """Log the checkpoint's ONNX graph as an MLflow model in the active run, its input example three
+    rows of `trial` (raw volts, times; see `input_example`); returns its ModelInfo (`.model_uri` is
+    what `mlflow.register_model` takes)."""
     import mlflow
     import onnx
     from mlflow.models import ModelSignature
@@ -219,20 +321,22 @@ def log_onnx_model(
     meta = deploy_metadata(checkpoint, cue_pack)
     model = to_onnx(checkpoint, description_sha256(meta))
     meta["onnx_sha256"] = hashlib.sha256(model).hexdigest()  # the bytes MLflow writes (a test checks)
-    example = input_example(checkpoint)
+    example = input_example(checkpoint, trial)
     verify_onnx(checkpoint, model, example)  # MLflow's own check below only sees that it runs
     proto = onnx.load_from_string(model)
     n_out = len(checkpoint["targets"])
+    f64 = np.dtype(np.float64)
+    shapes = {k: (-1, *v.shape[1:]) if k in INPUT_NAMES[:2] else v.shape for k, v in example.items()}
     signature = ModelSignature(
-        inputs=Schema([TensorSpec(np.dtype(np.float32), (-1, *example.shape[1:]), INPUT_NAME)]),
+        inputs=Schema([TensorSpec(f64, shapes[k], k) for k in INPUT_NAMES]),
         outputs=Schema([TensorSpec(np.dtype(np.float32), (-1, n_out), OUTPUT_NAME)]),
     )
     return mlflow.onnx.log_model(
         onnx_model=proto,
         name=name,
         signature=signature,
-        input_example={INPUT_NAME: example},
-        metadata={"needlecue": meta},
+        input_example=example,
+        metadata={"needlecue": meta, "inputs_doc": SIGNATURE_DOC},
         pip_requirements=["onnxruntime"],
         # MLflow's default lists CUDA first, then warns on every CPU-only load that it is missing
         onnx_execution_providers=["CPUExecutionProvider"],

@@ -17,9 +17,12 @@ The conductance kinds need a circuit, and take it from the data, never from para
 the one its training units declared (`ModelInputs.front_end`), and a unit that declares its own is
 read through that. With no circuit declared, only the volts kinds exist.
 
-The rest reading is causal: the mean of a trial's samples in its first `rest_s` seconds (the
-running mean until then), the same number in training, in batch prediction and in the live
-client (`StreamFeatures`). Numpy and pydantic only: the simulator's client imports this module.
+The rest reading is causal and raw: the mean of the volts a trial reads in its first `rest_s`
+seconds (the running mean until then), before any calibration or conductance. A relative input is
+the input of the reading minus the input of the rest reading, the same numbers in training, in batch
+prediction and in the deployed graph (`pipeline.modelling.export`, fed by `RestReading`), so a
+simulator in any language needs nothing but the volts and their running mean. Numpy and pydantic
+only: the simulator's client imports this module.
 """
 
 from __future__ import annotations
@@ -134,23 +137,47 @@ def rest_reading(values: np.ndarray, codes: np.ndarray, t: np.ndarray, rest_s: f
     return out
 
 
-def features(volts: np.ndarray, codes: np.ndarray, t: np.ndarray, spec: ModelInputs) -> np.ndarray:
+def features(
+    volts: np.ndarray,
+    codes: np.ndarray,
+    t: np.ndarray,
+    spec: ModelInputs,
+    transform: InputTransform | None = None,
+) -> np.ndarray:
     """(n, channels) model inputs of volts (n, channels) whose rows belong to trials `codes` at
-    times `t` (s); any row order."""
-    x = _absolute(volts, spec)
-    if not _relative(spec):
-        return x
-    return x - rest_reading(x, np.asarray(codes), np.asarray(t, dtype=np.float64), spec.rest_s)
+    times `t` (s), any row order; with a unit's calibration `transform`, as the models read that unit."""
+    volts = np.asarray(volts, dtype=np.float64)
+    rest = None
+    if _relative(spec):
+        rest = rest_reading(volts, np.asarray(codes), np.asarray(t, dtype=np.float64), spec.rest_s)
+    return features_at(volts, rest, spec, transform)
 
 
-class StreamFeatures:
-    """`features` one sample at a time, for the live client: `push(t, volts)` -> inputs; `reset()`
-    at the start of each insertion. Gives the same numbers as `features` on the whole trial."""
+def features_at(
+    volts: np.ndarray, rest: np.ndarray | None, spec: ModelInputs, transform: InputTransform | None = None
+) -> np.ndarray:
+    """The model inputs of volts (n, channels) given the rest reading in effect at each row (same
+    shape; not read by the absolute kinds): what the deployed graph computes."""
+    x = _inputs_of(np.asarray(volts, dtype=np.float64), spec, transform)
+    if _relative(spec):
+        x = x - _inputs_of(np.asarray(rest, dtype=np.float64), spec, transform)
+    return x if transform is None else transform.on_inputs(x)
 
-    __slots__ = ("_frozen", "_n", "_spec", "_sum", "_t0")
 
-    def __init__(self, spec: ModelInputs, n_channels: int) -> None:
-        self._spec = spec
+def _inputs_of(volts: np.ndarray, spec: ModelInputs, transform: InputTransform | None) -> np.ndarray:
+    """The absolute inputs of `volts` (a conductance-domain calibration applied first)."""
+    return _absolute(volts if transform is None else transform.on_volts(volts), spec)
+
+
+class RestReading:
+    """The rest reading one sample at a time, for a live client: `push(t, volts)` -> the rest reading
+    in effect for that sample (volts); `reset()` at the start of each insertion. The same numbers as
+    `rest_reading` on the whole trial."""
+
+    __slots__ = ("_frozen", "_n", "_rest_s", "_sum", "_t0")
+
+    def __init__(self, rest_s: float, n_channels: int) -> None:
+        self._rest_s = rest_s
         self._sum = np.zeros(n_channels)
         self.reset()
 
@@ -161,27 +188,19 @@ class StreamFeatures:
         self._frozen = False
 
     @property
-    def spec(self) -> ModelInputs:
-        """The inputs it computes."""
-        return self._spec
-
-    @property
-    def rest_ready(self) -> bool:
+    def ready(self) -> bool:
         """Whether the rest reading is complete (`rest_s` of samples seen)."""
         return self._frozen
 
     def push(self, t: float, volts: np.ndarray) -> np.ndarray:
-        x = _absolute(volts, self._spec)
-        if not _relative(self._spec):
-            return x
         if self._t0 is None:
             self._t0 = t
-        if not self._frozen and t - self._t0 < self._spec.rest_s - 1e-9:
-            self._sum += x
+        if not self._frozen and t - self._t0 < self._rest_s - 1e-9:
+            self._sum += volts
             self._n += 1
         else:
             self._frozen = True
-        return x - self._sum / self._n
+        return self._sum / self._n
 
 
 DOMAINS = ("conductance", "inputs")  # where a unit's calibration acts (InputTransform.domain)
@@ -262,3 +281,39 @@ class InputTransform:
     def on_inputs(self, x: np.ndarray) -> np.ndarray:
         """The model's inputs after an inputs-domain map (else unchanged)."""
         return self._map(x) if self.domain == "inputs" else np.asarray(x, dtype=np.float64)
+
+
+# A unit as the deployed graph's `unit_circuit` input (pipeline.modelling.front, docs/deploy.md):
+# [circuit, a, b, series_kohm, offset_v, calibrated on conductance]. circuit 0: none declared (the
+# model reads the unit through its own circuit), 1: a divider with the FSR at the supply, 2: at ground,
+# 3: a transimpedance stage; a, b: supply_v and fixed_kohm of a divider, drive_v and feedback_kohm of
+# a transimpedance stage.
+CIRCUIT_CODES = {("divider", "supply"): 1.0, ("divider", "ground"): 2.0, ("transimpedance", None): 3.0}
+
+
+def encode_circuit(fe: Divider | Transimpedance | None, on_conductance: bool = False) -> np.ndarray:
+    """A circuit (None: none declared) as the graph's six numbers."""
+    if fe is None:
+        return np.array([0.0, 0.0, 0.0, 0.0, 0.0, float(on_conductance)])
+    if isinstance(fe, Divider):
+        head = [CIRCUIT_CODES["divider", fe.fsr_at], fe.supply_v, fe.fixed_kohm, fe.series_kohm, 0.0]
+    else:
+        code = CIRCUIT_CODES["transimpedance", None]
+        head = [code, fe.drive_v, fe.feedback_kohm, fe.series_kohm, fe.offset_v]
+    return np.array([*head, float(on_conductance)], dtype=np.float64)
+
+
+def unit_inputs(
+    transform: InputTransform | None, front_end: Divider | Transimpedance | None, n_channels: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(unit_matrix, unit_offset, unit_circuit): how the deployed graph reads a unit, from its
+    calibration `transform` (None: uncalibrated) and the circuit it declares (`front_end`, None: the
+    model's own). The identity and no circuit read a unit as the training units were read."""
+    t = InputTransform.identity(n_channels) if transform is None else transform
+    on_conductance = t.domain == "conductance"
+    fe = t.front_end if on_conductance else front_end
+    return (
+        np.asarray(t.matrix, dtype=np.float64),
+        np.asarray(t.offset, dtype=np.float64),
+        encode_circuit(fe, on_conductance),
+    )

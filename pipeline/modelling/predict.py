@@ -129,11 +129,7 @@ class Predictor:
         if not np.isfinite(volts).all():
             bad = [c for c, ok in zip(self.channels, np.isfinite(volts).all(axis=0), strict=True) if not ok]
             raise ValueError(f"non-finite volts in channel(s) {bad}")
-        if transform is not None:
-            volts = transform.on_volts(volts)
-        x_in = features(volts, codes, t, self.inputs.through(front_end))
-        if transform is not None:
-            x_in = transform.on_inputs(x_in)
+        x_in = features(volts, codes, t, self.inputs.through(front_end), transform)
         return self._forward(x_in, codes, t)
 
     def predict_inputs(self, x: np.ndarray, trial_ids: np.ndarray | None = None) -> np.ndarray:

@@ -79,8 +79,14 @@ WRITE_TIMEOUT_S = "60"
 SERVER_INFO = "/api/3.0/mlflow/server-info"
 SERVER_INFO_KEYS = {"store_type", "workspaces_enabled"}
 
-# The experiment tag a writer sets to "ok" to learn the store takes writes (a no-op once set).
-WRITE_CHECK_TAG = "needlecue.write_check"
+# A writer learns that the store takes writes by setting the experiment's description (the tag the
+# UI shows as its description: a no-op once set); the internal tag earlier versions set is removed.
+EXPERIMENT_NOTE = (
+    "needlecue force models: a run per (angle, model kind) with its params, datasets, per-split and "
+    "per-gap metrics, loss curve and deployable ONNX graph; the best per angle is registered as "
+    "needle-force-<angle>, its @champion what the simulators load."
+)
+OLD_WRITE_CHECK_TAG = "needlecue.write_check"
 
 
 class RegistryUnreachable(RuntimeError):
@@ -385,14 +391,17 @@ def _said(e: Exception) -> str:
 
 
 def _takes_writes(client: MlflowClient, uri: str) -> None:
-    """Set the tracking experiment's WRITE_CHECK_TAG to "ok" (creating the experiment if needed, as a
-    writer would anyway): a store that refuses is read-only, found before any run, version or alias."""
+    """Set the tracking experiment's description (creating the experiment if needed, as a writer would
+    anyway): a store that refuses is read-only, found before any run, version or alias."""
     # MLflow logs a refused SQL write with its whole traceback before raising: the error below says it
     db_log = logging.getLogger("mlflow.store.db.utils")
     quiet = db_log.disabled
     db_log.disabled = True
     try:
-        client.set_experiment_tag(experiment_id(client), WRITE_CHECK_TAG, "ok")
+        exp_id = experiment_id(client)
+        client.set_experiment_tag(exp_id, "mlflow.note.content", EXPERIMENT_NOTE)
+        if OLD_WRITE_CHECK_TAG in client.get_experiment(exp_id).tags:
+            client.delete_experiment_tag(exp_id, OLD_WRITE_CHECK_TAG)
     except Exception as e:
         code = getattr(e, "error_code", "")
         text = str(e).lower()

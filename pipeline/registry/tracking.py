@@ -5,6 +5,7 @@ ONNX model with its cue pack. A deployable already tracked (the same model with 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import subprocess
@@ -24,7 +25,7 @@ from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS
 from pipeline.registry.candidates import Trained
 from pipeline.registry.store import TAG, finished_run
 from pipeline.reporting.loss import loss_curve_png
-from pipeline.vocab import AXES
+from pipeline.vocab import AXES, DEPLOY_FORMAT
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient
@@ -131,11 +132,26 @@ class Datasets:
             self._made[(angle, split)] = dataset
         return self._made[(angle, split)]
 
+    def example_trial(self, angle: str, channels: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
+        """A real trial of the angle for a model's input example: raw volts (n, C) and times, the first
+        trial of the test split (else of the external set); None without one."""
+        for split in ("test", "external"):
+            with contextlib.suppress(FileNotFoundError):
+                frame = self.files.frame(angle, split)
+                if not frame.empty and all(c in frame.columns for c in channels):
+                    first = frame.iloc[0]
+                    same = (frame["batch_id"] == first["batch_id"]) & (frame["trial_id"] == first["trial_id"])
+                    trial = frame[same].sort_values("t_s")
+                    return trial[channels].to_numpy(np.float64), trial["t_s"].to_numpy(np.float64)
+        return None
+
 
 def deploy_sha256(model_sha256: str, cue_pack: Mapping[str, Any] | None) -> str:
-    """What a simulator gets from a version: the model and the cue pack in its metadata. A new cue
-    pack for the same model is a new deployable (new cues must reach the simulators)."""
-    text = json.dumps({"model_sha256": model_sha256, "cues": cue_pack}, sort_keys=True)
+    """What a simulator gets from a version: the model, the cue pack in its metadata and the graph's
+    format. A new cue pack for the same model is a new deployable (new cues must reach the simulators),
+    and so is a new format (a graph that reads what the estimator sends)."""
+    doc = {"model_sha256": model_sha256, "cues": cue_pack, "format": DEPLOY_FORMAT}
+    text = json.dumps(doc, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -212,7 +228,8 @@ def track(
         if lock.is_file():
             mlflow.log_artifact(str(lock), artifact_path=LOCK_ARTIFACT.rsplit("/", 1)[0])
             mlflow.set_tag(f"{TAG}dvc_lock_sha256", hashlib.sha256(lock.read_bytes()).hexdigest())
-        info = log_onnx_model(ck, cue_pack, name="model")
+        trial = datasets.example_trial(t.angle, list(ck["channels"]))
+        info = log_onnx_model(ck, cue_pack, name="model", trial=trial)
         mlflow.set_tag(f"{TAG}model_uri", info.model_uri)
     log(f"tracked {t.angle}° {t.kind}: run {run.info.run_id}, external NRMSE {t.mean_nrmse():.2f} %")
     return run.info.run_id, info.model_uri, True

@@ -17,8 +17,10 @@ import pandas as pd
 from pipeline.config import RegisterParams
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
+from pipeline.metrics.evaluation import EVALUATION_FILE
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
+from pipeline.modelling.export import describe
 from pipeline.modelling.predict import Predictor
 from pipeline.modelling.predict_splits import predict_frame
 from pipeline.modelling.predictions import Predictions
@@ -141,7 +143,10 @@ def register_angle(
         client.update_model_version(
             name,
             mv.version,
-            description=f"{t.kind}, external NRMSE {t.mean_nrmse():.2f} % (mean of fx, fy, fz), run {run_id}",
+            description=(
+                f"{t.kind}, external NRMSE {t.mean_nrmse():.2f} % (mean of fx, fy, fz), run {run_id}. "
+                + describe(t.checkpoint)
+            ),
         )
     decision = decide(
         t.mean_nrmse(),
@@ -207,7 +212,7 @@ def register_all(
         except RegistryUnreachable as e:
             raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
         documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change
-        metrics_path = reports_dir / "metrics.json"
+        metrics_path = reports_dir / EVALUATION_FILE
         metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
         figures = sorted((reports_dir / "figures").glob("*.png"))
         files = SplitFiles(data_dir)

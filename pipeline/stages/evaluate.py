@@ -1,13 +1,17 @@
-"""`evaluate` stage: every model scored within its angle and across angle gaps -> metrics.json.
+"""`evaluate` stage: every model scored within its angle and across angle gaps -> evaluation.json,
+and its headline figures -> metrics.json.
 
 Input: `DATA_DIR/<angle>/{external,test}.parquet` (the truth; `DATA_DIR/manifest.json` says which
 units trained), the predict stage's `PRED_DIR` (the predictions), the units' calibrations in
 `CAL_DIR` and the cues stage's `CUES_EVAL` (evaluation.json); nothing is predicted here. Output:
-`METRICS_JSON` (see `pipeline.metrics.evaluation`, per estimator unit `pipeline.metrics.units`, and
-the cues' headline `pipeline.metrics.cues`); the report stage renders it.
+`EVALUATION_JSON`, every score (see `pipeline.metrics.evaluation`, per estimator unit
+`pipeline.metrics.units`, and the cues' headline `pipeline.metrics.cues`), which the report stage
+renders and the register stage logs; `METRICS_JSON`, about thirty headline figures for DVC's tables
+(`pipeline.metrics.headline`).
 
 Usage:
-`python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR CUES_EVAL METRICS_JSON [--params params.yaml]`.
+`python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR CUES_EVAL EVALUATION_JSON METRICS_JSON
+[--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from pipeline.dataset.splits import unit_roles
 from pipeline.logs import setup
 from pipeline.metrics.cues import cue_headline
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
+from pipeline.metrics.headline import headline
 from pipeline.metrics.units import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import angle_name
@@ -37,10 +42,12 @@ def main(
     pred_dir: Path,
     cal_dir: Path,
     cues_eval: Path,
+    evaluation_json: Path,
     metrics_json_path: Path,
     params: Path = Path("params.yaml"),
 ) -> None:
-    """Score the stored predictions as in the paper's sections V-VI, and per unit, into metrics.json."""
+    """Score the stored predictions as in the paper's sections V-VI, and per unit, into the full
+    evaluation (what the report and the registry read) and its headline figures (metrics.json)."""
     setup("evaluate")
     start = time.perf_counter()
     train = load_section(TrainParams, "train", params)
@@ -72,7 +79,9 @@ def main(
     if cues is None:
         _log(f"warning: no cue evaluation at {cues_eval}: metrics.json has no cue figures")
     metrics_json_path.parent.mkdir(parents=True, exist_ok=True)
-    metrics_json_path.write_text(metrics_json(metrics))
+    evaluation_json.parent.mkdir(parents=True, exist_ok=True)
+    evaluation_json.write_text(metrics_json(metrics))
+    metrics_json_path.write_text(metrics_json(headline(metrics)))
     elapsed = time.perf_counter() - start
     _log(f"{len(scored.loaded)} models on {len(eval_sets)} angles in {elapsed:.1f} s -> {metrics_json_path}")
 

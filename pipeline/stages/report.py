@@ -1,7 +1,7 @@
 """`report` stage: the last one; renders what the others computed into what people read.
 
 Input: `DATA_DIR` (the truth of the plotted trials), `PRED_DIR` (the stored predictions),
-`REPORTS_DIR/metrics.json` (evaluate), `REPORTS_DIR/cues/{packs,evaluation.json}` (cues; without
+`REPORTS_DIR/evaluation.json` (evaluate), `REPORTS_DIR/cues/{packs,evaluation.json}` (cues; without
 them the report has no angle-cue section) and `REPORTS_DIR/needs/needs.json` (needs; without it, no
 data-needs section) and `REPORTS_DIR/ledger/ledger.json` (ledger: the trials used with a flag).
 Output in REPORTS_DIR: `report.md` (assembled from the section functions of
@@ -22,7 +22,7 @@ import typer
 
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.logs import setup
-from pipeline.metrics.evaluation import gather, load_eval_sets
+from pipeline.metrics.evaluation import EVALUATION_FILE, gather, load_eval_sets
 from pipeline.modelling.predictions import Predictions, read_inputs
 from pipeline.reporting import cues, figures, report, units
 from pipeline.reporting.inputs import inputs_section
@@ -39,7 +39,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     gaps = [float(g) for g in load_section(EvaluateParams, "evaluate", params).gaps_deg]
     angles, models = [angle_name(a) for a in train.angles], list(train.models)
     try:
-        metrics = json.loads((reports_dir / "metrics.json").read_text())
+        metrics = json.loads((reports_dir / EVALUATION_FILE).read_text())
         eval_sets = load_eval_sets(data_dir, angles, lambda _m: None)  # evaluate has warned already
         scored = gather(eval_sets, Predictions(pred_dir), models, angles, lambda _m: None)
     except FileNotFoundError as e:

@@ -94,7 +94,7 @@ def test_a_folder_that_is_not_a_model_is_a_clear_error(tmp_path: Path) -> None:
     # when / then: each names the folder and what is missing
     with pytest.raises(FileNotFoundError, match="no MLmodel file"):
         fc.ForceClient.from_dir(tmp_path)
-    with pytest.raises(ValueError, match="no needlecue-deploy/3 block"):
+    with pytest.raises(ValueError, match="no needlecue-deploy/4 block"):
         fc.ForceClient.from_dir(tmp_path / "other")
 
 

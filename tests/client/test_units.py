@@ -16,6 +16,7 @@ import pytest
 
 from pipeline import client as fc
 from pipeline.calibration.document import FILE
+from pipeline.client.folder import ModelFolderError
 from pipeline.client.replay import replay
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.predict import Predictor
@@ -161,14 +162,15 @@ def test_a_calibration_made_with_other_models_or_given_as_a_file(
     assert client.calibrated and client.unit_id == "est-d1" and client.calibration["path"] == str(good)
     with pytest.raises(ValueError, match="of unit 'est-d1', not 'est-d2'"):
         fc.ForceClient.from_dir(fetched, calibration=good, unit_id="est-d2")
-    # and: a needlecue-deploy/1 model (raw volts, before calibrations) is never calibrated
-    old = tmp_path / "deploy1"
+    # and: a model logged before needlecue-deploy/4 (its graph reads the model's inputs, not what the
+    # estimator sends) is not run at all, even unverified: it says to register it again
+    old = tmp_path / "deploy3"
     shutil.copytree(fetched, old)
     (old / "MLmodel").write_text(
-        (old / "MLmodel").read_text().replace("needlecue-deploy/3", "needlecue-deploy/1")
+        (old / "MLmodel").read_text().replace("needlecue-deploy/4", "needlecue-deploy/3")
     )
-    with pytest.warns(fc.UncalibratedUnit, match="needlecue-deploy/1 model, made before unit calibrations"):
-        assert not fc.ForceClient.from_dir(old, calibration=good, unverified=True).calibrated
+    with pytest.raises(ModelFolderError, match=r"a needlecue-deploy/3 model, .* register it again"):
+        fc.ForceClient.from_dir(old, calibration=good, unverified=True)
 
 
 def test_a_new_champion_is_checked_against_the_calibration_and_a_new_calibration_is_picked_up(

@@ -13,13 +13,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.config import FNNParams, LSParams, LSTMParams
+from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import load_checkpoint, save_checkpoint
+from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
-from pipeline.modelling.inputs import sequence_order, window_index
 from pipeline.modelling.predict import Predictor
-from pipeline.vocab import description_sha256
+from pipeline.rig.frontend import Divider, Transimpedance
+from pipeline.vocab import INPUT_NAMES, description_sha256
 from tests.modelling.frames import make_frame
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -37,24 +38,33 @@ def checkpoints() -> dict[str, dict]:
     return {kind: fit(kind, params, train, val).checkpoint for kind, params in TINY.items()}
 
 
-def onnx_inputs(checkpoint: dict, frame: pd.DataFrame) -> np.ndarray:
-    """The graph's input for every row of a frame: its volts, or for the LSTM its window of raw volts
-    built within its trial exactly as training does (first sample repeated)."""
-    volts = frame[checkpoint["channels"]].to_numpy(np.float64)
-    if checkpoint["kind"] != "lstm":
-        return volts.astype(np.float32)
-    codes = frame.groupby(["batch_id", "trial_id"], sort=False).ngroup().to_numpy(np.int64)
-    order, start = sequence_order(codes, frame["t_s"].to_numpy(np.float64))
-    windows = np.empty((len(frame), checkpoint["config"]["window"], volts.shape[1]))
-    windows[order] = volts[order][window_index(start, checkpoint["config"]["window"])]
-    return windows.astype(np.float32)
+def graph_inputs(checkpoint: dict, frame: pd.DataFrame, unit: tuple | None = None) -> dict[str, np.ndarray]:
+    """The graph's inputs for every row of a frame, in its row order: each row's window of raw volts
+    and of rest readings, built within its trial as training does (first sample repeated), the unit
+    read through `unit` (`features.unit_inputs`; None: uncalibrated)."""
+    unit = unit or unit_inputs(None, None, len(checkpoint["channels"]))
+    parts, rows = [], []
+    for _, trial in frame.groupby(["batch_id", "trial_id"], sort=False):
+        trial = trial.sort_values("t_s")
+        volts, t = trial[checkpoint["channels"]].to_numpy(np.float64), trial["t_s"].to_numpy(np.float64)
+        parts.append(export.graph_feed(checkpoint, volts, t, np.arange(len(trial)), unit))
+        rows.append(trial.index.to_numpy())
+    order = np.argsort(np.concatenate(rows))
+    return {
+        name: np.concatenate([p[name] for p in parts])[order] if name in INPUT_NAMES[:2] else parts[0][name]
+        for name in INPUT_NAMES
+    }
 
 
-def run_onnx(model: bytes, x: np.ndarray) -> np.ndarray:
+def run_onnx(model: bytes, feed: dict[str, np.ndarray]) -> np.ndarray:
     import onnxruntime as ort
 
     session = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
-    return session.run(None, {export.INPUT_NAME: x})[0]
+    return session.run(None, feed)[0]
+
+
+def rows(feed: dict[str, np.ndarray], i: slice) -> dict[str, np.ndarray]:
+    return {k: v[i] if k in INPUT_NAMES[:2] else v for k, v in feed.items()}
 
 
 @pytest.mark.parametrize("kind", ["ls", "fnn", "lstm"])
@@ -65,9 +75,9 @@ def test_onnx_graph_computes_what_the_predictor_computes(kind: str, checkpoints)
     expected = Predictor(checkpoint).predict(frame)
     # when: the graph runs on raw volts, all rows at once and one row at a time
     model = export.to_onnx(checkpoint)
-    x = onnx_inputs(checkpoint, frame)
-    batch = run_onnx(model, x)
-    single = np.concatenate([run_onnx(model, x[i : i + 1]) for i in range(0, len(x), 17)])
+    feed = graph_inputs(checkpoint, frame)
+    batch = run_onnx(model, feed)
+    single = np.concatenate([run_onnx(model, rows(feed, slice(i, i + 1))) for i in range(0, len(frame), 17)])
     # then: newtons equal to the Predictor's within float32 rounding, for any batch size
     assert batch.shape == (len(frame), 3) and batch.dtype == np.float32
     scale = np.abs(expected).max()
@@ -75,18 +85,72 @@ def test_onnx_graph_computes_what_the_predictor_computes(kind: str, checkpoints)
     np.testing.assert_allclose(single, expected[::17], rtol=0, atol=1e-5 * scale)
 
 
+CIRCUITS = {
+    "supply": Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=0.5),
+    "ground": Divider(circuit="divider", supply_v=3.3, fixed_kohm=4.7, fsr_at="ground"),
+    "transimpedance": Transimpedance(circuit="transimpedance", drive_v=1.0, feedback_kohm=3.0, offset_v=0.1),
+}
+
+
+@pytest.mark.parametrize("inputs", ["volts", "rest_volts", "conductance", "rest_conductance"])
+@pytest.mark.parametrize("circuit", sorted(CIRCUITS))
+def test_the_graph_reads_a_calibrated_unit_through_its_own_circuit_as_the_predictor_does(
+    inputs: str, circuit: str
+) -> None:
+    # given: a model trained on one circuit's readings, and a unit with another circuit and a
+    # calibration of its conductance (the training circuit: a divider at the supply)
+    params = LSParams(inputs=InputParams(kind=inputs, rest_s=0.3))
+    checkpoint = fit("ls", params, make_frame(4, seed=0), front_end=CIRCUITS["supply"]).checkpoint
+    fe = CIRCUITS[circuit]
+    transform = InputTransform(
+        ((1.1, 0.05, 0.0), (0.0, 0.9, 0.1), (0.02, 0.0, 1.0)), (0.5, 0.0, -0.3), "conductance", fe
+    )
+    frame = make_frame(2, seed=7, batch_id="b9")
+    frame[CHANNELS] = frame[CHANNELS] * (0.6 if circuit != "transimpedance" else 1.0) + 0.4
+    # when: the graph and the Predictor read it calibrated, and uncalibrated through its circuit
+    model = export.to_onnx(checkpoint)
+    calibrated = run_onnx(model, graph_inputs(checkpoint, frame, unit_inputs(transform, fe, 3)))
+    through = run_onnx(model, graph_inputs(checkpoint, frame, unit_inputs(None, fe, 3)))
+    predictor = Predictor(checkpoint)
+    expected, expected_through = predictor.predict(frame, transform, fe), predictor.predict(frame, None, fe)
+    # then: the same newtons, and the calibration made a difference
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(calibrated, expected, rtol=0, atol=1e-5 * scale)
+    np.testing.assert_allclose(through, expected_through, rtol=0, atol=1e-5 * scale)
+    assert not np.allclose(expected, expected_through, rtol=0, atol=1e-3 * scale)
+
+
+def test_an_inputs_domain_calibration_is_applied_to_the_inputs() -> None:
+    # given: a model on rest-relative volts with no circuit, and a unit calibrated on its inputs
+    checkpoint = fit("ls", LSParams(inputs=InputParams(kind="rest_volts")), make_frame(4, seed=0)).checkpoint
+    transform = InputTransform(((1.2, 0.0, 0.1), (0.0, 0.8, 0.0), (0.0, 0.1, 1.0)), (0.01, -0.02, 0.0))
+    frame = make_frame(2, seed=7, batch_id="b9")
+    # when / then: the graph gives the Predictor's newtons for the calibrated unit
+    got = run_onnx(
+        export.to_onnx(checkpoint), graph_inputs(checkpoint, frame, unit_inputs(transform, None, 3))
+    )
+    expected = Predictor(checkpoint).predict(frame, transform)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-5 * np.abs(expected).max())
+
+
 def test_onnx_graph_is_self_describing_with_a_dynamic_batch(checkpoints) -> None:
     import onnx
 
-    # given: the LSTM's graph
+    # given: the LSTM's graph and the FNN's (which reads no window)
     proto = onnx.load_from_string(export.to_onnx(checkpoints["lstm"]))
-    # when: reading its interface and metadata
-    (inp,), (out,) = proto.graph.input, proto.graph.output
-    dims = [d.dim_param or d.dim_value for d in inp.type.tensor_type.shape.dim]
+    fnn = onnx.load_from_string(export.to_onnx(checkpoints["fnn"]))
+    # when: reading their interface and metadata
+    dims = {
+        i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim] for i in proto.graph.input
+    }
+    (out,) = proto.graph.output
     info = json.loads({p.key: p.value for p in proto.metadata_props}["needlecue"])
-    # then: volts (batch, window, channels) in, force_n (batch, 3) out, and the graph says what it reads
-    assert (inp.name, out.name) == ("inputs", "force_n")
-    assert dims == [export.BATCH_DIM, 6, 3]
+    # then: raw volts and rest readings (batch, window, channels) and the unit in, force_n out, the
+    # same five inputs for every kind, and the graph says what it reads
+    assert list(dims) == list(INPUT_NAMES) == [i.name for i in fnn.graph.input]
+    assert dims["volts"] == dims["rest_volts"] == [export.BATCH_DIM, 6, 3]
+    assert (dims["unit_matrix"], dims["unit_offset"], dims["unit_circuit"]) == ([3, 3], [3], [6])
+    assert out.name == "force_n"
     assert [d.dim_param or d.dim_value for d in out.type.tensor_type.shape.dim] == [export.BATCH_DIM, 3]
     assert info["channels"] == CHANNELS and info["window"] == 6 and info["kind"] == "lstm"
     assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in proto.graph.initializer)
@@ -127,11 +191,11 @@ def test_deploy_metadata_identifies_the_model_and_carries_the_cue_pack(checkpoin
     meta = export.deploy_metadata(ck, pack)
     # then: plain JSON with everything a client needs, and a hash that follows the weights only
     assert json.loads(json.dumps(meta, allow_nan=False)) == meta
-    assert meta["format"] == "needlecue-deploy/3" and meta["kind"] == "fnn"
+    assert meta["format"] == "needlecue-deploy/4" and meta["kind"] == "fnn"
     assert meta["inputs"] == ck["inputs"]  # how the client computes what the graph reads
     assert (meta["channels"], meta["targets"], meta["window"]) == (CHANNELS, ["fx", "fy", "fz"], 1)
     assert meta["angle_deg"] == 30.0 and meta["rate_hz"] == pytest.approx(30.0)
-    assert (meta["input"], meta["output"], meta["cues"]) == ("inputs", "force_n", pack)
+    assert (meta["graph_inputs"], meta["output"], meta["cues"]) == (list(INPUT_NAMES), "force_n", pack)
     assert meta["train_data_sha256"] == ck["train_data_sha256"] and meta["params"]["hidden"] == [8, 8]
     assert meta["checkpoint_sha256"] == export.deploy_metadata(same, None)["checkpoint_sha256"]
     assert meta["checkpoint_sha256"] != export.deploy_metadata(other, None)["checkpoint_sha256"]
@@ -157,20 +221,35 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     experiment = mlflow.create_experiment("export-test", artifact_location=(tmp_path / "artifacts").as_uri())
     # when: logging the LSTM as an ONNX model and downloading it again
     with mlflow.start_run(experiment_id=experiment):
-        info = export.log_onnx_model(checkpoint, {"format": "test-pack"}, name="force-model")
+        trial = make_frame(1, seed=3)
+        recording = (trial[CHANNELS].to_numpy(), trial["t_s"].to_numpy())
+        info = export.log_onnx_model(checkpoint, {"format": "test-pack"}, name="force-model", trial=recording)
     folder = Path(
         mlflow.artifacts.download_artifacts(artifact_uri=info.model_uri, dst_path=str(tmp_path / "dl"))
     )
     model = Model.load(folder / "MLmodel")
     files = sorted(p.name for p in folder.rglob("*") if p.is_file())
     example = json.loads((folder / "input_example.json").read_text())
-    # then: a float32 tensor signature with a free batch, a real-looking example, our metadata, the
-    # exported graph byte for byte, and nothing that would be unpickled on load
-    (inp,), (out,) = model.signature.inputs.inputs, model.signature.outputs.inputs
-    assert (inp.name, inp.type, tuple(inp.shape)) == ("inputs", np.dtype(np.float32), (-1, 6, 3))
+    # then: a float64 tensor signature naming the five inputs with a free batch, a real raw example,
+    # our metadata, the exported graph byte for byte, and nothing that would be unpickled on load
+    specs = {i.name: (i.type, tuple(i.shape)) for i in model.signature.inputs.inputs}
+    f64 = np.dtype(np.float64)
+    assert specs == {
+        "volts": (f64, (-1, 6, 3)),
+        "rest_volts": (f64, (-1, 6, 3)),
+        "unit_matrix": (f64, (3, 3)),
+        "unit_offset": (f64, (3,)),
+        "unit_circuit": (f64, (6,)),
+    }
+    (out,) = model.signature.outputs.inputs
     assert (out.name, out.type, tuple(out.shape)) == ("force_n", np.dtype(np.float32), (-1, 3))
-    x = np.asarray(example["inputs"] if isinstance(example, dict) else example, dtype=np.float32)
-    assert x.shape == (3, 6, 3) and np.allclose(x[1, 0], checkpoint["preprocessing"]["x_mean"].numpy())
+    x = {k: np.asarray(v, dtype=np.float64) for k, v in example.items()}
+    trial = make_frame(1, seed=3)
+    raw = trial[CHANNELS].to_numpy()
+    assert x["volts"].shape == (3, 6, 3) and np.array_equal(
+        x["volts"][2, -1], raw[-1]
+    )  # the real last sample
+    assert np.array_equal(x["unit_matrix"], np.eye(3)) and not x["unit_circuit"].any()
     meta = model.metadata["needlecue"]
     assert {k: v for k, v in meta.items() if k != "onnx_sha256"} == export.deploy_metadata(
         checkpoint, {"format": "test-pack"}
@@ -183,6 +262,7 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     assert "model.onnx" in files and "MLmodel" in files
     assert not [f for f in files if f.endswith((".pkl", ".pickle")) or "python_model" in f], files
     assert np.isfinite(run_onnx((folder / "model.onnx").read_bytes(), x)).all()
+    assert "Takes the estimator's raw volts" in export.describe(checkpoint)
 
 
 def test_a_graph_that_computes_something_else_is_refused_before_logging(checkpoints) -> None:

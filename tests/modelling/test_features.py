@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from pipeline.config import EffectScales
-from pipeline.modelling.features import InputTransform, ModelInputs, StreamFeatures, features, spec_of
+from pipeline.modelling.features import (
+    InputTransform,
+    ModelInputs,
+    RestReading,
+    features,
+    features_at,
+    spec_of,
+)
 from pipeline.rig.frontend import Divider, conductance_us, volts_of
 from pipeline.sim import physics, rigs
 
@@ -106,12 +113,12 @@ def test_streaming_gives_the_batch_numbers_and_is_causal(kind: str) -> None:
     # when: computing them in a shuffled batch and one sample at a time
     batch = np.empty((80, 3))
     batch[order] = features(volts[order], codes[order], t[order], spec)
-    stream = StreamFeatures(spec, 3)
+    stream = RestReading(spec.rest_s, 3)
     streamed = []
     for i in range(80):
         if i in (0, 40):
             stream.reset()
-        streamed.append(stream.push(float(t[i]), volts[i]))
+        streamed.append(features_at(volts[i], stream.push(float(t[i]), volts[i]), spec))
     changed = volts.copy()
     changed[30:40] += 0.5
     later = features(changed, codes, t, spec)

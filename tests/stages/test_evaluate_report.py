@@ -21,17 +21,18 @@ def params_file(tmp_path: Path, angles: str = "[0, 15, 30, 45]", models: str = "
 
 
 def run(data: Path, pred: Path, reports: Path, params: Path) -> dict:
-    """evaluate, then report, as dvc.yaml runs them; returns metrics.json."""
+    """evaluate, then report, as dvc.yaml runs them; returns the full evaluation.json."""
     evaluate.main(
         data,
         pred,
         data / "no-calibration",
         reports / "cues" / "evaluation.json",
+        reports / "evaluation.json",
         reports / "metrics.json",
         params,
     )
     report.main(data, pred, reports, params)
-    return json.loads((reports / "metrics.json").read_text())
+    return json.loads((reports / "evaluation.json").read_text())
 
 
 def test_run_summarises_angle_gaps_from_fake_predictors(tmp_path: Path):
@@ -61,11 +62,11 @@ def test_metrics_json_has_the_required_shape_and_is_byte_identical(tmp_path: Pat
     for out in outs:
         run(data, pred, out, params_file(tmp_path))
     # then every output is byte-identical
-    names = ["metrics.json", "report.md", "plots/gap.csv", "plots/profile.csv"]
+    names = ["evaluation.json", "metrics.json", "report.md", "plots/gap.csv", "plots/profile.csv"]
     for name in names + [f"figures/{f}" for f in FIGURES]:
         assert (outs[0] / name).read_bytes() == (outs[1] / name).read_bytes(), name
-    # and metrics.json has the documented shape with sorted keys and 4-decimal floats
-    text = (outs[0] / "metrics.json").read_text()
+    # and evaluation.json has the documented shape with sorted keys and 4-decimal floats
+    text = (outs[0] / "evaluation.json").read_text()
     m = json.loads(text)
     assert text == json.dumps(m, indent=2, sort_keys=True) + "\n"
     assert set(m) >= {"within_angle", "within_angle_test", "angle_gap", "angle_gap_matrix", "mean"}
@@ -83,6 +84,14 @@ def test_metrics_json_has_the_required_shape_and_is_byte_identical(tmp_path: Pat
     assert all(round(x, 4) == x for x in floats)
     profile = (outs[0] / "plots" / "profile.csv").read_text().splitlines()
     assert profile[0] == "t_s,reference,ls,fnn,lstm" and len(profile) == 1 + 31
+    # and metrics.json holds the headline of it only: a few dozen numbers DVC's tables can show
+    headline = json.loads((outs[0] / "metrics.json").read_text())
+    assert headline["nrmse_pct"]["fnn"] == pytest.approx(
+        sum(m["within_angle"]["fnn"][a][x]["nrmse_pct"] for a in ANGLES for x in AXES) / (3 * len(ANGLES)),
+        abs=1e-4,
+    )
+    assert headline["gap_nrmse_pct"]["lstm"]["30"] == m["gap_curve"]["lstm"]["30"]["mean"]
+    assert len(re.findall(r"-?\d+\.\d+|null", (outs[0] / "metrics.json").read_text())) <= 40
 
 
 def test_main_on_a_fake_folder_skips_missing_models_with_a_warning(
@@ -101,7 +110,7 @@ def test_main_on_a_fake_folder_skips_missing_models_with_a_warning(
     # then it warned, skipped that model, fell back to the test split and wrote everything
     err = capsys.readouterr().err
     assert "lstm at 30° skipped" in err and "scoring on its test split" in err
-    m = json.loads((tmp_path / "reports" / "metrics.json").read_text())
+    m = json.loads((tmp_path / "reports" / "evaluation.json").read_text())
     assert "30" not in m["within_angle"]["lstm"] and "30" in m["within_angle"]["fnn"]
     assert m["datasets"]["15"]["source"] == "test" and m["datasets"]["0"]["source"] == "external"
     for f in FIGURES:

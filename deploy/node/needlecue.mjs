@@ -1,0 +1,180 @@
+// A needlecue force model outside Python: the published champion, verified, run by onnxruntime for
+// Node.js, sample by sample, as a simulator in JavaScript would (docs/deploy.md is the contract).
+//
+// The published bucket is read from a local copy (`aws s3 sync s3://published DIR`, or any S3 client):
+// manifests/<name>/<alias>.json, signed by the lab, and objects/sha256/<hex>, the files it names.
+
+import { createHash, createPublicKey, verify } from "node:crypto";
+import { readFileSync } from "node:fs";
+import { join } from "node:path";
+
+import yaml from "js-yaml";
+import ort from "onnxruntime-node";
+
+export const PUBLISHED_FORMAT = "needlecue-published/1";
+export const DEPLOY_FORMAT = "needlecue-deploy/4";
+export const INPUT_NAMES = ["volts", "rest_volts", "unit_matrix", "unit_offset", "unit_circuit"];
+const ED25519_SPKI = Buffer.from("302a300506032b6570032100", "hex"); // DER prefix of a raw Ed25519 key
+
+/** JSON with sorted keys and no spaces: the bytes the lab's signature covers. */
+export function canonical(value) {
+  if (Array.isArray(value)) return `[${value.map(canonical).join(",")}]`;
+  if (value !== null && typeof value === "object") {
+    const keys = Object.keys(value).sort();
+    return `{${keys.map((k) => `${JSON.stringify(k)}:${canonical(value[k])}`).join(",")}}`;
+  }
+  return JSON.stringify(value);
+}
+
+function sha256(bytes) {
+  return createHash("sha256").update(bytes).digest("hex");
+}
+
+/** The manifest of `name@alias` in the bucket copy `dir`, once the lab's signature holds. */
+export function readManifest(dir, name, alias, publicKeyBase64) {
+  const where = join(dir, "manifests", name, `${alias}.json`);
+  const doc = JSON.parse(readFileSync(where, "utf8"));
+  const key = createPublicKey({
+    key: Buffer.concat([ED25519_SPKI, Buffer.from(publicKeyBase64, "base64")]),
+    format: "der",
+    type: "spki",
+  });
+  const body = doc.manifest;
+  const signed = Buffer.from(canonical(body), "utf8");
+  if (typeof doc.signature !== "string" || !verify(null, signed, key, Buffer.from(doc.signature, "base64"))) {
+    throw new Error(`${where}: refused, not signed by the lab's key (or changed after signing)`);
+  }
+  if (body.format !== PUBLISHED_FORMAT) throw new Error(`${where}: format ${body.format}, expected ${PUBLISHED_FORMAT}`);
+  if (body.name !== name || body.alias !== alias) {
+    throw new Error(`${where}: the manifest is ${body.name}@${body.alias}, not ${name}@${alias}`);
+  }
+  return body;
+}
+
+/** The bytes of one file the manifest names, checked against its sha256 and size. */
+export function readObject(dir, manifest, file) {
+  const entry = manifest.files[file];
+  if (!entry) throw new Error(`${manifest.name}@${manifest.alias}: the manifest names no ${file}`);
+  const bytes = readFileSync(join(dir, "objects", "sha256", entry.sha256));
+  if (sha256(bytes) !== entry.sha256 || bytes.length !== entry.size) {
+    throw new Error(`objects/sha256/${entry.sha256} (${file}): its bytes are not the manifest's`);
+  }
+  return bytes;
+}
+
+/** A unit's circuit as the graph's six numbers: [circuit, a, b, series_kohm, offset_v, on_conductance]. */
+export function encodeCircuit(frontEnd, onConductance) {
+  const flag = onConductance ? 1 : 0;
+  if (!frontEnd || frontEnd.circuit === "none") return [0, 0, 0, 0, 0, flag];
+  const series = frontEnd.series_kohm ?? 0;
+  if (frontEnd.circuit === "divider") {
+    const code = (frontEnd.fsr_at ?? "supply") === "supply" ? 1 : 2;
+    return [code, frontEnd.supply_v, frontEnd.fixed_kohm, series, 0, flag];
+  }
+  if (frontEnd.circuit === "transimpedance") {
+    return [3, frontEnd.drive_v, frontEnd.feedback_kohm, series, frontEnd.offset_v ?? 0, flag];
+  }
+  throw new Error(`unknown circuit ${JSON.stringify(frontEnd.circuit)}`);
+}
+
+function angleName(deg) {
+  return String(deg + 0); // 30 -> "30", 22.5 -> "22.5", -0 -> "0": the keys of a calibration's models
+}
+
+/** One force model, run one estimator sample at a time (`step`); `reset()` between insertions. */
+export class ForceModel {
+  constructor(session, meta) {
+    this.session = session;
+    this.meta = meta;
+    this.channels = meta.channels;
+    this.window = meta.window;
+    this.restS = (meta.inputs ?? {}).rest_s ?? 0.5;
+    this.n = this.channels.length;
+    this.calibrated = false;
+    this.uncalibrate();
+    this.reset();
+  }
+
+  /** The model of `name@alias` from a bucket copy: manifest signature, file hashes, graph hash. */
+  static async fromPublished(dir, name, alias, publicKeyBase64) {
+    const manifest = readManifest(dir, name, alias, publicKeyBase64);
+    const meta = yaml.load(readObject(dir, manifest, "MLmodel").toString("utf8")).metadata.needlecue;
+    const graph = readObject(dir, manifest, "model.onnx");
+    if (meta.format !== DEPLOY_FORMAT) throw new Error(`${name}: a ${meta.format} model; this client runs ${DEPLOY_FORMAT}`);
+    if (sha256(graph) !== meta.onnx_sha256) throw new Error(`${name}: model.onnx is not the graph its MLmodel names`);
+    if (canonical(meta.graph_inputs) !== canonical(INPUT_NAMES)) throw new Error(`${name}: unexpected graph inputs`);
+    const session = await ort.InferenceSession.create(graph, { intraOpNumThreads: 1, interOpNumThreads: 1 });
+    return new ForceModel(session, meta);
+  }
+
+  uncalibrate() {
+    const eye = new Float64Array(this.n * this.n);
+    for (let i = 0; i < this.n; i++) eye[i * this.n + i] = 1;
+    this.unit = { matrix: eye, offset: new Float64Array(this.n), circuit: Float64Array.from(encodeCircuit(null, false)) };
+    this.calibrated = false;
+  }
+
+  /** Apply a unit's calibration document (calibration.json) if it was made with this very model;
+   * returns whether it applies (else the unit stays uncalibrated: force without calibration). */
+  calibrate(doc) {
+    const t = (doc.transforms ?? {})[this.meta.kind];
+    const made = t?.models?.[angleName(this.meta.angle_deg)];
+    if (!t || made !== this.meta.checkpoint_sha256) {
+      this.uncalibrate();
+      return false;
+    }
+    const onConductance = (t.domain ?? "inputs") === "conductance";
+    this.unit = {
+      matrix: Float64Array.from(t.matrix.flat()),
+      offset: Float64Array.from(t.offset),
+      circuit: Float64Array.from(encodeCircuit(doc.front_end, onConductance)),
+    };
+    this.calibrated = true;
+    return true;
+  }
+
+  reset() {
+    this.frames = 0;
+    this.volts = new Float64Array(this.window * this.n);
+    this.rests = new Float64Array(this.window * this.n);
+    this.restSum = new Float64Array(this.n);
+    this.restCount = 0;
+    this.restFrozen = false;
+    this.t0 = null;
+  }
+
+  _slide(buffer, sample) {
+    if (this.frames === 0) {
+      for (let w = 0; w < this.window; w++) buffer.set(sample, w * this.n); // the first sample fills it
+    } else {
+      buffer.copyWithin(0, this.n);
+      buffer.set(sample, (this.window - 1) * this.n);
+    }
+  }
+
+  /** One sample (volts in `channels` order) at time `t` (s) -> the force [fx, fy, fz] in N. */
+  async step(volts, t) {
+    if (volts.length !== this.n) throw new Error(`step takes ${this.n} volts (${this.channels.join(", ")})`);
+    if (this.t0 === null) this.t0 = t;
+    if (!this.restFrozen && t - this.t0 < this.restS - 1e-9) {
+      for (let c = 0; c < this.n; c++) this.restSum[c] += volts[c];
+      this.restCount += 1;
+    } else {
+      this.restFrozen = true;
+    }
+    const rest = Float64Array.from(this.restSum, (s) => s / this.restCount);
+    this._slide(this.volts, volts);
+    this._slide(this.rests, rest);
+    this.frames += 1;
+    const shape = [1, this.window, this.n];
+    const feed = {
+      volts: new ort.Tensor("float64", this.volts, shape),
+      rest_volts: new ort.Tensor("float64", this.rests, shape),
+      unit_matrix: new ort.Tensor("float64", this.unit.matrix, [this.n, this.n]),
+      unit_offset: new ort.Tensor("float64", this.unit.offset, [this.n]),
+      unit_circuit: new ort.Tensor("float64", this.unit.circuit, [6]),
+    };
+    const out = await this.session.run(feed);
+    return Array.from(out[this.meta.output].data);
+  }
+}
