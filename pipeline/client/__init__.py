@@ -13,7 +13,7 @@ Every estimator unit differs; the shared models read a unit through its calibrat
 `needle-unit-<unit_id>@current` by `needlecue calibrate BATCH_DIR` (or the pipeline's `register`
 stage) from one short calibration batch. The client applies it when it was made with the loaded model
 (its checkpoint sha256). Otherwise (no `unit_id`, the unit not registered, a calibration made with
-other models, say an older champion, a needlecue-deploy/1 model, offline without a cached calibration)
+other models, say an older champion, offline without a cached calibration)
 the client is uncalibrated: an `UncalibratedUnit` warning names the unit, the reason and the fix, the
 force is still given, and no cues (`Frame.cue` is None, `has_cues` False) unless
 `cues_uncalibrated=True`. `from_dir(model_dir, calibration=...)` takes a calibration.json (or the

@@ -176,8 +176,7 @@ class ForceClient:
         the models, used offline like them).
 
         Calibrated iff that calibration was made with this very model; otherwise (no `unit_id`, the unit
-        not registered, a calibration made with other models, a needlecue-deploy/1 model, offline without
-        a cached calibration) an `UncalibratedUnit` warning, the force without calibration and no cues
+        not registered, a calibration made with other models, offline without a cached calibration) an `UncalibratedUnit` warning, the force without calibration and no cues
         unless `cues_uncalibrated`.
 
         The client follows the alias: `reset()` asks the registry where it points at most once every

@@ -143,7 +143,8 @@ def champion_predictors(
     """{kind: {angle: Predictor}} of the champions, each loaded from the checkpoint its run logged
     (`checkpoint/model.pt`: the registered version itself holds the ONNX graph only) and checked to be
     the registered model (same checkpoint_sha256 as its metadata). A champion whose checkpoint cannot
-    be fetched, or that predates unit calibrations (needlecue-deploy/1), is left out with a message."""
+    be fetched, or that is of an older deploy format (which clients no longer run), is left out with a
+    message."""
     import mlflow
     from mlflow.exceptions import MlflowException
 
@@ -154,7 +155,7 @@ def champion_predictors(
     for angle, c in champions.items():
         what = f"{c['name']} v{c['version']} ({c['kind']})"
         if c.get("format") != DEPLOY_FORMAT:
-            log(f"{what}: a {c.get('format')} model, made before unit calibrations: left out")
+            log(f"{what}: a {c.get('format')} model, which clients no longer run (register it again): left out")
             continue
         if not c.get("run_id"):
             log(f"{what}: no run to fetch its checkpoint from: left out")
