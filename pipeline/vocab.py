@@ -39,10 +39,11 @@ KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
 # calibration as data, and computes the model's inputs itself (docs/deploy.md). Clients run /4 only.
 DEPLOY_FORMAT = "needlecue-deploy/4"
 DEPLOY_FORMATS = ("needlecue-deploy/1", "needlecue-deploy/2", "needlecue-deploy/3", DEPLOY_FORMAT)
-# the graph's inputs, in order: raw volts (batch, window, channels), the rest reading in effect at each
-# of those samples (same shape), and the unit: matrix (channels, channels), offset (channels,),
-# circuit (6,) (pipeline.modelling.features.unit_inputs)
-INPUT_NAMES = ("volts", "rest_volts", "unit_matrix", "unit_offset", "unit_circuit")
+# the graph's inputs, in order: the raw readings (batch, window, channels), counts or volts as the
+# estimator sends them, the rest reading in effect at each of those samples (same shape), the volts of
+# one reading unit (1,) (1 for volts, vref / (2^bits - 1) for counts), and the unit: matrix (channels,
+# channels), offset (channels,), circuit (6,) (pipeline.modelling.features.unit_inputs)
+INPUT_NAMES = ("reading", "rest_reading", "volts_per_count", "unit_matrix", "unit_offset", "unit_circuit")
 OUTPUT_NAME = "force_n"
 
 

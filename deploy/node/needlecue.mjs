@@ -13,7 +13,7 @@ import ort from "onnxruntime-node";
 
 export const PUBLISHED_FORMAT = "needlecue-published/1";
 export const DEPLOY_FORMAT = "needlecue-deploy/4";
-export const INPUT_NAMES = ["volts", "rest_volts", "unit_matrix", "unit_offset", "unit_circuit"];
+export const INPUT_NAMES = ["reading", "rest_reading", "volts_per_count", "unit_matrix", "unit_offset", "unit_circuit"];
 const ED25519_SPKI = Buffer.from("302a300506032b6570032100", "hex"); // DER prefix of a raw Ed25519 key
 
 /** JSON with sorted keys and no spaces: the bytes the lab's signature covers. */
@@ -81,11 +81,13 @@ function angleName(deg) {
   return String(deg + 0); // 30 -> "30", 22.5 -> "22.5", -0 -> "0": the keys of a calibration's models
 }
 
-/** One force model, run one estimator sample at a time (`step`); `reset()` between insertions. */
+/** One force model, run one estimator sample at a time (`step`); `reset()` between insertions.
+ * `voltsPerCount`: 1 when `step` gets volts; vref / (2^bits - 1) when it gets the ADC's counts. */
 export class ForceModel {
-  constructor(session, meta) {
+  constructor(session, meta, voltsPerCount = 1) {
     this.session = session;
     this.meta = meta;
+    this.voltsPerCount = Float64Array.of(voltsPerCount);
     this.channels = meta.channels;
     this.window = meta.window;
     this.restS = (meta.inputs ?? {}).rest_s ?? 0.5;
@@ -96,7 +98,7 @@ export class ForceModel {
   }
 
   /** The model of `name@alias` from a bucket copy: manifest signature, file hashes, graph hash. */
-  static async fromPublished(dir, name, alias, publicKeyBase64) {
+  static async fromPublished(dir, name, alias, publicKeyBase64, voltsPerCount = 1) {
     const manifest = readManifest(dir, name, alias, publicKeyBase64);
     const meta = yaml.load(readObject(dir, manifest, "MLmodel").toString("utf8")).metadata.needlecue;
     const graph = readObject(dir, manifest, "model.onnx");
@@ -104,7 +106,7 @@ export class ForceModel {
     if (sha256(graph) !== meta.onnx_sha256) throw new Error(`${name}: model.onnx is not the graph its MLmodel names`);
     if (canonical(meta.graph_inputs) !== canonical(INPUT_NAMES)) throw new Error(`${name}: unexpected graph inputs`);
     const session = await ort.InferenceSession.create(graph, { intraOpNumThreads: 1, interOpNumThreads: 1 });
-    return new ForceModel(session, meta);
+    return new ForceModel(session, meta, voltsPerCount);
   }
 
   uncalibrate() {
@@ -152,9 +154,9 @@ export class ForceModel {
     }
   }
 
-  /** One sample (volts in `channels` order) at time `t` (s) -> the force [fx, fy, fz] in N. */
+  /** One sample (readings in `channels` order) at time `t` (s) -> the force [fx, fy, fz] in N. */
   async step(volts, t) {
-    if (volts.length !== this.n) throw new Error(`step takes ${this.n} volts (${this.channels.join(", ")})`);
+    if (volts.length !== this.n) throw new Error(`step takes ${this.n} readings (${this.channels.join(", ")})`);
     if (this.t0 === null) this.t0 = t;
     if (!this.restFrozen && t - this.t0 < this.restS - 1e-9) {
       for (let c = 0; c < this.n; c++) this.restSum[c] += volts[c];
@@ -168,8 +170,9 @@ export class ForceModel {
     this.frames += 1;
     const shape = [1, this.window, this.n];
     const feed = {
-      volts: new ort.Tensor("float64", this.volts, shape),
-      rest_volts: new ort.Tensor("float64", this.rests, shape),
+      reading: new ort.Tensor("float64", this.volts, shape),
+      rest_reading: new ort.Tensor("float64", this.rests, shape),
+      volts_per_count: new ort.Tensor("float64", this.voltsPerCount, [1]),
       unit_matrix: new ort.Tensor("float64", this.unit.matrix, [this.n, this.n]),
       unit_offset: new ort.Tensor("float64", this.unit.offset, [this.n]),
       unit_circuit: new ort.Tensor("float64", this.unit.circuit, [6]),

@@ -131,7 +131,8 @@ class ForceClient:
         self._rests = np.zeros_like(self._volts)
         names = model.metadata["graph_inputs"]
         unit = unit_inputs(None, None, self._n)
-        self._feed = dict(zip(names, (self._volts, self._rests, *unit), strict=True))
+        volts = np.ones(1)  # `step` takes volts: one volt per reading unit
+        self._feed = dict(zip(names, (self._volts, self._rests, volts, *unit), strict=True))
         self._outputs = [model.session.get_outputs()[0].name]
         self._rest = RestReading(model.inputs.rest_s, self._n)
         self._tracker: Any = model.cue_tracker()
@@ -176,8 +177,8 @@ class ForceClient:
         the models, used offline like them).
 
         Calibrated iff that calibration was made with this very model; otherwise (no `unit_id`, the unit
-        not registered, a calibration made with other models, offline without a cached calibration) an `UncalibratedUnit` warning, the force without calibration and no cues
-        unless `cues_uncalibrated`.
+        not registered, a calibration made with other models, offline without a cached calibration) an
+        `UncalibratedUnit` warning, the force without calibration and no cues unless `cues_uncalibrated`.
 
         The client follows the alias: `reset()` asks the registry where it points at most once every
         `poll_s` seconds (None or 0: never by itself; `refresh(force=True)` still does) and swaps in a
@@ -245,7 +246,7 @@ class ForceClient:
         self._decision = decision
         names = self._model.metadata["graph_inputs"]
         unit = unit_inputs(decision.transform, decision.circuit, self._n)
-        self._feed.update(zip(names[2:], unit, strict=True))
+        self._feed.update(zip(names[3:], unit, strict=True))
         self._cues_on = self._tracker is not None and (decision.calibrated or self._cues_uncalibrated)
         if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
             from pipeline.cues.tracker import calibration_evidence, reading_of, unit_evidence

@@ -5,12 +5,13 @@ raw volts (`pipeline.modelling.front`), reads the unit through its calibration, 
 holds the checkpoint's standardisation, so that `mlflow models serve`, MLflow's pyfunc and a simulator
 in any language need no needlecue code, and the Python client no pickle (docs/deploy.md):
 
-    inputs  `volts`        float64 (N, window, C)  raw volts, oldest sample first, in `channels` order
-            `rest_volts`   float64 (N, window, C)  the rest reading in effect at each of those samples
-            `unit_matrix`  float64 (C, C)          the unit's calibration (identity: uncalibrated)
-            `unit_offset`  float64 (C,)
-            `unit_circuit` float64 (6,)            the unit's circuit (zeros: the model's own)
-    output  `force_n`      float32 (N, 3)          fx, fy, fz in N
+    inputs  `reading`         float64 (N, window, C)  raw readings, oldest first, in `channels` order
+            `rest_reading`    float64 (N, window, C)  the rest reading in effect at each of those samples
+            `volts_per_count` float64 (1,)            1 for volts; vref / (2^bits - 1) for ADC counts
+            `unit_matrix`     float64 (C, C)          the unit's calibration (identity: uncalibrated)
+            `unit_offset`     float64 (C,)
+            `unit_circuit`    float64 (6,)            the unit's circuit (zeros: the model's own)
+    output  `force_n`         float32 (N, 3)          fx, fy, fz in N
 
 `window` is 1 for ls and fnn. The same checkpoint gives the same ONNX bytes, in any process (a test
 checks it), and the MLflow model carries a `needlecue` metadata block (`deploy_metadata`) with what a
@@ -156,7 +157,7 @@ def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes
 
 def _keep_every_input(proto: Any, dummy: tuple[Any, ...]) -> None:
     """Put back, in order, the inputs the exporter dropped because this model does not read them
-    (`rest_volts` for absolute inputs): every graph takes the same five, whatever its kind."""
+    (`rest_reading` for absolute inputs): every graph takes the same six, whatever its kind."""
     import onnx
 
     found = {i.name: i for i in proto.graph.input}
@@ -207,10 +208,13 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
     }
 
 
+VOLTS = np.ones(1)  # `volts_per_count` of readings in volts
+
+
 def _steady(n: int, window: int, n_in: int, volts: float) -> tuple[np.ndarray, ...]:
     """Graph inputs of `n` rows of a steady reading at `volts`, uncalibrated."""
     v = np.full((n, window, n_in), volts, dtype=np.float64)
-    return (v, v.copy(), *unit_inputs(None, None, n_in))
+    return (v, v.copy(), VOLTS, *unit_inputs(None, None, n_in))
 
 
 def raw_windows(checkpoint: dict[str, Any], volts: np.ndarray, t: np.ndarray, rows: Any) -> np.ndarray:
@@ -228,7 +232,7 @@ def graph_feed(
     through `unit` (`features.unit_inputs`): what a simulator sends, computed from a recording."""
     one_trial = np.zeros(len(volts), dtype=np.int64)
     rest = rest_reading(volts, one_trial, t, spec_of(checkpoint.get("inputs")).rest_s)
-    arrays = (raw_windows(checkpoint, volts, t, rows), raw_windows(checkpoint, rest, t, rows), *unit)
+    arrays = (raw_windows(checkpoint, volts, t, rows), raw_windows(checkpoint, rest, t, rows), VOLTS, *unit)
     return dict(zip(INPUT_NAMES, arrays, strict=True))
 
 
@@ -257,7 +261,9 @@ def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: dict[str, np.
     got = session.run(None, example)[0]
     predictor = Predictor(checkpoint)
     expected = []
-    for volts, rest in zip(example[INPUT_NAMES[0]], example[INPUT_NAMES[1]], strict=True):
+    scale = float(example[INPUT_NAMES[2]][0])
+    for reading, resting in zip(example[INPUT_NAMES[0]], example[INPUT_NAMES[1]], strict=True):
+        volts, rest = reading * scale, resting * scale
         # each row as a trial of its own, its window's samples with their own rest readings: the inputs
         # are the features of the volts less those of the rest, row by row, as `features` computes them
         x = features_at(volts, rest, predictor.inputs)
@@ -272,11 +278,12 @@ def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: dict[str, np.
 
 
 SIGNATURE_DOC = {
-    "volts": "raw estimator volts, V, (batch, window, channels), oldest sample first",
-    "rest_volts": (
-        "the rest reading in effect at each sample, V, same shape: the running mean of the "
-        "insertion's volts over its first rest_s seconds"
+    "reading": "raw estimator readings, counts or V, (batch, window, channels), oldest sample first",
+    "rest_reading": (
+        "the rest reading in effect at each sample, same unit and shape: the running mean of the "
+        "insertion's readings over its first rest_s seconds"
     ),
+    "volts_per_count": "(1,): V per reading unit: 1 for volts, vref_v / (2^adc_bits - 1) for counts",
     "unit_matrix": "the unit's calibration matrix (channels, channels); identity: uncalibrated",
     "unit_offset": "the unit's calibration offset (channels,); zeros: uncalibrated",
     "unit_circuit": (
@@ -292,12 +299,13 @@ def describe(checkpoint: dict[str, Any]) -> str:
     rest_s = spec_of(checkpoint.get("inputs")).rest_s
     return (
         f"{checkpoint['kind']} force model for {checkpoint['angle_deg']:g}° insertions. Takes the "
-        f"estimator's raw volts `volts` float64 (batch, {window}, {n}) for channels "
-        f"{', '.join(checkpoint['channels'])} at {checkpoint['rate_hz']:g} Hz, oldest sample first; "
-        "`rest_volts`, the same shape, the running mean of "
-        f"the insertion's volts over its first {rest_s:g} s in effect at each sample; and the unit's "
-        f"calibration `unit_matrix` ({n}, {n}), `unit_offset` ({n},), `unit_circuit` (6,) (identity, zeros "
-        "and zeros: uncalibrated). Returns `force_n` float32 (batch, 3): fx, fy, fz in N. docs/deploy.md."
+        f"estimator's raw readings `reading` float64 (batch, {window}, {n}), counts or volts, for "
+        f"channels {', '.join(checkpoint['channels'])} at {checkpoint['rate_hz']:g} Hz, oldest sample "
+        f"first; `rest_reading`, the same shape, the running mean of the insertion's readings over its "
+        f"first {rest_s:g} s in effect at each sample; `volts_per_count` (1,), 1 for volts; and the "
+        f"unit's calibration `unit_matrix` ({n}, {n}), `unit_offset` ({n},), `unit_circuit` (6,) "
+        "(identity, zeros and zeros: uncalibrated). Returns `force_n` float32 (batch, 3): fx, fy, fz "
+        "in N. docs/deploy.md."
     )
 
 

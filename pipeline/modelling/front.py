@@ -4,8 +4,9 @@ it (`pipeline.modelling.export`).
 
 It computes what `pipeline.modelling.features.features` computes, in float64 and with the same
 formulas (`pipeline.rig.frontend`), so that a simulator in any language feeds the graph nothing but
-what the estimator sends. The unit's calibration is data, not code: the three `unit_*` inputs that
-`features.unit_inputs` encodes (identity and no circuit: the model's own reading, uncalibrated).
+what the estimator sends: its readings (counts or volts, `volts_per_count` scales them). The unit's
+calibration is data, not code: the three `unit_*` inputs that `features.unit_inputs` encodes
+(identity and no circuit: the model's own reading, uncalibrated).
 
 torch is imported inside the functions, so importing this module is cheap.
 """
@@ -54,7 +55,8 @@ def _affine(x: torch.Tensor, matrix: torch.Tensor, offset: torch.Tensor) -> torc
 
 
 def front_module(spec: ModelInputs, window: int) -> torch.nn.Module:
-    """(volts, rest_volts, unit_matrix, unit_offset, unit_circuit) -> the model's inputs, float64:
+    """(reading, rest_reading, volts_per_count, unit_matrix, unit_offset, unit_circuit) -> the model's
+    inputs, float64:
     (batch, window, channels) windows for an LSTM (`window` > 1), else (batch, channels) of the last
     sample."""
     import torch
@@ -78,10 +80,10 @@ def front_module(spec: ModelInputs, window: int) -> torch.nn.Module:
             # read through the unit's circuit if it declares one, else through the model's own
             return torch.where(unit[0] > 0.5, 1e3 / _resistance(v, unit), 1e3 / _resistance(v, self.own))
 
-        def forward(self, volts: Any, rest: Any, matrix: Any, offset: Any, unit: Any) -> Any:
-            x = self._absolute(volts, matrix, offset, unit)
+        def forward(self, reading: Any, rest: Any, scale: Any, matrix: Any, offset: Any, unit: Any) -> Any:
+            x = self._absolute(reading * scale, matrix, offset, unit)  # counts to volts (1: volts already)
             if spec.kind.startswith("rest_"):
-                x = x - self._absolute(rest, matrix, offset, unit)
+                x = x - self._absolute(rest * scale, matrix, offset, unit)
             x = torch.where(unit[5] > 0.5, x, _affine(x, matrix, offset))  # a calibration of the inputs
             return x if window > 1 else x[:, -1, :]
 

@@ -155,7 +155,7 @@ def champion_predictors(
     for angle, c in champions.items():
         what = f"{c['name']} v{c['version']} ({c['kind']})"
         if c.get("format") != DEPLOY_FORMAT:
-            log(f"{what}: a {c.get('format')} model, which clients no longer run (register it again): left out")
+            log(f"{what}: a {c.get('format')} model, which clients no longer run (register it again)")
             continue
         if not c.get("run_id"):
             log(f"{what}: no run to fetch its checkpoint from: left out")

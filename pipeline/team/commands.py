@@ -101,6 +101,34 @@ def team_status(folder: TeamDir = None) -> None:
         raise typer.Exit(1)
 
 
+@team.command("units")
+def team_units(
+    folder: TeamDir = None,
+    out: Annotated[Path, typer.Option(help="where to write the unit files")] = Path("deploy/systemd"),
+) -> None:
+    """Write a systemd unit per server (and needlecue-team.target) that runs the stack as `team start`
+    does, restarted on failure: the registry outlives a terminal and a reboot (README, Team setup)."""
+    from pipeline.team.services import TARGET, write_units
+    from pipeline.team.stack import StackError
+
+    stack = _stack(folder)
+    try:
+        stack.settings  # noqa: B018 (a stack that was never started is an error here, not a KeyError)
+        if not (stack.pg_dir / "PG_VERSION").is_file():
+            raise StackError(
+                f"PostgreSQL has no data in {stack.pg_dir}: run `needlecue team start` once first"
+            )
+        written = write_units(stack, out)
+    except (StackError, OSError) as e:
+        raise fail(str(e)) from e
+    for path in written:
+        typer.echo(f"wrote {path}")
+    typer.echo(
+        f"install: needlecue team stop; sudo cp {out}/* /etc/systemd/system/ && sudo systemctl daemon-reload"
+    )
+    typer.echo(f"         sudo systemctl enable --now {TARGET}")
+
+
 @team.command("env")
 def team_env(
     role: Annotated[str, typer.Argument(help="admin, lab or simulator")],

@@ -56,6 +56,18 @@ S3_MIN_FREE_SHARE = 0.01
 S3_HEADROOM = 2 * 1024**3  # closer than this to that line, `start` and `status` warn
 
 
+@dataclass(frozen=True)
+class Launch:
+    """How one server runs in the foreground: its command, the environment it adds (secrets among
+    them), its working folder and the user it runs as (None: the caller). `team start` and the systemd
+    units (`pipeline.team.services`) both run this."""
+
+    cmd: list[str]
+    env: dict[str, str]
+    cwd: Path
+    user: str | None = None
+
+
 class StackError(RuntimeError):
     """A server of the stack could not be started or stopped (the message says which and where its log is)."""
 
@@ -388,7 +400,7 @@ class Stack:
                 )
             finally:
                 pwfile.unlink(missing_ok=True)
-        options = f"-p {self.ports.postgres} -h {self.host} -k {data}"
+        options = " ".join(self._postgres_options())
         _run(
             self._as_postgres(
                 [
@@ -408,6 +420,24 @@ class Stack:
             f"postgres: start (log {self.log('postgres')})",
         )
         self._create_databases()
+
+    def _postgres_options(self) -> list[str]:
+        return ["-p", str(self.ports.postgres), "-h", self.host, "-k", str(self.pg_dir)]
+
+    def launch(self, server: str) -> Launch:
+        """The foreground command of `server` with this stack's settings (writing the config files it
+        reads). PostgreSQL's data folder must exist: `team start` makes it (initdb) the first time."""
+        if server == "postgres":
+            cmd = [str(postgres_bin() / "postgres"), "-D", str(self.pg_dir), *self._postgres_options()]
+            return Launch(cmd, {}, self.pg_dir, "postgres" if os.geteuid() == 0 else None)
+        if server == "s3":
+            return self._s3_launch()
+        if server == "mlflow":
+            return self._mlflow_launch()
+        if server == "publisher":
+            cmd = [sys.executable, "-m", "pipeline.team.publisher", str(self.dir)]
+            return Launch(cmd, {"PYTHONUNBUFFERED": "1"}, self.dir)
+        raise ValueError(f"unknown server {server!r}: one of {', '.join(SERVERS)}")
 
     def _create_databases(self) -> None:
         import psycopg2
@@ -429,6 +459,11 @@ class Stack:
                     cur.execute(f'CREATE DATABASE "{db}"')
 
     def _start_s3(self) -> None:
+        launch = self.launch("s3")
+        self._spawn("s3", launch.cmd, launch.env, cwd=launch.cwd)
+        self._wait("s3", self._s3_ready)
+
+    def _s3_launch(self) -> Launch:
         s = self.settings
         config = self.dir / "s3.json"
         identities = [
@@ -458,8 +493,7 @@ class Stack:
             f"-s3.port.lance={w['lance']}", "-webdav=false", f"-s3.config={config}",
             f"-bucket={','.join(BUCKETS)}", "-master.volumeSizeLimitMB=64",
         ]  # fmt: skip
-        self._spawn("s3", cmd, {}, cwd=data)
-        self._wait("s3", self._s3_ready)
+        return Launch(cmd, {}, data)
 
     def _s3_ready(self) -> bool:
         try:
@@ -484,6 +518,7 @@ class Stack:
         """The MLflow server's environment: where the artifacts go, the auth config, the secrets."""
         s = self.settings
         return {
+            "MLFLOW_BACKEND_STORE_URI": self.database_uri("mlflow"),  # in the environment: not in `ps`
             "MLFLOW_S3_ENDPOINT_URL": self.s3_endpoint,
             "AWS_ACCESS_KEY_ID": s["s3"]["access_key"],
             "AWS_SECRET_ACCESS_KEY": s["s3"]["secret_key"],
@@ -522,18 +557,21 @@ class Stack:
         return path
 
     def _start_mlflow(self) -> None:
+        launch = self.launch("mlflow")
+        self._spawn("mlflow", launch.cmd, launch.env, cwd=launch.cwd)
+        self._wait("mlflow", self._mlflow_ready)
+
+    def _mlflow_launch(self) -> Launch:
         s = self.settings
         cmd = [
             sys.executable, "-m", "mlflow", "server", "--app-name", "basic-auth",
-            "--backend-store-uri", self.database_uri("mlflow"),
             "--serve-artifacts", "--artifacts-destination", "s3://mlflow/artifacts",
             # workspaces on: without them every signed-in user may create experiments and models
             "--enable-workspaces",
             "--host", self.host, "--port", str(self.ports.mlflow), "--workers", str(s["workers"]),
             "--uvicorn-opts", f"--timeout-worker-healthcheck {WORKER_HEALTHCHECK_S}",
         ]  # fmt: skip
-        self._spawn("mlflow", cmd, self.mlflow_env(), cwd=self.dir)
-        self._wait("mlflow", self._mlflow_ready)
+        return Launch(cmd, self.mlflow_env(), self.dir)
 
     def _mlflow_ready(self) -> bool:
         try:
@@ -543,8 +581,8 @@ class Stack:
             return False
 
     def _start_publisher(self) -> None:
-        cmd = [sys.executable, "-m", "pipeline.team.publisher", str(self.dir)]
-        self._spawn("publisher", cmd, {"PYTHONUNBUFFERED": "1"}, cwd=self.dir)
+        launch = self.launch("publisher")
+        self._spawn("publisher", launch.cmd, launch.env, cwd=launch.cwd)
         self._wait("publisher", self._publisher_ready)
 
     def _publisher_ready(self) -> bool:

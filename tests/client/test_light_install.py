@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -31,6 +30,7 @@ from pipeline.modelling.fit import fit
 from pipeline.modelling.predict import Predictor
 from pipeline.registry import store, units
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
+from tests.helpers import stop_group
 
 ROOT = Path(__file__).resolve().parents[2]
 REQUIREMENTS = ROOT / "client-requirements.txt"
@@ -102,14 +102,7 @@ def mlflow_server(root: Path) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
     try:
         yield f"http://127.0.0.1:{port}", proc
     finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=15)
+        stop_group(proc)
         log.close()
 
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -22,6 +21,7 @@ import pytest
 
 from pipeline.modelling.features import unit_inputs
 from tests.deploy.builders import Champion, client_forces, raw_feed
+from tests.helpers import stop_group
 
 SERVE_START_S = 120.0
 
@@ -44,6 +44,23 @@ def test_pyfunc_on_raw_readings_gives_the_clients_force(champion: Champion, tmp_
         **dict(zip(("unit_matrix", "unit_offset", "unit_circuit"), unit_inputs(None, None, 3), strict=True)),
     )
     assert np.abs(np.asarray(model.predict(uncalibrated)["force_n"]) - expected).max() > 1e-3
+
+
+def test_pyfunc_reads_adc_counts_as_their_volts(champion: Champion) -> None:
+    import mlflow
+
+    # given: the trial as a 10-bit ADC on 5 V would send it (integer counts), and the same in volts
+    per_count = 5.0 / 1023
+    feed = raw_feed(champion)
+    counts = {k: np.rint(feed[k] / per_count) for k in ("reading", "rest_reading")}
+    as_counts = dict(feed, **counts, volts_per_count=np.array([per_count]))
+    as_volts = dict(feed, **{k: v * per_count for k, v in counts.items()})
+    # when: the champion reads both
+    mlflow.set_registry_uri(champion.uri)
+    model = mlflow.pyfunc.load_model("models:/needle-force-30@champion")
+    got = [np.asarray(model.predict(f)["force_n"]) for f in (as_counts, as_volts)]
+    # then: the same force
+    np.testing.assert_allclose(got[0], got[1], rtol=0, atol=1e-6)
 
 
 def _free_port() -> int:
@@ -97,14 +114,7 @@ def served(uri: str, root: Path) -> Iterator[str]:
                 time.sleep(0.25)
             yield url
         finally:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(timeout=15)
+            stop_group(proc)
 
 
 def post(url: str, body: dict) -> tuple[int, dict]:
@@ -128,9 +138,9 @@ def test_mlflow_models_serve_on_raw_readings_gives_the_clients_force_and_refuses
         # when: a simulator posts the raw readings as JSON, and then a window of two channels, and
         # a window of the wrong length
         status, answer = post(url, {"inputs": {k: v.tolist() for k, v in feed.items()}})
-        two = dict(feed, volts=feed["volts"][:, :, :2], rest_volts=feed["rest_volts"][:, :, :2])
+        two = dict(feed, reading=feed["reading"][:, :, :2], rest_reading=feed["rest_reading"][:, :, :2])
         bad_channels = post(url, {"inputs": {k: v.tolist() for k, v in two.items()}})
-        short = dict(feed, volts=feed["volts"][:, :3], rest_volts=feed["rest_volts"][:, :3])
+        short = dict(feed, reading=feed["reading"][:, :3], rest_reading=feed["rest_reading"][:, :3])
         bad_window = post(url, {"inputs": {k: v.tolist() for k, v in short.items()}})
     # then: the client's force within 1e-5 N; each wrong input a 400 whose message says which shape
     # was sent and which the signature expects

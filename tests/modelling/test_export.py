@@ -148,7 +148,8 @@ def test_onnx_graph_is_self_describing_with_a_dynamic_batch(checkpoints) -> None
     # then: raw volts and rest readings (batch, window, channels) and the unit in, force_n out, the
     # same five inputs for every kind, and the graph says what it reads
     assert list(dims) == list(INPUT_NAMES) == [i.name for i in fnn.graph.input]
-    assert dims["volts"] == dims["rest_volts"] == [export.BATCH_DIM, 6, 3]
+    assert dims["reading"] == dims["rest_reading"] == [export.BATCH_DIM, 6, 3]
+    assert dims["volts_per_count"] == [1]
     assert (dims["unit_matrix"], dims["unit_offset"], dims["unit_circuit"]) == ([3, 3], [3], [6])
     assert out.name == "force_n"
     assert [d.dim_param or d.dim_value for d in out.type.tensor_type.shape.dim] == [export.BATCH_DIM, 3]
@@ -235,8 +236,9 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     specs = {i.name: (i.type, tuple(i.shape)) for i in model.signature.inputs.inputs}
     f64 = np.dtype(np.float64)
     assert specs == {
-        "volts": (f64, (-1, 6, 3)),
-        "rest_volts": (f64, (-1, 6, 3)),
+        "reading": (f64, (-1, 6, 3)),
+        "rest_reading": (f64, (-1, 6, 3)),
+        "volts_per_count": (f64, (1,)),
         "unit_matrix": (f64, (3, 3)),
         "unit_offset": (f64, (3,)),
         "unit_circuit": (f64, (6,)),
@@ -246,8 +248,8 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     x = {k: np.asarray(v, dtype=np.float64) for k, v in example.items()}
     trial = make_frame(1, seed=3)
     raw = trial[CHANNELS].to_numpy()
-    assert x["volts"].shape == (3, 6, 3) and np.array_equal(
-        x["volts"][2, -1], raw[-1]
+    assert x["reading"].shape == (3, 6, 3) and np.array_equal(
+        x["reading"][2, -1], raw[-1]
     )  # the real last sample
     assert np.array_equal(x["unit_matrix"], np.eye(3)) and not x["unit_circuit"].any()
     meta = model.metadata["needlecue"]
@@ -262,7 +264,7 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
     assert "model.onnx" in files and "MLmodel" in files
     assert not [f for f in files if f.endswith((".pkl", ".pickle")) or "python_model" in f], files
     assert np.isfinite(run_onnx((folder / "model.onnx").read_bytes(), x)).all()
-    assert "Takes the estimator's raw volts" in export.describe(checkpoint)
+    assert "Takes the estimator's raw readings `reading` float64 (batch, 6, 3)" in export.describe(checkpoint)
 
 
 def test_a_graph_that_computes_something_else_is_refused_before_logging(checkpoints) -> None:

@@ -102,6 +102,12 @@ def test_first_registration_tracks_every_model_and_crowns_the_best(project: Path
     assert int(client.get_model_version_by_alias(model_name(30), "champion").version) == 1
     assert record["promoted"] == ["30"]
     assert json.loads((project / "registry.json").read_text()) == record
+    # and: the registry's face says what things are, with no internal tag: the experiment's
+    # description, and the version's, which says what its graph takes and returns
+    assert exp.tags["mlflow.note.content"].startswith("needlecue force models")
+    assert not [t for t in exp.tags if t.startswith("needlecue.")]
+    described = client.get_model_version(model_name(30), "1").description
+    assert "Takes the estimator's raw readings `reading` float64" in described and "`force_n`" in described
 
 
 def test_second_run_with_nothing_changed_registers_nothing(project: Path) -> None:
