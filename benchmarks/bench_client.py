@@ -74,6 +74,7 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
 
     from pipeline.client import ForceClient
     from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
+    from pipeline.modelling.features import rest_reading, unit_inputs
     from pipeline.modelling.inputs import window_index
     from pipeline.modelling.predict import Predictor
 
@@ -93,21 +94,27 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
 
     client_ns = _time(step, FRAMES, WARMUP)
 
-    # the inputs the client built, prepared up front: what the bare graph sees per frame
+    # the inputs the client built, prepared up front: what the bare graph sees per frame (the raw
+    # windows, their rest readings, volts, and the unit as the client reads it)
     volts = np.stack([v for _, v, _ in frames])
     starts = np.cumsum([f for f, _, _ in frames]) - 1
     start_pos = np.flatnonzero([f for f, _, _ in frames])[starts]
-    if client.window > 1:
-        x = volts[window_index(start_pos, client.window)].astype(np.float32)
-    else:
-        x = volts.astype(np.float32)
+    t = np.array([s for _, _, s in frames])
+    rest = rest_reading(volts, starts, t, client.inputs.rest_s)
+    windows = window_index(start_pos, client.window)
+    names = client.metadata["graph_inputs"]  # the client runs uncalibrated here: the identity unit
+    feed = dict(zip(names[2:], (np.ones(1), *unit_inputs(None, None, len(channels))), strict=True))
+    x, r = volts[windows], rest[windows]
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = opts.inter_op_num_threads = 1
     session = ort.InferenceSession(
         str(client.model_dir / "model.onnx"), opts, providers=["CPUExecutionProvider"]
     )
-    name = session.get_inputs()[0].name
-    bare_ns = _time(lambda i: session.run(None, {name: x[i : i + 1]}), FRAMES, WARMUP)
+
+    def bare(i: int) -> object:
+        return session.run(None, {**feed, names[0]: x[i : i + 1], names[1]: r[i : i + 1]})
+
+    bare_ns = _time(bare, FRAMES, WARMUP)
 
     torch_ns = None
     ckpt = root / "models" / client.kind / str(angle) / CHECKPOINT_FILE

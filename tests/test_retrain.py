@@ -198,7 +198,7 @@ def test_retrain_follows_a_new_batch_and_nothing_else(tiny_built: Path, tmp_path
     assert entry["version"] == 2
     repack = report["registered"]["45"]
     assert repack["model_sha256"] == champion_45.tags["needlecue.model_sha256"]
-    assert repack["aliases"] == ["champion"] and "own model with a new cue pack" in repack["reason"]
+    assert repack["aliases"] == ["champion"] and "own model, packed anew" in repack["reason"]
     # the 15° champion moved only if the new version beat it on the external set
     champion_now = client.get_model_version_by_alias("needle-force-15", "champion")
     old_score = entry["previous_champion"]["external_nrmse_pct_mean"]

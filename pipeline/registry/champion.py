@@ -50,13 +50,15 @@ def decide(
     """The champion rule's second half. `score`: the new version's mean external NRMSE (%);
     `champion_version`: the current champion's version (None: there is none); `champion_score`: its
     mean NRMSE re-scored on the same external set (None: it cannot read today's data, so it cannot
-    defend its title); `repack`: the new version is the champion's own model with a new cue pack
+    defend its title); `repack`: the new version is the champion's own model with a new cue pack or graph
     (the same force, new cues: it takes the champion's place, or the new cues would never reach a
     simulator)."""
     if champion_version is None:
         return Decision(True, "no champion yet")
     if repack:
-        return Decision(True, f"champion v{champion_version}'s own model with a new cue pack")
+        return Decision(
+            True, f"champion v{champion_version}'s own model, packed anew (a new cue pack or graph)"
+        )
     if champion_score is None:
         return Decision(True, f"champion v{champion_version} cannot be scored on today's external set")
     margin = champion_score - score

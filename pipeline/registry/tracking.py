@@ -146,11 +146,14 @@ class Datasets:
         return None
 
 
-def deploy_sha256(model_sha256: str, cue_pack: Mapping[str, Any] | None) -> str:
-    """What a simulator gets from a version: the model, the cue pack in its metadata and the graph's
-    format. A new cue pack for the same model is a new deployable (new cues must reach the simulators),
-    and so is a new format (a graph that reads what the estimator sends)."""
-    doc = {"model_sha256": model_sha256, "cues": cue_pack, "format": DEPLOY_FORMAT}
+def deploy_sha256(checkpoint: dict[str, Any], cue_pack: Mapping[str, Any] | None) -> str:
+    """What a simulator gets from a version: the graph exported from the model (its bytes: a new
+    export of the same weights, say one that reads the estimator's raw readings, is a new
+    deployable), the cue pack in its metadata (new cues must reach the simulators) and the format."""
+    from pipeline.modelling.export import to_onnx
+
+    graph = hashlib.sha256(to_onnx(checkpoint)).hexdigest()
+    doc = {"graph_sha256": graph, "cues": cue_pack, "format": DEPLOY_FORMAT}
     text = json.dumps(doc, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 

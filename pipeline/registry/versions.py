@@ -87,7 +87,7 @@ def register_angle(
     log: Log,
 ) -> dict[str, Any]:
     """Register `t` for its angle and move the aliases by the champion rule; the registry.json entry.
-    `deploy`: the `deploy_sha256` of its model and cue pack (a version is one deployable);
+    `deploy`: the `deploy_sha256` of its graph and cue pack (a version is one deployable);
     `external`: the set `t` is judged on; `known`: today's candidates' scores on it, by model hash."""
     import mlflow
 
@@ -229,7 +229,7 @@ def register_all(
         for i, t in enumerate(trained, start=1):
             pack_path = reports_dir / "cues" / "packs" / f"{t.angle}.json"
             pack = json.loads(pack_path.read_text()) if pack_path.is_file() else None
-            deploy = deploy_sha256(t.model_sha256, pack)
+            deploy = deploy_sha256(t.checkpoint, pack)
             run_id, uri, new = track(client, t, exp_id, datasets, metrics, pack, deploy, figures, commit, log)
             logged[(t.kind, t.angle)] = (run_id, uri, deploy)
             n_new += new

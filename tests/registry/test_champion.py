@@ -73,4 +73,4 @@ def test_decide_gives_the_champions_own_model_with_a_new_cue_pack_the_title() ->
     # given: the champion v2's model, re-registered with a new cue pack (same force, new cues)
     # when / then: it takes the champion's place whatever the scores, and says why
     repacked = decide(5.0, 2, 5.0, 0.0, repack=True)
-    assert repacked.alias == "champion" and "v2's own model with a new cue pack" in repacked.reason
+    assert repacked.alias == "champion" and "v2's own model, packed anew" in repacked.reason

@@ -139,7 +139,7 @@ def test_a_new_cue_pack_for_the_champions_model_becomes_the_champion(project: Pa
     # then: a new run and version carry the new pack, and the champion moved to it
     assert len(client.search_runs([exp_id])) == 2
     assert (entry["action"], entry["version"], entry["aliases"]) == ("registered", 2, ["champion"])
-    assert "v1's own model with a new cue pack" in entry["reason"]
+    assert "v1's own model, packed anew" in entry["reason"]
     champion = client.get_model_version_by_alias(model_name(30), "champion")
     assert champion.tags["needlecue.previous_champion"] == "1"
     # and: the stage again with that pack changes nothing
