@@ -77,6 +77,7 @@ bench: repro          ## dvc repro timings (cold per stage, no-op, retrain), thr
 	$(BIN)/python benchmarks/bench_data.py
 	$(BIN)/python benchmarks/bench_peer.py
 	$(BIN)/python benchmarks/bench_client.py
+	$(BIN)/python benchmarks/bench_deployed.py
 
 ui: setup             ## the MLflow UI on the runs of every angle and kind, best first (prints the link)
 	$(BIN)/needlecue ui --port $${PORT:-5000}
