@@ -94,7 +94,7 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
             return self.net((x - self.x_mean) / self.x_std) * self.y_std + self.y_mean
 
     network = Deployable().float().eval()
-    front = front_module(spec_of(checkpoint.get("inputs")), cfg.window if cfg.kind == "lstm" else 1)
+    front = front_module(spec_of(checkpoint.get("inputs")), sequence=cfg.kind == "lstm")
 
     class Graph(nn.Module):
         def __init__(self) -> None:

@@ -54,11 +54,10 @@ def _affine(x: torch.Tensor, matrix: torch.Tensor, offset: torch.Tensor) -> torc
     return (x.unsqueeze(-2) * matrix).sum(-1) + offset
 
 
-def front_module(spec: ModelInputs, window: int) -> torch.nn.Module:
+def front_module(spec: ModelInputs, sequence: bool) -> torch.nn.Module:
     """(reading, rest_reading, volts_per_count, unit_matrix, unit_offset, unit_circuit) -> the model's
-    inputs, float64:
-    (batch, window, channels) windows for an LSTM (`window` > 1), else (batch, channels) of the last
-    sample."""
+    inputs, float64: (batch, window, channels) windows for a `sequence` model (the LSTM), else
+    (batch, channels) of the last sample."""
     import torch
     from torch import nn
 
@@ -85,6 +84,6 @@ def front_module(spec: ModelInputs, window: int) -> torch.nn.Module:
             if spec.kind.startswith("rest_"):
                 x = x - self._absolute(rest * scale, matrix, offset, unit)
             x = torch.where(unit[5] > 0.5, x, _affine(x, matrix, offset))  # a calibration of the inputs
-            return x if window > 1 else x[:, -1, :]
+            return x if sequence else x[:, -1, :]
 
     return Front().eval()

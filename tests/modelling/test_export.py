@@ -275,3 +275,14 @@ def test_a_graph_that_computes_something_else_is_refused_before_logging(checkpoi
     export.verify_onnx(fnn, export.to_onnx(fnn), example)
     with pytest.raises(ValueError, match="exported fnn graph does not compute what its checkpoint does"):
         export.verify_onnx(fnn, export.to_onnx(ls), example)
+
+
+def test_an_lstm_of_one_sample_exports_as_a_sequence_of_one() -> None:
+    # given: an LSTM whose window is its current sample only
+    params = LSTMParams(window=1, hidden=4, max_epochs=2, patience=1, batch_size=64)
+    checkpoint = fit("lstm", params, make_frame(4, seed=0)).checkpoint
+    frame = make_frame(1, seed=7, batch_id="b9")
+    # when / then: its graph reads (batch, 1, channels) and gives the Predictor's newtons
+    got = run_onnx(export.to_onnx(checkpoint), graph_inputs(checkpoint, frame))
+    expected = Predictor(checkpoint).predict(frame)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-5 * np.abs(expected).max())
