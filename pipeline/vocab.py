@@ -33,7 +33,7 @@ KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
 
 # The deployable model (pipeline.modelling.export writes it, pipeline.client reads it).
 # /2: the graph reads the model's inputs (`inputs` in the metadata says how they are computed from
-# volts: pipeline.modelling.features); /1 graphs read raw volts. Clients read both.
+# volts: pipeline.modelling.features); /1 graphs read raw volts.
 # /3: the description carries its graph's sha256 and the graph its description's (`description_sha256`)
 # /4: the graph reads what the estimator sends (raw volts and their rest reading) and the unit's
 # calibration as data, and computes the model's inputs itself (docs/deploy.md). Clients run /4 only.

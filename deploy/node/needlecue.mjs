@@ -78,7 +78,8 @@ export function encodeCircuit(frontEnd, onConductance) {
 }
 
 function angleName(deg) {
-  return String(deg + 0); // 30 -> "30", 22.5 -> "22.5", -0 -> "0": the keys of a calibration's models
+  // the keys of a calibration's models, as Python's f"{deg:g}": 30 -> "30", 22.5 -> "22.5", -0 -> "0"
+  return String(Number((deg + 0).toPrecision(6)));
 }
 
 /** One force model, run one estimator sample at a time (`step`); `reset()` between insertions.
@@ -125,9 +126,19 @@ export class ForceModel {
       this.uncalibrate();
       return false;
     }
-    const onConductance = (t.domain ?? "inputs") === "conductance";
+    const domain = t.domain ?? "inputs";
+    if (domain !== "inputs" && domain !== "conductance") throw new Error(`calibration: unknown domain ${domain}`);
+    const onConductance = domain === "conductance";
+    const flat = t.matrix.flat();
+    if (t.matrix.length !== this.n || flat.length !== this.n * this.n || t.offset.length !== this.n) {
+      throw new Error(`calibration: a ${this.n} x ${this.n} matrix and ${this.n} offsets expected`);
+    }
+    if (![...flat, ...t.offset].every(Number.isFinite)) throw new Error("calibration: non-finite numbers");
+    if (onConductance && (!doc.front_end || doc.front_end.circuit === "none")) {
+      throw new Error("calibration: a map of the conductance needs the unit's declared circuit (front_end)");
+    }
     this.unit = {
-      matrix: Float64Array.from(t.matrix.flat()),
+      matrix: Float64Array.from(flat),
       offset: Float64Array.from(t.offset),
       circuit: Float64Array.from(encodeCircuit(doc.front_end, onConductance)),
     };
@@ -157,6 +168,9 @@ export class ForceModel {
   /** One sample (readings in `channels` order) at time `t` (s) -> the force [fx, fy, fz] in N. */
   async step(volts, t) {
     if (volts.length !== this.n) throw new Error(`step takes ${this.n} readings (${this.channels.join(", ")})`);
+    if (!Number.isFinite(t) || !Array.from(volts).every(Number.isFinite)) {
+      throw new Error(`step needs a finite time (s) and finite readings, got t=${t}, [${Array.from(volts)}]`);
+    }
     if (this.t0 === null) this.t0 = t;
     if (!this.restFrozen && t - this.t0 < this.restS - 1e-9) {
       for (let c = 0; c < this.n; c++) this.restSum[c] += volts[c];

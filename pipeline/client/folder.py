@@ -91,8 +91,9 @@ def read_metadata(model_dir: Path) -> dict[str, Any]:
         )
     if meta["format"] != DEPLOY_FORMAT:
         raise ModelFolderError(
-            f"{mlmodel}: a {meta['format']} model, whose graph reads the model's inputs rather than what "
-            f"the estimator sends; this client runs {DEPLOY_FORMAT} graphs: register it again (dvc repro)"
+            f"{mlmodel}: a {meta['format']} model, whose graph does not take what the estimator sends "
+            f"as this client feeds it; this client runs {DEPLOY_FORMAT} graphs: register it again "
+            "(dvc repro)"
         )
     for field, (fits, expected) in FIELDS.items():
         if field not in meta:

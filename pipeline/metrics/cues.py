@@ -1,4 +1,5 @@
-"""The cues' headline figures in metrics.json: what a trainee sees, per model kind and unit group,
+"""The cues' headline figures in evaluation.json (the headline of that in metrics.json): what a trainee
+sees, per model kind and unit group,
 from the cues stage's evaluation.json (`pipeline.cues.score`), our combined cue only."""
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from pipeline.modelling.predictions import Predictions
 from pipeline.vocab import AXES, TRIAL_KEY, dump_json, sorted_angles
 
 EVALUATION_FILE = "evaluation.json"  # the full evaluation, in the reports folder (metrics.json: its headline)
-DIGITS = 4  # metrics.json precision: 0.1 mN for RMSE, 0.0001 % for NRMSE
+DIGITS = 4  # precision of evaluation.json and metrics.json: 0.1 mN for RMSE, 0.0001 % for NRMSE
 
 
 @dataclass(frozen=True)
@@ -117,7 +117,7 @@ def _n_trials(frame: pd.DataFrame) -> int:
 def compute_metrics(
     eval_sets: Mapping[str, EvalSet], preds: Scored, gaps_deg: Sequence[float]
 ) -> dict[str, Any]:
-    """Every number of the report, rounded to 4 decimals (NaN -> null), ready for metrics.json."""
+    """Every number of the report, rounded to 4 decimals (NaN -> null), ready for evaluation.json."""
     within: dict[str, dict[str, Any]] = {}
     within_test: dict[str, dict[str, Any]] = {}
     matrix: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
@@ -188,5 +188,5 @@ def compute_metrics(
 
 
 def metrics_json(metrics: Mapping[str, Any]) -> str:
-    """Deterministic text of metrics.json: rounded to DIGITS, sorted keys, no NaN."""
+    """Deterministic text of evaluation.json or metrics.json: rounded to DIGITS, sorted keys, no NaN."""
     return dump_json(metrics, DIGITS)

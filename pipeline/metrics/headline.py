@@ -8,8 +8,9 @@ registry read). About thirty numbers, so that DVC's tables fit a terminal:
 - `gap_nrmse_pct.<kind>.<gap>`: mean NRMSE of a model on data an angle gap away;
 - `unit_transfer`: the champion's NRMSE on the same unit, on a new unit uncalibrated and calibrated,
   and calibrated over same;
-- `cues.<group>`: what a trainee sees on the same unit and on a new calibrated unit: balanced accuracy
-  within the cue time, wrong cues at the end of an insertion and per frame, and coverage (%).
+- `cues.<group>`: what a trainee sees on the same unit and on a new calibrated unit, with the cues of
+  the kind that is champion at most angles: balanced accuracy within the cue time, wrong cues at the
+  end of an insertion and per frame, and coverage (%).
 """
 
 from __future__ import annotations
@@ -18,21 +19,16 @@ from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
-from pipeline.vocab import AXES
+from pipeline.metrics.scores import mean_known, mean_over_axes
 
 TRANSFER = ("same_unit", "new_uncalibrated", "new_calibrated", "ratio")
 CUE_GROUPS = ("same_unit", "new_calibrated")
 CUE_FIGURES = ("balanced_within_s", "wrong_final", "wrong_frames", "coverage_frames")
 
 
-def _mean(values: list[float | None]) -> float | None:
-    known = [v for v in values if v is not None]
-    return None if not known else sum(known) / len(known)
-
-
 def _nrmse(axes: Mapping[str, Any]) -> float | None:
     """Mean NRMSE of the axes of one (model, angle) entry of `within_angle`."""
-    return _mean([(axes.get(a) or {}).get("nrmse_pct") for a in AXES])
+    return mean_over_axes({a: (s or {}).get("nrmse_pct") for a, s in axes.items()})
 
 
 def headline(evaluation: Mapping[str, Any]) -> dict[str, Any]:
@@ -40,7 +36,7 @@ def headline(evaluation: Mapping[str, Any]) -> dict[str, Any]:
     sections it adds); a section the evaluation lacks is left out, never filled with zeros."""
     within = evaluation.get("within_angle") or {}
     out: dict[str, Any] = {}
-    per_kind = {kind: _mean([_nrmse(axes) for axes in angles.values()]) for kind, angles in within.items()}
+    per_kind = {kind: mean_known(_nrmse(axes) for axes in angles.values()) for kind, angles in within.items()}
     if per_kind:
         out["nrmse_pct"] = per_kind
     champions = ((evaluation.get("unit_transfer") or {}).get("champion") or {}).get("kinds") or {}

@@ -58,7 +58,7 @@ def _axes_dict(values: Sequence[float]) -> dict[str, float]:
 
 
 def paper_metrics() -> dict[str, Any]:
-    """The paper's numbers in our metrics.json shape, so the same checks run on both."""
+    """The paper's numbers in our evaluation.json shape, so the same checks run on both."""
     within: dict[str, dict[str, Any]] = {
         m: {a: {ax: {"nrmse_pct": v} for ax, v in _axes_dict(vals).items()} for a, vals in rows.items()}
         for m, rows in PAPER_TABLE1.items()
@@ -96,7 +96,7 @@ def _nrmse(metrics: Mapping[str, Any], model: str, angle: str, axis: str) -> flo
 
 
 def models_in(metrics: Mapping[str, Any]) -> list[str]:
-    """The model kinds metrics.json has results for: ls, fnn, lstm first, then any other."""
+    """The model kinds evaluation.json has results for: ls, fnn, lstm first, then any other."""
     present = set(metrics.get("within_angle", {})) | set(metrics.get("angle_gap_matrix", {}))
     known = [m for m in KINDS if m in present]
     return known + sorted(present - set(known))

@@ -1,5 +1,5 @@
 """Scores per estimator unit: how each model does on the units it was trained with, on a new unit
-without its calibration, and on the new unit after it (metrics.json `by_unit`, `unit_transfer`).
+without its calibration, and on the new unit after it (evaluation.json `by_unit`, `unit_transfer`).
 
 Only the external sets are scored here (held-out casts): the training units' held-out trials give the
 same-unit figure, a new unit's the new-unit figures. NRMSE follows eq. (4), per unit and angle over

@@ -78,7 +78,7 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
     pre = None if cfg.kind == "ls" else checkpoint["preprocessing"]
 
     class Deployable(nn.Module):
-        """(volts - x_mean) / x_std -> net -> * y_std + y_mean, in float32."""
+        """(inputs - x_mean) / x_std -> net -> * y_std + y_mean, in float32."""
 
         def __init__(self) -> None:
             super().__init__()
@@ -108,7 +108,7 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
 
 
 def graph_window(checkpoint: dict[str, Any]) -> int:
-    """Samples per row of the graph's `volts` (the LSTM's window, else 1)."""
+    """Samples per row of the graph's `reading` (the LSTM's window, else 1)."""
     return int(checkpoint["config"].get("window", 1)) if checkpoint["kind"] == "lstm" else 1
 
 
@@ -217,9 +217,9 @@ def _steady(n: int, window: int, n_in: int, volts: float) -> tuple[np.ndarray, .
     return (v, v.copy(), VOLTS, *unit_inputs(None, None, n_in))
 
 
-def raw_windows(checkpoint: dict[str, Any], volts: np.ndarray, t: np.ndarray, rows: Any) -> np.ndarray:
-    """(len(rows), window, C) windows of one trial's raw `volts` (n, C) at times `t`, each ending at
-    one of `rows`; the first sample repeated before the trial's start, as training pads them."""
+def raw_windows(checkpoint: dict[str, Any], volts: np.ndarray, rows: Any) -> np.ndarray:
+    """(len(rows), window, C) windows of one trial's raw `volts` (n, C), each ending at one of `rows`;
+    the first sample repeated before the trial's start, as training pads them."""
     window = graph_window(checkpoint)
     idx = np.maximum(np.asarray(rows)[:, None] - (window - 1) + np.arange(window)[None, :], 0)
     return np.asarray(volts, dtype=np.float64)[idx]
@@ -232,7 +232,7 @@ def graph_feed(
     through `unit` (`features.unit_inputs`): what a simulator sends, computed from a recording."""
     one_trial = np.zeros(len(volts), dtype=np.int64)
     rest = rest_reading(volts, one_trial, t, spec_of(checkpoint.get("inputs")).rest_s)
-    arrays = (raw_windows(checkpoint, volts, t, rows), raw_windows(checkpoint, rest, t, rows), VOLTS, *unit)
+    arrays = (raw_windows(checkpoint, volts, rows), raw_windows(checkpoint, rest, rows), VOLTS, *unit)
     return dict(zip(INPUT_NAMES, arrays, strict=True))
 
 

@@ -187,11 +187,6 @@ class RestReading:
         self._t0: float | None = None
         self._frozen = False
 
-    @property
-    def ready(self) -> bool:
-        """Whether the rest reading is complete (`rest_s` of samples seen)."""
-        return self._frozen
-
     def push(self, t: float, volts: np.ndarray) -> np.ndarray:
         if self._t0 is None:
             self._t0 = t
@@ -288,7 +283,13 @@ class InputTransform:
 # model reads the unit through its own circuit), 1: a divider with the FSR at the supply, 2: at ground,
 # 3: a transimpedance stage; a, b: supply_v and fixed_kohm of a divider, drive_v and feedback_kohm of
 # a transimpedance stage.
-CIRCUIT_CODES = {("divider", "supply"): 1.0, ("divider", "ground"): 2.0, ("transimpedance", None): 3.0}
+SUPPLY_DIVIDER, GROUND_DIVIDER, TRANSIMPEDANCE = 1.0, 2.0, 3.0
+CIRCUIT_CODES = {
+    ("divider", "supply"): SUPPLY_DIVIDER,
+    ("divider", "ground"): GROUND_DIVIDER,
+    ("transimpedance", None): TRANSIMPEDANCE,
+}
+ON_CONDUCTANCE = 5  # the place in `unit_circuit` of the flag "calibrated on conductance"
 
 
 def encode_circuit(fe: Divider | Transimpedance | None, on_conductance: bool = False) -> np.ndarray:

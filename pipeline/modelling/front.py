@@ -17,7 +17,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.modelling.features import MIN_CONDUCTANCE_US, ModelInputs, encode_circuit
+from pipeline.modelling.features import (
+    GROUND_DIVIDER,
+    MIN_CONDUCTANCE_US,
+    ON_CONDUCTANCE,
+    SUPPLY_DIVIDER,
+    TRANSIMPEDANCE,
+    ModelInputs,
+    encode_circuit,
+)
 from pipeline.rig.frontend import MAX_KOHM, MIN_KOHM
 
 if TYPE_CHECKING:
@@ -31,9 +39,9 @@ def _resistance(v: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     code, a, b, series, offset = c[0], c[1], c[2], c[3], c[4]
     eps = 1e-6 * a
     ratio = a / torch.minimum(torch.maximum(v, eps), a - eps) - 1.0
-    divider = torch.where(code == 1.0, b * ratio, b / ratio)
+    divider = torch.where(code == SUPPLY_DIVIDER, b * ratio, b / ratio)
     transimpedance = a * b / torch.maximum(v - offset, 1e-9 * a)
-    r = torch.where(code < 2.5, divider, transimpedance)
+    r = torch.where(code == TRANSIMPEDANCE, transimpedance, divider)
     low, high = torch.tensor(MIN_KOHM, dtype=v.dtype), torch.tensor(MAX_KOHM, dtype=v.dtype)
     return torch.minimum(torch.maximum(r - series, low), high)
 
@@ -45,7 +53,10 @@ def _volts_of_conductance(g: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     code, a, b, series, offset = c[0], c[1], c[2], c[3], c[4]
     r = 1e3 / g + series
     supply, ground = a / (1.0 + r / b), a / (1.0 + b / r)
-    return torch.where(code == 1.0, supply, torch.where(code == 2.0, ground, offset + a * b / r))
+    transimpedance = offset + a * b / r
+    return torch.where(
+        code == SUPPLY_DIVIDER, supply, torch.where(code == GROUND_DIVIDER, ground, transimpedance)
+    )
 
 
 def _affine(x: torch.Tensor, matrix: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
@@ -73,7 +84,8 @@ def front_module(spec: ModelInputs, sequence: bool) -> torch.nn.Module:
                 _affine(1e3 / _resistance(v, unit), matrix, offset),
                 torch.tensor(MIN_CONDUCTANCE_US, dtype=v.dtype),
             )
-            v = torch.where(unit[5] > 0.5, _volts_of_conductance(mapped, unit), v)  # calibrated volts
+            calibrated = unit[ON_CONDUCTANCE] > 0.5
+            v = torch.where(calibrated, _volts_of_conductance(mapped, unit), v)  # the calibrated volts
             if not spec.needs_circuit:
                 return v
             # read through the unit's circuit if it declares one, else through the model's own
@@ -83,7 +95,7 @@ def front_module(spec: ModelInputs, sequence: bool) -> torch.nn.Module:
             x = self._absolute(reading * scale, matrix, offset, unit)  # counts to volts (1: volts already)
             if spec.kind.startswith("rest_"):
                 x = x - self._absolute(rest * scale, matrix, offset, unit)
-            x = torch.where(unit[5] > 0.5, x, _affine(x, matrix, offset))  # a calibration of the inputs
+            x = torch.where(unit[ON_CONDUCTANCE] > 0.5, x, _affine(x, matrix, offset))  # on the inputs
             return x if sequence else x[:, -1, :]
 
     return Front().eval()

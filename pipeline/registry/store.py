@@ -30,6 +30,9 @@ CHALLENGER = "challenger"
 TAG = "needlecue."  # prefix of our own tags on runs and model versions
 # a unit calibration's version: the sha256 of its document's bytes, as registered (the client checks it)
 CALIBRATION_SHA_TAG = f"{TAG}calibration_sha256"
+# a force model version's graph format (vocab.DEPLOY_FORMAT): a champion of another format, which today's
+# clients refuse, cannot defend its title, nor be rolled back to
+FORMAT_TAG = f"{TAG}deploy_format"
 UNIT_EXPERIMENT = "needle-units"  # one run per registered unit calibration document
 UNIT_ALIAS = "current"  # needle-unit-<unit_id>@current: the calibration a simulator applies
 # MLflow 3's UI opens an experiment without this tag on its GenAI view (traces, latency); ours are
@@ -79,13 +82,9 @@ WRITE_TIMEOUT_S = "60"
 SERVER_INFO = "/api/3.0/mlflow/server-info"
 SERVER_INFO_KEYS = {"store_type", "workspaces_enabled"}
 
-# A writer learns that the store takes writes by setting the experiment's description (the tag the
-# UI shows as its description: a no-op once set); the internal tag earlier versions set is removed.
-EXPERIMENT_NOTE = (
-    "needlecue force models: a run per (angle, model kind) with its params, datasets, per-split and "
-    "per-gap metrics, loss curve and deployable ONNX graph; the best per angle is registered as "
-    "needle-force-<angle>, its @champion what the simulators load."
-)
+# A writer learns that the store takes writes by writing the experiment's description (the tag the UI
+# shows) back as it is: a real write that changes nothing. The internal tag earlier versions set for
+# that is removed.
 OLD_WRITE_CHECK_TAG = "needlecue.write_check"
 
 
@@ -391,16 +390,17 @@ def _said(e: Exception) -> str:
 
 
 def _takes_writes(client: MlflowClient, uri: str) -> None:
-    """Set the tracking experiment's description (creating the experiment if needed, as a writer would
-    anyway): a store that refuses is read-only, found before any run, version or alias."""
+    """Write the tracking experiment's description back as it is (creating the experiment if needed, as a
+    writer would anyway): a store that refuses is read-only, found before any run, version or alias."""
     # MLflow logs a refused SQL write with its whole traceback before raising: the error below says it
     db_log = logging.getLogger("mlflow.store.db.utils")
     quiet = db_log.disabled
     db_log.disabled = True
     try:
         exp_id = experiment_id(client)
-        client.set_experiment_tag(exp_id, "mlflow.note.content", EXPERIMENT_NOTE)
-        if OLD_WRITE_CHECK_TAG in client.get_experiment(exp_id).tags:
+        tags = client.get_experiment(exp_id).tags
+        client.set_experiment_tag(exp_id, "mlflow.note.content", tags.get("mlflow.note.content", ABOUT))
+        if OLD_WRITE_CHECK_TAG in tags:
             client.delete_experiment_tag(exp_id, OLD_WRITE_CHECK_TAG)
     except Exception as e:
         code = getattr(e, "error_code", "")

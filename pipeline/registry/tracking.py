@@ -49,7 +49,7 @@ def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:
             vals = [c[a] for c in cells if c.get(a) is not None]
             if vals:
                 out[f"gap{float(gap):g}_nrmse_pct_{a}"] = float(np.mean(vals))
-    # What a trainee sees with this kind's cues, over every preset angle (metrics.json "cues")
+    # What a trainee sees with this kind's cues, over every preset angle (evaluation.json "cues")
     for group, figures in (metrics.get("cues") or {}).get(t.kind, {}).items():
         for what, v in figures.items():
             if v is not None and what != "trials":

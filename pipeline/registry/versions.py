@@ -30,6 +30,7 @@ from pipeline.registry.store import (
     CHALLENGER,
     CHAMPION,
     EXPERIMENT,
+    FORMAT_TAG,
     RegistryUnreachable,
     alias_version,
     create_registered_model,
@@ -40,7 +41,7 @@ from pipeline.registry.store import (
 )
 from pipeline.registry.tracking import TAG, Datasets, deploy_sha256, git_commit, track
 from pipeline.registry.units import load_documents, register_units
-from pipeline.vocab import AXES
+from pipeline.vocab import AXES, DEPLOY_FORMAT
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient
@@ -122,8 +123,13 @@ def register_angle(
         )
     champion = alias_version(client, name, CHAMPION)
     repack = champion is not None and champion.tags.get(f"{TAG}model_sha256") == t.model_sha256
+    runnable = champion is not None and champion.tags.get(FORMAT_TAG) == DEPLOY_FORMAT
+    if champion is not None and not runnable:  # today's clients refuse it: it cannot defend its title
+        log(f"{name}: champion v{champion.version} is not a {DEPLOY_FORMAT} graph, which clients run")
     champion_score = (
-        None if champion is None or repack else rescore_version(client, champion, external, known, log)
+        None
+        if champion is None or repack or not runnable
+        else rescore_version(client, champion, external, known, log)
     )
     if mv is None:
         run_tags = client.get_run(run_id).data.tags  # where the data behind it is: commit and dvc.lock
@@ -134,6 +140,7 @@ def register_angle(
             tags={
                 f"{TAG}model_sha256": t.model_sha256,
                 f"{TAG}deploy_sha256": deploy,
+                FORMAT_TAG: DEPLOY_FORMAT,
                 "model_type": t.kind,
                 "angle_deg": t.angle,
                 "external_nrmse_pct_mean": f"{t.mean_nrmse():.4f}",
@@ -187,6 +194,12 @@ def rollback(
         known = {int(v.version) for v in versions(client, name)}
         if to_version not in known:
             raise ValueError(f"{name} has no version {to_version} (versions: {sorted(known) or 'none'})")
+        target = client.get_model_version(name, str(to_version))
+        if target.tags.get(FORMAT_TAG) != DEPLOY_FORMAT:
+            raise ValueError(
+                f"{name} v{to_version} is not a {DEPLOY_FORMAT} graph: today's clients refuse it "
+                "(register it again with `dvc repro`, or roll back to a newer version)"
+            )
         client.set_registered_model_alias(name, CHAMPION, str(to_version))
         client.set_model_version_tag(
             name, str(to_version), f"{TAG}rolled_back_from", "" if champion is None else str(champion.version)

@@ -70,7 +70,8 @@ def title(metrics: Mapping[str, Any]) -> list[str]:
     out += [
         "NRMSE = 100 · RMSE / (max(ref) − min(ref)) per axis over every sample of the set scored "
         "(eq. (3)-(4)); accuracy = 100 − NRMSE. All numbers are computed by `pipeline/metrics/` "
-        "and also in `metrics.json`; paper values are copied from the text as extracted "
+        "and also in `evaluation.json` (the headline figures in `metrics.json`); paper values are "
+        "copied from the text as extracted "
         '(typos fixed: the second "LS (45°)" row of Table I is the FNN row; "1414%" is 14.14 %; '
         'Table III\'s "FNN (angle gap 30°)" row is the 15° gap row). Models see only their inputs: '
         "the force columns are dropped before `predict`.",

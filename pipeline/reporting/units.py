@@ -1,6 +1,6 @@
 """The report's "Estimator units" section: each model on the units it was trained with, on a new
 unit without its calibration and after it (force and cues), and what each calibration used. Data in:
-metrics.json (`unit_transfer`, `by_unit`, `calibration`) and the cue evaluation (`by_unit_group`)."""
+evaluation.json (`unit_transfer`, `by_unit`, `calibration`) and the cue evaluation (`by_unit_group`)."""
 
 from __future__ import annotations
 
@@ -216,7 +216,7 @@ def calibration_table(calibration: Mapping[str, Any]) -> list[str]:
 
 
 def estimator_units(metrics: Mapping[str, Any], cue_eval: Mapping[str, Any] | None) -> str:
-    """The section's Markdown ("" when metrics.json has no per-unit scores)."""
+    """The section's Markdown ("" when evaluation.json has no per-unit scores)."""
     transfer = metrics.get("unit_transfer") or {}
     if not transfer:
         return ""

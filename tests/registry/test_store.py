@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from pipeline.cli import app
 from pipeline.registry import store, versions
 from pipeline.registry.store import CHAMPION, TAG, model_name
+from pipeline.vocab import DEPLOY_FORMAT
 
 PAGE = b"<html><body>Welcome</body></html>"
 NO_SUCH = b'{"error_code": "RESOURCE_DOES_NOT_EXIST", "message": "Not found"}'
@@ -51,7 +52,7 @@ def _store_with_two_versions(tmp_path: Path, uri: str) -> None:
     for v in (1, 2):
         source = tmp_path / f"v{v}"
         source.mkdir()
-        client.create_model_version(name, source.as_uri())
+        client.create_model_version(name, source.as_uri(), tags={store.FORMAT_TAG: DEPLOY_FORMAT})
     client.set_registered_model_alias(name, CHAMPION, "2")
     client.set_model_version_tag(name, "2", f"{TAG}previous_champion", "1")
 

@@ -16,7 +16,7 @@ from pipeline.config import PARAMS_MODELS, RegisterParams, load_section
 from pipeline.modelling.predict_splits import predict_all
 from pipeline.modelling.train import train_folder
 from pipeline.registry import versions
-from pipeline.registry.store import RegistryUnreachable, model_name
+from pipeline.registry.store import ABOUT, FORMAT_TAG, RegistryUnreachable, model_name
 from pipeline.stages import register
 from tests.modelling.frames import make_frame
 
@@ -104,7 +104,7 @@ def test_first_registration_tracks_every_model_and_crowns_the_best(project: Path
     assert json.loads((project / "registry.json").read_text()) == record
     # and: the registry's face says what things are, with no internal tag: the experiment's
     # description, and the version's, which says what its graph takes and returns
-    assert exp.tags["mlflow.note.content"].startswith("needlecue force models")
+    assert exp.tags["mlflow.note.content"] == ABOUT
     assert not [t for t in exp.tags if t.startswith("needlecue.")]
     described = client.get_model_version(model_name(30), "1").description
     assert "Takes the estimator's raw readings `reading` float64" in described and "`force_n`" in described
@@ -168,6 +168,26 @@ def test_a_better_model_is_promoted_and_a_worse_one_is_only_challenger(project: 
     assert (third["version"], third["aliases"]) == (3, ["challenger"])
     assert int(client.get_model_version_by_alias(model_name(30), "champion").version) == 2
     assert int(client.get_model_version_by_alias(model_name(30), "challenger").version) == 3
+
+
+def test_a_champion_of_a_graph_format_clients_refuse_gives_way_and_is_never_rolled_back_to(
+    project: Path,
+) -> None:
+    # given: a good champion registered with an older graph format (its format tag, as before
+    # needlecue-deploy/4: today's clients refuse it), and a worse model arriving
+    run_stage(project, train_models(project, "good", GOOD))
+    client = MlflowClient()
+    client.delete_model_version_tag(model_name(30), "1", FORMAT_TAG)
+    (project / "worse.yaml").write_text(BAD.replace("batch_size: 32", "batch_size: 32\n  seed: 7"))
+    train("fnn", project / "processed" / "30", project / "worse" / "fnn" / "30", project / "worse.yaml")
+    # when: it is registered
+    entry = run_stage(project, project / "worse")["angles"]["30"]
+    # then: it takes the title, since the champion cannot defend it where no client runs it
+    assert (entry["version"], entry["aliases"]) == (2, ["champion"])
+    # and: rolling back to the old format is refused, saying why
+    with pytest.raises(ValueError, match="not a needlecue-deploy/4 graph: today's clients refuse it"):
+        versions.rollback(30)
+    assert int(client.get_model_version_by_alias(model_name(30), "champion").version) == 2
 
 
 def test_rollback_moves_the_champion_back(project: Path) -> None:

@@ -4,6 +4,8 @@ accepted by `systemd-analyze verify`."""
 
 from __future__ import annotations
 
+import os
+import pwd
 import shlex
 import shutil
 import stat
@@ -55,6 +57,8 @@ def test_a_unit_per_server_runs_what_team_start_runs_and_systemd_accepts_them(tm
         launch = stack.launch(server)
         assert f["ExecStart"] == [shlex.join(launch.cmd)] and f["WorkingDirectory"] == [str(launch.cwd)]
         assert f["Restart"] == ["on-failure"] and f["WantedBy"] == [TARGET]
+        # a system unit runs as root unless told: each names its user (postgres's own under root)
+        assert f["User"] == [launch.user or pwd.getpwuid(os.geteuid()).pw_name]
     assert (
         "needlecue-team-postgres.service" in fields(tmp_path / "units" / unit_name("mlflow"))["Requires"][0]
     )
