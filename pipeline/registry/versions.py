@@ -125,7 +125,9 @@ def register_angle(
     repack = champion is not None and champion.tags.get(f"{TAG}model_sha256") == t.model_sha256
     runnable = champion is not None and champion.tags.get(FORMAT_TAG) == DEPLOY_FORMAT
     if champion is not None and not runnable:  # today's clients refuse it: it cannot defend its title
-        log(f"{name}: champion v{champion.version} is not a {DEPLOY_FORMAT} graph, which clients run")
+        log(
+            f"{name}: champion v{champion.version} is not registered as a {DEPLOY_FORMAT} graph, which clients run"
+        )
     champion_score = (
         None
         if champion is None or repack or not runnable
