@@ -126,7 +126,8 @@ def register_angle(
     runnable = champion is not None and champion.tags.get(FORMAT_TAG) == DEPLOY_FORMAT
     if champion is not None and not runnable:  # today's clients refuse it: it cannot defend its title
         log(
-            f"{name}: champion v{champion.version} is not registered as a {DEPLOY_FORMAT} graph, which clients run"
+            f"{name}: champion v{champion.version} is not registered as a {DEPLOY_FORMAT} graph, "
+            "which clients run"
         )
     champion_score = (
         None
