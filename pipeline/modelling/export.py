@@ -36,6 +36,7 @@ import numpy as np
 from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpoint_sha256
 from pipeline.modelling.features import features_at, rest_reading, spec_of, unit_inputs
 from pipeline.modelling.front import front_module
+from pipeline.modelling.inputs import window_index
 from pipeline.modelling.networks import build_network
 from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, description_sha256
 
@@ -219,9 +220,9 @@ def _steady(n: int, window: int, n_in: int, volts: float) -> tuple[np.ndarray, .
 
 def raw_windows(checkpoint: dict[str, Any], volts: np.ndarray, rows: Any) -> np.ndarray:
     """(len(rows), window, C) windows of one trial's raw `volts` (n, C), each ending at one of `rows`;
-    the first sample repeated before the trial's start, as training pads them."""
-    window = graph_window(checkpoint)
-    idx = np.maximum(np.asarray(rows)[:, None] - (window - 1) + np.arange(window)[None, :], 0)
+    the first sample repeated before the trial's start, as training pads them (`window_index`)."""
+    one_trial = np.zeros(len(volts), dtype=np.int64)  # every row's trial starts at row 0
+    idx = window_index(one_trial, graph_window(checkpoint))[np.asarray(rows)]
     return np.asarray(volts, dtype=np.float64)[idx]
 
 
