@@ -193,9 +193,11 @@ def _unit_out(
             cells = [(c, float(k), x[rows[:k]].mean(axis=0)) for c, rows in sorted(by_class.items())]
             cases.append((f"calibrated-{k}", cells, [i for i in mine.tolist() if i not in used]))
         for reading, known, scored in cases:
-            r = read_unit(stage["means"], known, stage["template_weight"], stage["offset_spread"])
-            if not r.known:  # nothing bounds this unit (too few units left): no posterior to validate
-                continue
+            r = read_unit(
+                stage["means"], known, stage["template_weight"], stage["offset_spread"], stage["precision"]
+            )
+            if not r.known or r.departs:  # nothing bounds this unit (too few units left), or it lies
+                continue  # outside what the others cover (the tracker shows it no cue): nothing to validate
             pos, z = out.setdefault(reading, ([], []))
             for i in scored:
                 pos.append(i)

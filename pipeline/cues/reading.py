@@ -31,6 +31,7 @@ class UnitReading:
 
     means: np.ndarray
     extra_var: np.ndarray
+    departs: bool = False  # its cells sit unlike any shift of the training units' means (`departs`)
 
     @property
     def known(self) -> bool:
@@ -38,11 +39,54 @@ class UnitReading:
         return bool(np.isfinite(self.extra_var).all())
 
 
+def _departure_squares(
+    mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray
+) -> tuple[float, float]:
+    """(the whitened sum of squares of a unit's cells around the average unit's means shifted by their
+    mean difference, per feature; what trial scatter alone leaves in it). C cells have C - 1 degrees
+    of freedom per feature around their mean shift."""
+    shift = np.mean([m - mu[c] for c, _, m in cells], axis=0)
+    squares = sum(float((r := m - mu[c] - shift) @ precision @ r) for c, _, m in cells) / mu.shape[1]
+    return squares, (1.0 - 1.0 / len(cells)) * sum(1.0 / n for _, n, _ in cells)
+
+
+def own_departure(
+    mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray | None
+) -> float:
+    """The variance of a unit's own departures at an angle (whitened units per feature) as its cells
+    show it: how far they sit from the average unit's means once shifted, beyond their trials'
+    scatter; 0 when they fit a shift (or fewer than two cells, or no precision)."""
+    if precision is None or len(cells) < 2:
+        return 0.0
+    squares, scatter = _departure_squares(np.asarray(mu, dtype=np.float64), cells, precision)
+    return max((squares - scatter) / (len(cells) - 1), 0.0)
+
+
+def neighbour_distance(mu: np.ndarray, precision: np.ndarray) -> float:
+    """The median squared distance between neighbouring trained angles' means (classes in angle
+    order), whitened, per feature: how far a class may move before it reaches the next angle's."""
+    step = np.diff(np.asarray(mu, dtype=np.float64), axis=0)
+    return float(np.median(np.einsum("cf,fg,cg->c", step, precision, step))) / step.shape[1]
+
+
+def departs(
+    mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray | None
+) -> bool:
+    """Whether a unit's own departures (`own_departure`) are as large as the distance between
+    neighbouring trained angles: its classes are then not laid out as any training unit's (a turned
+    connector; another FSR law), its insertions could stand in another order, and how its trials
+    scatter around them is unknown, so nothing it shows at this stage is validated."""
+    if precision is None or len(cells) < 2:
+        return False
+    return own_departure(mu, cells, precision) > neighbour_distance(mu, precision)
+
+
 def read_unit(
     mu: np.ndarray,
     cells: Sequence[tuple[int, float, np.ndarray]],
     k: float | None,
     spread: float | None,
+    precision: np.ndarray | None = None,
 ) -> UnitReading:
     """A unit's reading from the average unit's `mu` (classes, features) and the unit's `cells`
     [(class, trials n, their mean features)], with the stage's template weight `k` (the scatter's
@@ -56,9 +100,17 @@ def read_unit(
        spread·e / (spread + e) (e without a spread; the spread without cells; inf with neither).
     2. Pull: each cell's class moves towards its trials, (n·trials + k·shifted) / (n + k), and its
        variance becomes that of the two combined (k None: no pull, the shift alone).
+
+    With the stage's `precision` (a unit training did not see), the departures are the larger of
+    the training units' (1/k) and this unit's own (`own_departure`), and `departs` tests them: a
+    unit whose calibration insertions do not sit where a shift of the training units puts them (a
+    turned connector, another tissue) is read more by its own insertions and less surely, and is
+    told apart when its classes could have moved past their neighbours (`departs`).
     """
     mu = np.asarray(mu, dtype=np.float64)
-    tau2 = 0.0 if k is None else 1.0 / k
+    away = departs(mu, cells, precision)
+    tau2 = max(0.0 if k is None else 1.0 / k, own_departure(mu, cells, precision))
+    k = None if tau2 == 0.0 else 1.0 / tau2
     if not cells:
         v_off = math.inf if spread is None else float(spread)
         return UnitReading(mu, np.full(len(mu), v_off + tau2))
@@ -72,7 +124,7 @@ def read_unit(
         for c, n, m in cells:
             means[c] = (n * m + k * means[c]) / (n + k)
             var[c] = 1.0 / (n + 1.0 / var[c])
-    return UnitReading(means, var)
+    return UnitReading(means, var, away)
 
 
 def distances(precision: np.ndarray, means: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -114,11 +114,16 @@ def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None
 
 
 def unit_reading(
-    stage: Mapping[str, Any], j: int, classes: Sequence[float], evidence: UnitEvidence | None
+    stage: Mapping[str, Any],
+    j: int,
+    classes: Sequence[float],
+    evidence: UnitEvidence | None,
+    trained: bool = False,
 ) -> UnitReading:
     """How evidence stage `j` reads the unit of `evidence` (None: an uncalibrated unit): its class
     means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
-    `template_weight` and `offset_spread`."""
+    `template_weight` and `offset_spread`; a unit training did not see (not `trained`) is also
+    read by its own departures, with the stage's precision."""
     cells = []
     for c, a in enumerate(classes):
         e = (evidence or {}).get(f"{float(a):g}")
@@ -129,6 +134,7 @@ def unit_reading(
         cells,
         stage.get("template_weight"),
         stage.get("offset_spread"),
+        None if trained else np.asarray(stage["precision"], dtype=np.float64),
     )
 
 
@@ -529,7 +535,8 @@ class CueTracker:
         d2 = distances(self._precision[j], reading.means, np.asarray(x))
         z = log_scores(d2, reading, self._temp[j])
         e = np.exp(z - z.max())
-        return e / e.sum(), outside(d2, reading, self._temp[j], self._stages[j].get("outside_limit"))
+        far = reading.departs or outside(d2, reading, self._temp[j], self._stages[j].get("outside_limit"))
+        return e / e.sum(), far
 
     def _accumulate(self, t: float, f: Any) -> None:
         tau = t - self._ev.contact_t  # type: ignore[operator]
@@ -563,13 +570,20 @@ class CueTracker:
         self._temp = [
             float((s.get("temperatures") or {}).get(self.reading, s["temperature"])) for s in self._stages
         ]
+        if reading != "training" and validated == "training":
+            # a new unit read on the training units' footing (one training unit: nothing could be
+            # left out): what cross-validation on them sharpened is not earned for it
+            self._temp = [max(t, 1.0) for t in self._temp]
         chosen = confidence.get(self.reading) or confidence.get("training") or {}
         # the P a cue needs: the params' own, or what the estimator chose by cross-validation
         auto = self.params.min_confidence == "auto"
         self.min_confidence = float(chosen.get("min_confidence", 0.7) if auto else self.params.min_confidence)
         self._readings: list[UnitReading] = [
             UnitReading(r.means, np.full(len(r.means), math.inf)) if self._unvalidated else r
-            for r in (unit_reading(s, j, self._classes, evidence) for j, s in enumerate(self._stages))
+            for r in (
+                unit_reading(s, j, self._classes, evidence, reading == "training")
+                for j, s in enumerate(self._stages)
+            )
         ]
         self._precision = [np.asarray(s["precision"], dtype=np.float64) for s in self._stages]
 

@@ -150,3 +150,54 @@ def test_stage_frames_count_the_insertion_frames_each_stage_is_the_latest() -> N
     assert len(frames) == ev.stage + 1 == len(starts)
     assert starts == sorted(starts)
     assert sum(frames) == trial.ins_end + 1 - max(trial.ins_start, starts[0])
+
+
+def _turned(frame: pd.DataFrame, unit_id: str) -> pd.DataFrame:
+    """The insertions as a unit whose connector is turned by a third reads them: channels rotated."""
+    out = frame.assign(unit_id=unit_id)
+    out[list(CHANNELS)] = frame[[CHANNELS[1], CHANNELS[2], CHANNELS[0]]].to_numpy()
+    return out
+
+
+def test_a_new_unit_laid_out_unlike_the_training_unit_says_outside_instead_of_guessing(
+    one_unit_pack: dict,
+) -> None:
+    # given: one training unit, and a new unit T whose channels are rotated (a turned connector: no
+    # shift of the training unit's classes matches it), calibrated from one insertion per angle
+    levels = one_unit_pack["angle_estimator"]["levels"]
+    calib = {float(a): _turned(make_unit_split(a, "A", ["T-cal"], 1, seed=50), "T") for a in ANGLES}
+    evidence = evidence_of(trial_features(calib, CHANNELS, PARAMS, levels=levels)[0], len(CHANNELS))["T"]
+    held = {float(a): _turned(make_unit_split(a, "A", ["T-heldout"], 2, seed=60), "T") for a in ANGLES}
+    for frame in held.values():
+        for _, trial in frame.groupby("trial_id", sort=True):
+            # when: tracked with its calibration
+            tracker = CueTracker(one_unit_pack, 30, unit_evidence=evidence, reading="calibrated-1")
+            states = run_tracker(tracker, trial.reset_index(drop=True))
+            # then: no angle cue at all, and the trainee is told the evidence is outside training
+            assert {s.cue for s in states} <= {"wait", "none"}
+            assert states[-1].no_cue == "outside"
+            assert NO_CUE_REASONS["outside"] in states[-1].reason
+
+
+def test_a_new_unit_read_on_one_training_unit_s_footing_is_not_sharpened(one_unit_pack: dict) -> None:
+    # given: one training unit, whose cross-validation sharpened every stage (a temperature of 0.5)
+    est = one_unit_pack["angle_estimator"]
+    sharp = [dict(s, temperature=0.5) for s in est["stages"]]
+    pack = {**one_unit_pack, "angle_estimator": {**est, "stages": sharp}}
+    evidence = unit_evidence(pack, "A")
+    trial = make_unit_split(15, "A", ["A-heldout"], 1, seed=70)
+    rest = trial.iloc[: int(np.argmax(trial["phase"].to_numpy() != "rest"))]
+    # when: its rest reading is read as the training unit's, and with the same evidence as a
+    # calibrated new unit's
+    posteriors = []
+    for reading in ("training", "calibrated-1"):
+        tracker = CueTracker(pack, 30, unit_evidence=evidence, reading=reading)
+        run_tracker(tracker, rest)
+        posteriors.append(tracker.posterior())
+    # then: the new unit's posterior is the training unit's at temperature 1 instead of 0.5: the
+    # same ranking, flatter (p ** 0.5, renormalised)
+    trained, new = posteriors
+    expected = np.sqrt(trained) / np.sqrt(trained).sum()
+    np.testing.assert_allclose(new, expected, rtol=1e-6, atol=1e-12)
+    others = trained < trained.max()
+    assert np.all(new[others] >= trained[others]) and np.any(new[others] > trained[others])

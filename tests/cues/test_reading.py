@@ -6,9 +6,18 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from pipeline.cues.fit import outside_limit
-from pipeline.cues.reading import distances, log_scores, outside, read_unit
+from pipeline.cues.reading import (
+    departs,
+    distances,
+    log_scores,
+    neighbour_distance,
+    outside,
+    own_departure,
+    read_unit,
+)
 
 MU = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 
@@ -113,3 +122,47 @@ def test_the_outside_limit_widens_with_fewer_trials_and_goes_when_too_few() -> N
     assert outside_limit(162, 6, 30) > many
     assert outside_limit(54, 6, 30) > outside_limit(162, 6, 30)
     assert outside_limit(30, 6, 30) is None
+
+
+def test_a_new_unit_laid_out_as_a_shift_of_the_training_units_is_read_by_the_shift() -> None:
+    # given: one calibration insertion per angle, each the average unit's mean shifted by (2, -1)
+    # plus a small scatter, and the scatter's precision (identity)
+    noise = np.array([[0.3, -0.2], [-0.1, 0.4], [-0.2, -0.2]])
+    cells = [(c, 1.0, MU[c] + np.array([2.0, -1.0]) + noise[c]) for c in range(3)]
+    # when: read as a unit training did not see, with one training unit (k and spread None)
+    r = read_unit(MU, cells, None, None, np.eye(2))
+    # then: its own departures are within scatter: no departure, no pull, the shift alone
+    assert own_departure(MU, cells, np.eye(2)) == 0.0
+    assert not r.departs
+    np.testing.assert_allclose(r.means, MU + np.array([2.0, -1.0]) + noise.mean(axis=0))
+
+
+def test_a_new_unit_laid_out_unlike_any_training_unit_is_read_by_its_own_insertions_and_departs() -> None:
+    # given: calibration insertions whose classes are swapped around against the average unit's
+    # (a turned connector), 1 trial each, far beyond the scatter (identity precision)
+    layout = np.array([[8.0, 0.0], [0.0, 8.0], [0.0, 0.0]])
+    cells = [(c, 1.0, layout[c]) for c in range(3)]
+    # when: read as a new unit, and as a training unit would be (no precision)
+    new = read_unit(MU, cells, None, None, np.eye(2))
+    trained = read_unit(MU, cells, None, None)
+    # then: a large own departure pulls each class almost onto its own insertion, less surely than
+    # the shift alone would say, and the test calls it departing; the training reading is unchanged
+    assert own_departure(MU, cells, np.eye(2)) > 10.0
+    assert new.departs and not trained.departs
+    assert np.abs(new.means - layout).max() < 0.5
+    assert np.all(new.extra_var > trained.extra_var)
+
+
+def test_a_unit_departs_when_its_classes_could_have_moved_past_their_neighbours() -> None:
+    # given: six angles 1 apart in each of 5 features (a squared step of 1 per feature, whitened),
+    # and units departing from a shift at each angle by a standard deviation of 0.5 and of 2
+    rng = np.random.default_rng(3)
+    mu = np.cumsum(np.ones((6, 5)), axis=0)
+    assert neighbour_distance(mu, np.eye(5)) == pytest.approx(1.0)
+    near = [(c, 1e6, mu[c] + rng.normal(0, 0.5, 5)) for c in range(6)]
+    far = [(c, 1e6, mu[c] + rng.normal(0, 2.0, 5)) for c in range(6)]
+    # when / then: departures of about 0.25 per feature keep the layout; of about 4, they do not
+    assert not departs(mu, near, np.eye(5))
+    assert departs(mu, far, np.eye(5))
+    # and a training unit's reading (no precision) is never tested
+    assert not departs(mu, far, None)
