@@ -39,26 +39,19 @@ class UnitReading:
         return bool(np.isfinite(self.extra_var).all())
 
 
-def _departure_squares(
-    mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray
-) -> tuple[float, float]:
-    """(the whitened sum of squares of a unit's cells around the average unit's means shifted by their
-    mean difference, per feature; what trial scatter alone leaves in it). C cells have C - 1 degrees
-    of freedom per feature around their mean shift."""
-    shift = np.mean([m - mu[c] for c, _, m in cells], axis=0)
-    squares = sum(float((r := m - mu[c] - shift) @ precision @ r) for c, _, m in cells) / mu.shape[1]
-    return squares, (1.0 - 1.0 / len(cells)) * sum(1.0 / n for _, n, _ in cells)
-
-
 def own_departure(
     mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray | None
 ) -> float:
     """The variance of a unit's own departures at an angle (whitened units per feature) as its cells
-    show it: how far they sit from the average unit's means once shifted, beyond their trials'
-    scatter; 0 when they fit a shift (or fewer than two cells, or no precision)."""
+    show it: how far they sit from the average unit's means once shifted by their mean difference,
+    beyond their trials' scatter (C cells have C - 1 degrees of freedom per feature around their
+    mean shift); 0 when they fit a shift, or with fewer than two cells or no precision."""
     if precision is None or len(cells) < 2:
         return 0.0
-    squares, scatter = _departure_squares(np.asarray(mu, dtype=np.float64), cells, precision)
+    mu = np.asarray(mu, dtype=np.float64)
+    shift = np.mean([m - mu[c] for c, _, m in cells], axis=0)
+    squares = sum(float((r := m - mu[c] - shift) @ precision @ r) for c, _, m in cells) / mu.shape[1]
+    scatter = (1.0 - 1.0 / len(cells)) * sum(1.0 / n for _, n, _ in cells)
     return max((squares - scatter) / (len(cells) - 1), 0.0)
 
 
@@ -101,16 +94,15 @@ def read_unit(
     2. Pull: each cell's class moves towards its trials, (n·trials + k·shifted) / (n + k), and its
        variance becomes that of the two combined (k None: no pull, the shift alone).
 
-    With the stage's `precision` (a unit training did not see), the departures are the larger of
-    the training units' (1/k) and this unit's own (`own_departure`), and `departs` tests them: a
-    unit whose calibration insertions do not sit where a shift of the training units puts them (a
-    turned connector, another tissue) is read more by its own insertions and less surely, and is
-    told apart when its classes could have moved past their neighbours (`departs`).
+    With the stage's `precision` (a unit training did not see), the reading also says whether the
+    unit `departs`: its calibration insertions sit so far from every shift of the training units'
+    layout (a turned connector, another FSR law) that its classes could have moved past their
+    neighbours. Widening such a unit's uncertainty by its own departure instead was measured and
+    not kept (docs/units.md).
     """
     mu = np.asarray(mu, dtype=np.float64)
     away = departs(mu, cells, precision)
-    tau2 = max(0.0 if k is None else 1.0 / k, own_departure(mu, cells, precision))
-    k = None if tau2 == 0.0 else 1.0 / tau2
+    tau2 = 0.0 if k is None else 1.0 / k
     if not cells:
         v_off = math.inf if spread is None else float(spread)
         return UnitReading(mu, np.full(len(mu), v_off + tau2))

@@ -570,10 +570,6 @@ class CueTracker:
         self._temp = [
             float((s.get("temperatures") or {}).get(self.reading, s["temperature"])) for s in self._stages
         ]
-        if reading != "training" and validated == "training":
-            # a new unit read on the training units' footing (one training unit: nothing could be
-            # left out): what cross-validation on them sharpened is not earned for it
-            self._temp = [max(t, 1.0) for t in self._temp]
         chosen = confidence.get(self.reading) or confidence.get("training") or {}
         # the P a cue needs: the params' own, or what the estimator chose by cross-validation
         auto = self.params.min_confidence == "auto"

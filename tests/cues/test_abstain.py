@@ -177,27 +177,3 @@ def test_a_new_unit_laid_out_unlike_the_training_unit_says_outside_instead_of_gu
             assert {s.cue for s in states} <= {"wait", "none"}
             assert states[-1].no_cue == "outside"
             assert NO_CUE_REASONS["outside"] in states[-1].reason
-
-
-def test_a_new_unit_read_on_one_training_unit_s_footing_is_not_sharpened(one_unit_pack: dict) -> None:
-    # given: one training unit, whose cross-validation sharpened every stage (a temperature of 0.5)
-    est = one_unit_pack["angle_estimator"]
-    sharp = [dict(s, temperature=0.5) for s in est["stages"]]
-    pack = {**one_unit_pack, "angle_estimator": {**est, "stages": sharp}}
-    evidence = unit_evidence(pack, "A")
-    trial = make_unit_split(15, "A", ["A-heldout"], 1, seed=70)
-    rest = trial.iloc[: int(np.argmax(trial["phase"].to_numpy() != "rest"))]
-    # when: its rest reading is read as the training unit's, and with the same evidence as a
-    # calibrated new unit's
-    posteriors = []
-    for reading in ("training", "calibrated-1"):
-        tracker = CueTracker(pack, 30, unit_evidence=evidence, reading=reading)
-        run_tracker(tracker, rest)
-        posteriors.append(tracker.posterior())
-    # then: the new unit's posterior is the training unit's at temperature 1 instead of 0.5: the
-    # same ranking, flatter (p ** 0.5, renormalised)
-    trained, new = posteriors
-    expected = np.sqrt(trained) / np.sqrt(trained).sum()
-    np.testing.assert_allclose(new, expected, rtol=1e-6, atol=1e-12)
-    others = trained < trained.max()
-    assert np.all(new[others] >= trained[others]) and np.any(new[others] > trained[others])
