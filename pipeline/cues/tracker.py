@@ -138,6 +138,15 @@ def unit_reading(
     )
 
 
+def departing_levels(pack: Mapping[str, Any], evidence: UnitEvidence) -> list[int]:
+    """The evidence stages (0: the rest reading, j: the j-th loading level) at which a calibrated
+    unit's insertions sit unlike any shift of the training units' layout (`UnitReading.departs`):
+    there it gets no angle cue ("outside what training covered")."""
+    est = pack.get("angle_estimator") or {}
+    classes = est.get("classes_deg") or []
+    return [j for j, s in enumerate(est.get("stages") or []) if unit_reading(s, j, classes, evidence).departs]
+
+
 def cue_for_deviation(dev_deg: float, continue_below: float = 7.5, stop_from: float = 22.5) -> str:
     """continue / correct / stop for an absolute angle deviation in degrees."""
     d = abs(dev_deg)

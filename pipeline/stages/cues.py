@@ -24,7 +24,7 @@ from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
-from pipeline.cues.tracker import calibration_evidence
+from pipeline.cues.tracker import calibration_evidence, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
 from pipeline.modelling.predictions import UNCALIBRATED, Predictions
@@ -79,6 +79,13 @@ def main(
             for u in sorted(u for u, e in units.items() if e is None and u in gathered):
                 _log(f"warning: {u}: its calibration's cue evidence is at other loading levels, not used")
             units = {u: e for u, e in units.items() if e}
+            for u, e in sorted(units.items()):
+                if away := departing_levels(pack, e):
+                    _log(
+                        f"warning: {u}: its calibration insertions sit unlike any shift of the training "
+                        f"units' at evidence stage(s) {', '.join(map(str, away))} (0 is the rest reading): "
+                        "no angle cue there, 'outside what training covered' (docs/units.md)"
+                    )
             external = files.by_angle("external")
             evaluation = evaluate_cues(
                 external,

@@ -10,7 +10,14 @@ import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.fit import CONFIDENCE_GRID, build_cue_pack
-from pipeline.cues.tracker import NO_CUE_REASONS, CueTracker, reading_of, unit_evidence, validated_reading
+from pipeline.cues.tracker import (
+    NO_CUE_REASONS,
+    CueTracker,
+    departing_levels,
+    reading_of,
+    unit_evidence,
+    validated_reading,
+)
 from pipeline.cues.trials import replay_evidence, stage_frames, trials_of
 from pipeline.cues.units import evidence_of, trial_features
 from tests.cues.synthetic import ANGLES, CHANNELS, make_trial, make_unit_split, run_tracker
@@ -107,6 +114,7 @@ def test_the_same_unit_calibrated_gets_cues_from_one_insertion_per_angle(one_uni
     calib = {float(a): make_unit_split(a, "D", ["D-cal"], 1, seed=50) for a in ANGLES}
     evidence = evidence_of(trial_features(calib, CHANNELS, PARAMS, levels=levels)[0], len(CHANNELS))["D"]
     held = {float(a): make_unit_split(a, "D", ["D-heldout"], 3, seed=60) for a in ANGLES}
+    assert departing_levels(one_unit_pack, evidence) == []  # D is laid out as the training unit A
     # when: D's held-out insertions are tracked with its calibration
     right = []
     for a, frame in held.items():
@@ -168,6 +176,8 @@ def test_a_new_unit_laid_out_unlike_the_training_unit_says_outside_instead_of_gu
     calib = {float(a): _turned(make_unit_split(a, "A", ["T-cal"], 1, seed=50), "T") for a in ANGLES}
     evidence = evidence_of(trial_features(calib, CHANNELS, PARAMS, levels=levels)[0], len(CHANNELS))["T"]
     held = {float(a): _turned(make_unit_split(a, "A", ["T-heldout"], 2, seed=60), "T") for a in ANGLES}
+    # (the cues stage names the stages where it departs: here every one, the rest reading too)
+    assert departing_levels(one_unit_pack, evidence) == list(range(len(levels) + 1))
     for frame in held.values():
         for _, trial in frame.groupby("trial_id", sort=True):
             # when: tracked with its calibration
