@@ -123,7 +123,7 @@ def unit_reading(
     """How evidence stage `j` reads the unit of `evidence` (None: an uncalibrated unit): its class
     means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
     `template_weight` and `offset_spread`; a unit training did not see (not `trained`) is also
-    read by its own departures, with the stage's precision."""
+    tested, with the stage's precision, for departing from the training units' layout."""
     cells = []
     for c, a in enumerate(classes):
         e = (evidence or {}).get(f"{float(a):g}")
