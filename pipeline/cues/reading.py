@@ -71,9 +71,7 @@ def departs(
     scatter around them is unknown, so nothing it shows at this stage is validated. Not net of the
     training units' own departures (1/k): on `power-law`, whose training units depart about as far,
     that let a new unit end 4.4 % of its insertions on a wrong cue (0.4 % as it is)."""
-    if precision is None or len(cells) < 2:
-        return False
-    return own_departure(mu, cells, precision) > neighbour_distance(mu, precision)
+    return precision is not None and own_departure(mu, cells, precision) > neighbour_distance(mu, precision)
 
 
 def read_unit(
