@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -113,6 +113,19 @@ def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None
     return cues["evidence"] if same else None
 
 
+Cell = tuple[int, float, np.ndarray]  # (class, trials n, their mean features)
+
+
+def _cells(classes: Sequence[float], evidence: UnitEvidence | None, j: int) -> list[Cell]:
+    """[(class, trials n, their mean features)] of the unit's trials that reached evidence stage j."""
+    cells = []
+    for c, a in enumerate(classes):
+        e = (evidence or {}).get(f"{float(a):g}")
+        if e and len(e["n"]) > j and e["n"][j] > 0:
+            cells.append((c, float(e["n"][j]), np.asarray(e["means"][j], dtype=np.float64)))
+    return cells
+
+
 def unit_reading(
     stage: Mapping[str, Any],
     j: int,
@@ -124,27 +137,46 @@ def unit_reading(
     means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
     `template_weight` and `offset_spread`; a unit training did not see (not `trained`) is also
     tested, with the stage's precision, for departing from the training units' layout."""
-    cells = []
-    for c, a in enumerate(classes):
-        e = (evidence or {}).get(f"{float(a):g}")
-        if e and len(e["n"]) > j and e["n"][j] > 0:
-            cells.append((c, float(e["n"][j]), np.asarray(e["means"][j], dtype=np.float64)))
     return read_unit(
         np.asarray(stage["means"], dtype=np.float64),
-        cells,
+        _cells(classes, evidence, j),
         stage.get("template_weight"),
         stage.get("offset_spread"),
         None if trained else np.asarray(stage["precision"], dtype=np.float64),
     )
 
 
+def unit_readings(
+    stages: Sequence[Mapping[str, Any]],
+    classes: Sequence[float],
+    evidence: UnitEvidence | None,
+    trained: bool = False,
+) -> list[UnitReading]:
+    """`unit_reading` of every evidence stage, where a departure is kept at later stages that fewer of
+    the unit's classes reach: a stage's features hold every earlier stage's, and a departure seen
+    with an angle's cell cannot be undone by a stage without it (four cells of the middle angles
+    can fit a shift where six did not). A later stage with as many cells judges anew: it has more
+    features to judge by."""
+    out: list[UnitReading] = []
+    seen: list[tuple[int, bool]] = []  # per earlier stage: (its cells, whether it departed)
+    for j, s in enumerate(stages):
+        r = unit_reading(s, j, classes, evidence, trained)
+        n = len(_cells(classes, evidence, j))
+        if not r.departs and any(away and m > n for m, away in seen):
+            r = replace(r, departs=True)
+        seen.append((n, r.departs))
+        out.append(r)
+    return out
+
+
 def departing_levels(pack: Mapping[str, Any], evidence: UnitEvidence) -> list[int]:
     """The evidence stages (0: the rest reading, j: the j-th loading level) at which a calibrated
-    unit's insertions sit unlike any shift of the training units' layout (`UnitReading.departs`):
-    there it gets no angle cue ("outside what training covered")."""
+    unit's insertions sit unlike any shift of the training units' layout (`UnitReading.departs`,
+    carried forward by `unit_readings`): there it gets no angle cue ("outside what training
+    covered")."""
     est = pack.get("angle_estimator") or {}
-    classes = est.get("classes_deg") or []
-    return [j for j, s in enumerate(est.get("stages") or []) if unit_reading(s, j, classes, evidence).departs]
+    readings = unit_readings(est.get("stages") or [], est.get("classes_deg") or [], evidence)
+    return [j for j, r in enumerate(readings) if r.departs]
 
 
 def cue_for_deviation(dev_deg: float, continue_below: float = 7.5, stop_from: float = 22.5) -> str:
@@ -585,10 +617,7 @@ class CueTracker:
         self.min_confidence = float(chosen.get("min_confidence", 0.7) if auto else self.params.min_confidence)
         self._readings: list[UnitReading] = [
             UnitReading(r.means, np.full(len(r.means), math.inf)) if self._unvalidated else r
-            for r in (
-                unit_reading(s, j, self._classes, evidence, reading == "training")
-                for j, s in enumerate(self._stages)
-            )
+            for r in unit_readings(self._stages, self._classes, evidence, reading == "training")
         ]
         self._precision = [np.asarray(s["precision"], dtype=np.float64) for s in self._stages]
 

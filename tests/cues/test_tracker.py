@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker, Evidence, calibration_evidence
+from pipeline.cues.tracker import CueTracker, Evidence, calibration_evidence, unit_readings
 from pipeline.rig.frontend import Circuit, Divider, volts_of
 from tests.cues.synthetic import (
     CHANNELS,
@@ -198,3 +198,52 @@ def test_a_calibrations_evidence_counts_only_at_the_estimators_own_levels(pack30
     assert calibration_evidence(pack30, {"levels": [2 * x for x in levels], "evidence": evidence}) is None
     assert calibration_evidence(pack30, {"evidence": evidence}) is None
     assert calibration_evidence(pack30, None) is None
+
+
+def _stage(n_features: int) -> dict:
+    """An evidence stage of six classes a step of 1 apart in every (whitened) feature."""
+    return {"means": [[float(c)] * n_features for c in range(6)], "precision": np.eye(n_features).tolist()}
+
+
+def _evidence(means_by_stage: list[list[list[float] | None]]) -> dict:
+    """Per angle (0 .. 75 by 15), one insertion's mean features at each stage it reached (None: not)."""
+    out = {}
+    for c in range(6):
+        reached = [m[c] for m in means_by_stage if m[c] is not None]
+        out[f"{15 * c:g}"] = {"n": [1] * len(reached), "means": reached}
+    return out
+
+
+def _departing_unit(d: float) -> tuple[list, list]:
+    """One insertion per angle that fits a shift of the layout of `_stage`, but for its 0° and 75°
+    cells, `d` off in every feature from stage 1 on: (stage 0 means, stage 1 means), per angle."""
+    fit = [[float(c) + 0.3] * 4 for c in range(6)]
+    off = [[v + (d if c in (0, 5) else 0.0) for v in row] for c, row in enumerate(fit)]
+    return [r[:2] for r in fit], off
+
+
+def test_a_departure_is_kept_at_a_later_stage_fewer_angles_reach() -> None:
+    # given: a unit departing at stage 1 (its 0° and 75° cells 3 steps off), whose stage 2 only the
+    # middle angles reach (where they fit a shift of the training layout)
+    rest, off = _departing_unit(3.0)
+    middle = [row + [row[0]] * 2 if c in (1, 2, 3, 4) else None for c, row in enumerate(off)]
+    evidence = _evidence([rest, off, middle])
+    # when
+    readings = unit_readings([_stage(2), _stage(4), _stage(6)], [15.0 * c for c in range(6)], evidence)
+    # then: the rest reading fits, stage 1 departs, and stage 2 cannot undo it with four cells
+    assert [r.departs for r in readings] == [False, True, True]
+
+
+def test_a_later_stage_every_angle_reaches_judges_the_departure_anew() -> None:
+    # given: the same unit, every angle reaching stage 2, whose two new features fit a shift: the
+    # departure of stage 1's features is diluted below the neighbours' distance
+    rest, off = _departing_unit(3.0)
+    deeper = [row + [row[1] - (3.0 if c in (0, 5) else 0.0)] * 2 for c, row in enumerate(off)]
+    evidence = _evidence([rest, off, deeper])
+    stages, classes = [_stage(2), _stage(4), _stage(6)], [15.0 * c for c in range(6)]
+    # when
+    readings = unit_readings(stages, classes, evidence)
+    # then: stage 2 has more features and as many cells: its own verdict stands
+    assert [r.departs for r in readings] == [False, True, False]
+    # and a training unit's readings are never tested
+    assert not any(r.departs for r in unit_readings(stages, classes, evidence, True))
