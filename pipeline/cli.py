@@ -7,6 +7,7 @@ from typing import Annotated, Any
 
 import typer
 
+from pipeline.exits import fail
 from pipeline.live import commands as live_commands
 from pipeline.live.commands import UnverifiedOption, load_client
 from pipeline.team import commands as team_commands
@@ -168,11 +169,6 @@ def _section(model: Any, name: str, params: Path) -> Any:
     return load_section(model, name, params) if params.exists() else model()
 
 
-def _fail(message: str, code: int = 1) -> typer.Exit:
-    typer.echo(f"error: {message}", err=True)
-    return typer.Exit(code)
-
-
 def _read_batch(
     batch_dir: Path,
     unit_id: str | None,
@@ -193,9 +189,9 @@ def _read_batch(
     for problem in batch.problems:
         typer.echo(str(problem))
     if batch.unit_id is None:
-        raise _fail(f"{batch_dir}: nothing usable ({len(batch.problems)} problem(s)); fix them and run again")
+        raise fail(f"{batch_dir}: nothing usable ({len(batch.problems)} problem(s)); fix them and run again")
     if unit_id is not None and unit_id != batch.unit_id:
-        raise _fail(
+        raise fail(
             f"{batch_dir} was recorded by unit {batch.unit_id!r} (batch.yaml sensor.unit_id), not {unit_id!r}"
         )
     if purpose is not None and batch.purpose != purpose:
@@ -205,7 +201,7 @@ def _read_batch(
     if batch.rows.empty and (need_reference or batch.estimator_only.empty):
         for line in batch.set_aside:
             typer.echo(f"set aside {line}")
-        raise _fail(f"{batch_dir}: no trial could be aligned and resampled")
+        raise fail(f"{batch_dir}: no trial could be aligned and resampled")
     return batch
 
 
@@ -266,7 +262,7 @@ def calibrate(
         typer.echo(f"calibrate: {message}", err=True)
 
     if not batch_dir.is_dir():
-        raise _fail(f"not a folder: {batch_dir}", 2)
+        raise fail(f"not a folder: {batch_dir}", 2)
     from pipeline.vocab import CALIBRATION
 
     batch = _read_batch(batch_dir, unit_id, params, CALIBRATION)
@@ -277,12 +273,12 @@ def calibrate(
             champions = units.champion_models(client, log=say)
             if not champions:
                 where = client.tracking_uri
-                raise _fail(f"the registry at {where} has no readable needle-force-<angle>@champion")
+                raise fail(f"the registry at {where} has no readable needle-force-<angle>@champion")
             models = units.champion_predictors(client, champions, say)
         except store.RegistryUnreachable as e:
-            raise _fail(str(e), 2) from e
+            raise fail(str(e), 2) from e
         except MlflowException as e:
-            raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
+            raise fail(f"MLflow registry ({e.error_code}): {e.message}") from e
         for kind, by_angle in models.items():
             for angle, predictor in list(by_angle.items()):
                 lacking = [c for c in predictor.channels if c not in rows.columns]
@@ -296,7 +292,7 @@ def calibrate(
         doc = calibrate_unit(unit, rows, models, list(champions), p, say, front_end=front_end)
         _print_calibration(doc, champions, aside)
         if not doc["transforms"]:
-            raise _fail("nothing calibrated: no usable calibration trial at an angle with a champion")
+            raise fail("nothing calibrated: no usable calibration trial at an angle with a champion")
         name = store.unit_model_name(unit)
         if dry_run:
             typer.echo(f"dry run: {name} not registered")
@@ -304,7 +300,7 @@ def calibrate(
         try:
             entry = units.register_unit(client, doc, units.document_bytes(doc), say)
         except MlflowException as e:
-            raise _fail(f"MLflow registry ({e.error_code}): {e.message}") from e
+            raise fail(f"MLflow registry ({e.error_code}): {e.message}") from e
         state = "registered" if entry["action"] == "registered" else "already registered"
         typer.echo(f"{state}: {name} version {entry['version']} (@{store.UNIT_ALIAS})")
 
@@ -356,10 +352,6 @@ def replay(
     from pipeline.registry.store import RegistryUnreachable
     from pipeline.rig.format import BATCH_FILE, STREAM_SUFFIXES
     from pipeline.vocab import channels_of, rate_hz
-
-    def fail(message: str, code: int = 1) -> typer.Exit:
-        typer.echo(f"error: {message}", err=True)
-        return typer.Exit(code)
 
     if angle is None and model_dir is None:
         raise fail("give --angle (the preset angle whose model to fetch) or --model-dir")
@@ -468,9 +460,9 @@ def _replay_session(
         client = load_client(angle, alias, model_dir, unit_id, cues, unverified)
         summary = replay_session(folder, client)
     except RegistryUnreachable as e:
-        raise _fail(str(e), 2) from e
+        raise fail(str(e), 2) from e
     except (FileNotFoundError, ValueError, LookupError) as e:
-        raise _fail(str(e)) from e
+        raise fail(str(e)) from e
     recorded = {t["trial_id"]: t["cues"].split() for t in read_trials(folder)}
     typer.echo(f"{folder}: live session through {client.name}, preset angle {client.angle_deg:g}°")
     same = True
@@ -481,7 +473,7 @@ def _replay_session(
         typer.echo(f"insertion {ins['number']} ({ins['trial_id']}): {' -> '.join(ins['cues'])} ({note})")
     typer.echo(f"stream: {summary['counts']}")
     if not same or len(recorded) != len(summary["insertions"]):
-        raise _fail("the replay differs from what the live session showed (another model or calibration?)")
+        raise fail("the replay differs from what the live session showed (another model or calibration?)")
 
 
 @app.command()
@@ -535,7 +527,7 @@ def ui(
                 return
             link = runs_link(client, f"http://{host}:{port}")
     except store.RegistryUnreachable as e:
-        raise _fail(str(e), 2) from e
+        raise fail(str(e), 2) from e
     # in a process group of its own, stopped whole: mlflow server runs uvicorn and job workers under it
     server = subprocess.Popen(server_command(uri, host, port), stdout=sys.stderr, start_new_session=True)
     # `kill` (SIGTERM) ends the UI as Ctrl-C does: through the `finally` below, which stops the server
@@ -550,7 +542,7 @@ def ui(
             except OSError:
                 time.sleep(0.5)
         if server.poll() is not None:
-            raise _fail(f"mlflow server exited with {server.returncode} (is port {port} taken?)")
+            raise fail(f"mlflow server exited with {server.returncode} (is port {port} taken?)")
         typer.echo(f"MLflow UI on {uri}, Ctrl-C to stop:\n{link}", err=True)
         typer.echo(link)
         server.wait()
@@ -582,14 +574,14 @@ def data_of(
     try:
         found = restore_lock(angle, version, Path.cwd())
     except (ProvenanceError, RegistryUnreachable) as e:
-        raise _fail(str(e)) from e
+        raise fail(str(e)) from e
     typer.echo(
         f"{found['model']} v{version}: dvc.lock of run {found['run_id']} (commit {found['git_commit']})"
     )
     if pull:
         done = subprocess.run([sys.executable, "-m", "dvc", "pull"], check=False)
         if done.returncode != 0:
-            raise _fail(f"dvc pull failed (exit {done.returncode})", done.returncode)
+            raise fail(f"dvc pull failed (exit {done.returncode})", done.returncode)
 
 
 app.add_typer(team_commands.team, name="team")

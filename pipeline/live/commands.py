@@ -11,10 +11,7 @@ from typing import Annotated, Any
 
 import typer
 
-
-def fail(message: str, code: int = 1) -> typer.Exit:
-    typer.echo(f"error: {message}", err=True)
-    return typer.Exit(code)
+from pipeline.exits import fail
 
 
 def load_client(
