@@ -144,28 +144,6 @@ def align(fsr: Streams, ref: Streams, p: ResampleParams, *, shared_clock: bool =
     return est
 
 
-def resample_trial(
-    t_fsr_s: np.ndarray,
-    volts: np.ndarray,
-    t_ref_s: np.ndarray,
-    force_n: np.ndarray,
-    p: ResampleParams,
-    *,
-    shared_clock: bool = False,
-) -> ResampledTrial:
-    """Align, resample and label one trial on its own (inputs already in s, V and N). With no other
-    trial to compare with, only its own reference fitting clearly better outside the search window
-    sets a low-quality trial aside (pipeline.signals.pairing). Raises SetAside."""
-    streams = Streams(t_fsr_s, volts, t_ref_s, force_n)
-    check_response(streams)
-    est = align(streams, streams, p, shared_clock=shared_clock)
-    if est.quality < p.min_quality:
-        verdict = _judged(streams, est, {}, p, shared_clock)
-        if verdict.reason is not None:
-            raise SetAside(verdict.reason)
-    return on_grid(streams, est, p)
-
-
 def _judged(
     streams: Streams,
     est: OffsetEstimate,

@@ -18,7 +18,7 @@ from scipy.signal import lfilter
 
 from pipeline.config import ResampleParams
 from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
-from pipeline.signals.resample import ResampledTrial, resample_trial
+from pipeline.signals.resample import ResampledTrial, Streams, align, check_response, on_grid
 from pipeline.signals.scaling import to_volts
 
 FSR_HZ = 30.0
@@ -137,8 +137,19 @@ def volts_of(fab: Fabricated) -> np.ndarray:
     return to_volts(fab.counts, "counts", 10, 5.0)
 
 
+def resample_streams(
+    t_fsr_s: np.ndarray, volts: np.ndarray, t_ref_s: np.ndarray, force_n: np.ndarray, params: ResampleParams
+) -> ResampledTrial:
+    """One trial through the resample stage's own steps (`process_batch`) but the batch's judgement
+    of a low quality: its response checked, aligned on its own reference, put on the grid. Raises
+    SetAside."""
+    streams = Streams(t_fsr_s, volts, t_ref_s, force_n)
+    check_response(streams)
+    return on_grid(streams, align(streams, streams, params), params)
+
+
 def resample_fab(fab: Fabricated, params: ResampleParams = PARAMS) -> ResampledTrial:
-    return resample_trial(fab.t_ms / 1e3, volts_of(fab), fab.t_s, fab.force, params)
+    return resample_streams(fab.t_ms / 1e3, volts_of(fab), fab.t_s, fab.force, params)
 
 
 def write_ingested(
