@@ -41,7 +41,7 @@ def team_start(
 ) -> None:
     """Start PostgreSQL, SeaweedFS, the MLflow server and the publisher (generating credentials and the
     lab's signing key on the first start), and print how to use them."""
-    from pipeline.team.stack import StackError
+    from pipeline.team.servers.base import StackError
 
     stack = _stack(folder)
     try:
@@ -64,7 +64,7 @@ def team_stop(
     ] = False,
 ) -> None:
     """Stop the stack's servers (their data stays unless --purge)."""
-    from pipeline.team.stack import StackError
+    from pipeline.team.servers.base import StackError
 
     stack = _stack(folder)
     try:
@@ -81,7 +81,7 @@ def team_stop(
 def team_status(folder: TeamDir = None) -> None:
     """Each server: running or not, address, log; and the S3 store's free disk (exit 1 unless all of them
     run and it can write)."""
-    from pipeline.team.stack import StackError
+    from pipeline.team.servers.base import StackError
 
     try:
         stack = _stack(folder)
@@ -104,8 +104,8 @@ def team_units(
 ) -> None:
     """Write a systemd unit per server (and needlecue-team.target) that runs the stack as `team start`
     does, restarted on failure: the registry outlives a terminal and a reboot (README, Team setup)."""
+    from pipeline.team.servers.base import StackError
     from pipeline.team.services import TARGET, write_units
-    from pipeline.team.stack import StackError
 
     stack = _stack(folder)
     try:
@@ -133,7 +133,7 @@ def team_env(
     """Print `export` lines for one role: `eval "$(needlecue team env lab)"`."""
     import shlex
 
-    from pipeline.team.stack import StackError
+    from pipeline.team.servers.base import StackError
 
     try:
         env = _stack(folder).role_env(role)

@@ -15,7 +15,8 @@ import pwd
 import shlex
 from pathlib import Path
 
-from pipeline.team.stack import SERVERS, Launch, Stack, write_private
+from pipeline.team.servers.base import Launch, write_private
+from pipeline.team.stack import SERVERS, Stack
 
 TARGET = "needlecue-team.target"
 DESCRIPTIONS = {

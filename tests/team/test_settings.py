@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 
 from pipeline.cli import app
 from pipeline.registry import manifest as signed
-from pipeline.team.stack import SERVERS, Stack, StackError
+from pipeline.team.servers.base import StackError
+from pipeline.team.stack import SERVERS, Stack
 
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 
