@@ -36,15 +36,14 @@ cue pack) must be the ones registered, fetched or cached, else `ModelRefused`; a
 must be the document registered. `from_dir(..., unverified=True)` runs a folder anyway, loudly.
 """
 
-from pipeline.client.cache import (
+from pipeline.client.cache import fetch, fetch_unit
+from pipeline.client.copies import (
     CACHE_ENV,
     DEFAULT_CACHE,
     VERSION_FILE,
     CachedCopyRefused,
     ModelNotFound,
     default_cache_dir,
-    fetch,
-    fetch_unit,
 )
 from pipeline.client.folder import ModelFolderError, ModelRefused
 from pipeline.client.force import DEFAULT_POLL_S, ForceClient, Frame, StreamMismatch, UncalibratedUnit

@@ -12,7 +12,8 @@ from typing import Any
 from pipeline.calibration.document import FILE as UNIT_FILE
 from pipeline.calibration.document import FORMAT as UNIT_FORMAT
 from pipeline.calibration.document import read_unit, transform_for
-from pipeline.client.cache import ModelNotFound, fetch_unit, read_version
+from pipeline.client.cache import fetch_unit
+from pipeline.client.copies import ModelNotFound, read_version
 from pipeline.client.model import Model
 from pipeline.modelling.features import InputTransform
 from pipeline.registry import store

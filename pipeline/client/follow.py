@@ -11,7 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.cache import default_cache_dir, fetch, poll_alias, source_uri
+from pipeline.client.cache import fetch, poll_alias, source_uri
+from pipeline.client.copies import default_cache_dir
 from pipeline.client.model import Model
 from pipeline.registry import store
 

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.client.cache import ModelNotFound, poll_alias
+from pipeline.client.cache import poll_alias
 from pipeline.client.calibration import (
     CALIBRATE_FIX,
     NO_UNIT,
@@ -40,6 +40,7 @@ from pipeline.client.calibration import (
     given,
     registered,
 )
+from pipeline.client.copies import ModelNotFound
 from pipeline.client.follow import Follower
 from pipeline.client.model import Model, StreamMismatch, log
 from pipeline.modelling.features import ModelInputs, RestReading, unit_inputs

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.cache import read_version
+from pipeline.client.copies import read_version
 from pipeline.client.folder import ONNX_FILE, open_model
 from pipeline.modelling.features import ModelInputs, spec_of
 

@@ -25,7 +25,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
-from pipeline.client.cache import download_checked, read_version
+from pipeline.client.cache import download_checked
+from pipeline.client.copies import read_version
 from pipeline.registry import manifest as signed
 from pipeline.registry import store
 

@@ -25,7 +25,8 @@ import requests
 import yaml
 
 from pipeline.client import ForceClient, fetch
-from pipeline.client.cache import ModelNotFound, poll_alias
+from pipeline.client.cache import poll_alias
+from pipeline.client.copies import ModelNotFound
 from pipeline.client.webhook import AliasListener, signature
 from pipeline.registry import store
 from pipeline.team import access
