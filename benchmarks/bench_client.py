@@ -76,7 +76,7 @@ def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, obje
     from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
     from pipeline.modelling.features import rest_reading, unit_inputs
     from pipeline.modelling.inputs import window_index
-    from pipeline.modelling.predict import Predictor
+    from pipeline.modelling.predictor import Predictor
 
     client = ForceClient.from_registry(angle, tracking_uri=uri, cache_dir=cache, cues_uncalibrated=True)
     ext_file = root / "data" / "processed" / str(angle) / "external.parquet"

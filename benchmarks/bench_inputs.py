@@ -29,7 +29,7 @@ from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.features import KINDS as INPUT_KINDS
 from pipeline.modelling.features import NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
-from pipeline.modelling.predict_splits import predict_model
+from pipeline.modelling.split_predictions import predict_model
 from pipeline.modelling.train import choose_folders, load_angle
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name

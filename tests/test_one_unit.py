@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pipeline.client import ForceClient
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.prediction_store import Predictions
 from tests.projects import SWAP_SIM, A, D, first_external_trial, make_project, run, use_small_models
 
 pytestmark = pytest.mark.slow

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from pipeline.client import ForceClient, UncalibratedUnit
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.prediction_store import Predictions
 from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models
 
 pytestmark = pytest.mark.slow

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pipeline.calibration.document import read_units, transform_for
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
-from pipeline.modelling.predict_splits import UnitTransforms
+from pipeline.modelling.split_predictions import UnitTransforms
 from pipeline.vocab import angle_name
 
 

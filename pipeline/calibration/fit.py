@@ -27,7 +27,7 @@ from pipeline.config import CalibrateParams
 from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform, rest_reading
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from pipeline.rig.frontend import Circuit, conductance_us, volts_of_conductance
 from pipeline.vocab import AXES
 from pipeline.workers import ordered_map, workers_for

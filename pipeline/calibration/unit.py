@@ -26,7 +26,7 @@ from pipeline.config import CalibrateParams, CuesParams
 from pipeline.cues.units import evidence_of, trial_features
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import checkpoint_sha256
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, jsonable, sorted_angles
 

@@ -23,7 +23,7 @@ import pandas as pd
 
 from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores, gap_summary, gaps_present, mean_known, mean_over_axes
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.prediction_store import Predictions
 from pipeline.vocab import AXES, TRIAL_KEY, dump_json, sorted_angles
 
 EVALUATION_FILE = "evaluation.json"  # the full evaluation, in the reports folder (metrics.json: its headline)

@@ -15,7 +15,7 @@ import numpy as np
 
 from pipeline.metrics.evaluation import EvalSet
 from pipeline.metrics.scores import axis_scores, mean_known, mean_over_axes
-from pipeline.modelling.predictions import UNCALIBRATED, Predictions
+from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
 from pipeline.vocab import AXES
 
 GROUPS = ("same_unit", "new_uncalibrated", "new_calibrated")

@@ -256,7 +256,7 @@ def verify_onnx(checkpoint: dict[str, Any], model: bytes, example: dict[str, np.
     if not."""
     import onnxruntime as ort
 
-    from pipeline.modelling.predict import Predictor
+    from pipeline.modelling.predictor import Predictor
 
     session = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
     got = session.run(None, example)[0]

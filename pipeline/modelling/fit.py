@@ -35,7 +35,7 @@ from pipeline.modelling.choice import Choice, choose_inputs
 from pipeline.modelling.features import ModelInputs, inputs_for
 from pipeline.modelling.inputs import column_stats, features_of, inputs_of, trial_codes
 from pipeline.modelling.networks import build_network, deterministic_torch, exact_sqrt
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, KINDS, channels_of, rate_hz
 

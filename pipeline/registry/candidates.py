@@ -14,7 +14,7 @@ from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.checkpoint import checkpoint_sha256, load_checkpoint, read_train_metrics
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.prediction_store import Predictions
 from pipeline.vocab import AXES, KINDS
 
 SPLITS = ("val", "test", "external")  # what each model is scored on

@@ -40,7 +40,7 @@ from pipeline.vocab import DEPLOY_FORMAT, angle_name, sorted_angles
 if TYPE_CHECKING:
     from mlflow import MlflowClient
 
-    from pipeline.modelling.predict import Predictor
+    from pipeline.modelling.predictor import Predictor
 
 SHA_TAG = CALIBRATION_SHA_TAG
 ARTIFACT_DIR = "calibration"  # the run's artifact folder that a unit version is made from
@@ -149,7 +149,7 @@ def champion_predictors(
     from mlflow.exceptions import MlflowException
 
     from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
-    from pipeline.modelling.predict import Predictor
+    from pipeline.modelling.predictor import Predictor
 
     out: dict[str, dict[str, Predictor]] = {}
     for angle, c in champions.items():

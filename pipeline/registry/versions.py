@@ -21,9 +21,9 @@ from pipeline.metrics.evaluation import EVALUATION_FILE
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pipeline.modelling.export import describe
-from pipeline.modelling.predict import Predictor
-from pipeline.modelling.predict_splits import predict_frame
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.prediction_store import Predictions
+from pipeline.modelling.predictor import Predictor
+from pipeline.modelling.split_predictions import predict_frame
 from pipeline.registry.candidates import Trained, collect, kind_rank
 from pipeline.registry.champion import best_per_angle, decide
 from pipeline.registry.store import (

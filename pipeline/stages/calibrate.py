@@ -25,7 +25,7 @@ from pipeline.cues.units import training_levels
 from pipeline.dataset.splits import SplitFiles, front_ends
 from pipeline.logs import setup
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
-from pipeline.modelling.predict import load_predictor
+from pipeline.modelling.predictor import load_predictor
 from pipeline.vocab import CALIBRATION, angle_name
 from pipeline.workers import WORKERS
 

@@ -27,7 +27,7 @@ from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_
 from pipeline.cues.tracker import calibration_evidence, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
-from pipeline.modelling.predictions import UNCALIBRATED, Predictions
+from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
 from pipeline.vocab import angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__

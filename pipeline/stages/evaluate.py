@@ -31,7 +31,7 @@ from pipeline.metrics.cues import cue_headline
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
 from pipeline.metrics.headline import headline
 from pipeline.metrics.units import by_unit, calibration_summary, champions_by_angle, unit_transfer
-from pipeline.modelling.predictions import Predictions
+from pipeline.modelling.prediction_store import Predictions
 from pipeline.vocab import angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__

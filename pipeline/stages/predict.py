@@ -3,7 +3,7 @@
 Input: `DATA_DIR/<angle>/{train,val,test,external}.parquet`, `MODELS_DIR/<kind>/<angle>/model.pt`
 for the `train` section's angles and kinds, and the units' calibrations `CAL_DIR/<unit>.json` (the
 calibrate stage's): a calibrated unit's external rows are predicted through its transform. Output:
-`OUT_DIR/<kind>/<angle>.parquet` (see `pipeline.modelling.predictions`), which evaluate, cues,
+`OUT_DIR/<kind>/<angle>.parquet` (see `pipeline.modelling.prediction_store`), which evaluate, cues,
 report and register read, and `OUT_DIR/inputs.json` (what each model reads and how that was
 chosen, for the report). A unit that declares its own circuit (`front_ends.json`) is read through it.
 
@@ -21,7 +21,7 @@ import typer
 from pipeline.calibration.apply import unit_transforms
 from pipeline.config import TrainParams, load_section
 from pipeline.logs import setup
-from pipeline.modelling.predict_splits import predict_all
+from pipeline.modelling.split_predictions import predict_all
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

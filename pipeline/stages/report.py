@@ -23,7 +23,7 @@ import typer
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.logs import setup
 from pipeline.metrics.evaluation import EVALUATION_FILE, gather, load_eval_sets
-from pipeline.modelling.predictions import Predictions, read_inputs
+from pipeline.modelling.prediction_store import Predictions, read_inputs
 from pipeline.reporting import cues, figures, report, units
 from pipeline.reporting.inputs import inputs_section
 from pipeline.reporting.needs import how_much_data_you_need

@@ -14,7 +14,7 @@ from pipeline.calibration.document import FORMAT as UNIT_FORMAT
 from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, save_checkpoint
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from pipeline.registry import store, units
 from pipeline.vocab import AXES, angle_name
 

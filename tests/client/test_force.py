@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline import client as fc
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from tests.client.builders import CHANNELS, UNREACHABLE, Clock, Registered, cue_trials, register
 
 pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")

@@ -27,7 +27,7 @@ from pipeline.cues.fit import build_cue_pack
 from pipeline.modelling import export
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.fit import fit
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from pipeline.registry import store, units
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
 from tests.helpers import stop_group

@@ -19,7 +19,7 @@ from pipeline.calibration.document import FILE
 from pipeline.client.folder import ModelFolderError
 from pipeline.client.replay import replay
 from pipeline.modelling.features import InputTransform
-from pipeline.modelling.predict import Predictor
+from pipeline.modelling.predictor import Predictor
 from pipeline.registry import store
 from tests.client.builders import (
     UNREACHABLE,

@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.metrics.evaluation import EvalSet, Scored, compute_metrics
-from pipeline.modelling import predictions
+from pipeline.modelling import prediction_store
 from pipeline.modelling.features import ModelInputs
-from pipeline.modelling.predict_splits import predict_model
+from pipeline.modelling.split_predictions import predict_model
 from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -102,7 +102,7 @@ def write_predictions(
     for m in models:
         for a in angles:
             blocks = predict_model(FakePredictor(m, a, error, channels(m, a)), frames, f"{m}/{a}", log)
-            predictions.write_predictions(blocks, pred_dir / m / f"{a}.parquet")
+            prediction_store.write_predictions(blocks, pred_dir / m / f"{a}.parquet")
     return pred_dir
 
 

@@ -14,7 +14,7 @@ from pipeline.modelling.checkpoint import ModelConfig, save_checkpoint
 from pipeline.modelling.fit import Adam, fit
 from pipeline.modelling.inputs import sequence_order, window_index
 from pipeline.modelling.networks import build_network, exact_sqrt
-from pipeline.modelling.predict import load_predictor
+from pipeline.modelling.predictor import load_predictor
 from pipeline.vocab import KINDS
 from tests.modelling.frames import CHANNELS, make_frame
 

@@ -16,7 +16,7 @@ from pipeline.calibration.document import FILE, read_unit, write_unit
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, RegisterParams
 from pipeline.modelling.fit import fit
-from pipeline.modelling.predict import Predictor, load_predictor
+from pipeline.modelling.predictor import Predictor, load_predictor
 from pipeline.registry import store, units
 from tests.client.builders import TINY, cue_trials, register
 from tests.registry.test_versions import GOOD, quiet, run_stage, train_models, write_data

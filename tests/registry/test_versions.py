@@ -13,7 +13,7 @@ from mlflow import MlflowClient
 from typer.testing import CliRunner
 
 from pipeline.config import PARAMS_MODELS, RegisterParams, load_section
-from pipeline.modelling.predict_splits import predict_all
+from pipeline.modelling.split_predictions import predict_all
 from pipeline.modelling.train import train_folder
 from pipeline.registry import versions
 from pipeline.registry.store import ABOUT, FORMAT_TAG, RegistryUnreachable, model_name

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from pipeline.config import LSParams
 from pipeline.modelling.checkpoint import save_checkpoint
 from pipeline.modelling.fit import fit
-from pipeline.modelling.predict_splits import predict_all
+from pipeline.modelling.split_predictions import predict_all
 from pipeline.reporting import cues as cue_report
 from pipeline.stages import cues
 from tests.cues.synthetic import ANGLES, make_split, write_processed

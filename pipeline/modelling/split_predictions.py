@@ -1,5 +1,5 @@
 """Prediction on the splits: every model on every processed split of every angle, computed once and
-written to the predictions store (`pipeline.modelling.predictions`) that evaluation, the cue packs,
+written to the predictions store (`pipeline.modelling.prediction_store`) that evaluation, the cue packs,
 the report and the registry read."""
 
 from __future__ import annotations
@@ -17,8 +17,13 @@ from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.features import InputTransform
-from pipeline.modelling.predict import Predictor, load_predictor
-from pipeline.modelling.predictions import UNCALIBRATED, prediction_table, write_inputs, write_predictions
+from pipeline.modelling.prediction_store import (
+    UNCALIBRATED,
+    prediction_table,
+    write_inputs,
+    write_predictions,
+)
+from pipeline.modelling.predictor import Predictor, load_predictor
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
 from pipeline.workers import WORKERS, ordered_map, workers_for

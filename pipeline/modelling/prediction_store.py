@@ -1,6 +1,6 @@
 """The store of predictions computed once: every model on every processed split of every angle.
 
-The predict stage (`pipeline.modelling.predict_splits`) writes one file per model,
+The predict stage (`pipeline.modelling.split_predictions`) writes one file per model,
 `PRED_DIR/<kind>/<angle>.parquet`, with one row per row of each split file it predicted, in that
 file's row order:
 
