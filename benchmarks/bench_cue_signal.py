@@ -66,7 +66,7 @@ def measure(root: Path) -> dict[str, list[float | None]]:
 
     from pipeline.config import CuesParams, load_section
     from pipeline.cues.fit import fit_angle_estimator
-    from pipeline.cues.units import trial_features
+    from pipeline.cues.unit_evidence import trial_features
     from pipeline.dataset.splits import SplitFiles
     from pipeline.vocab import channels_of
 

@@ -23,7 +23,7 @@ import pandas as pd
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import build_cue_pack, fit_angle_estimator
 from pipeline.cues.score import evaluate_cues
-from pipeline.cues.units import evidence_of, trial_features
+from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.vocab import AXES, channels_of
 

@@ -208,7 +208,7 @@ def _read_batch(
 def _print_calibration(doc: dict[str, Any], champions: dict[str, Any], aside: list[str]) -> None:
     """Loss before and after per kind, the angles used and missing, what was set aside, and which
     champions the calibration does not cover."""
-    from pipeline.registry.units import uncovered_angles
+    from pipeline.registry.calibrations import uncovered_angles
 
     typer.echo(f"unit {doc['unit_id']}: {len(doc['trials'])} trial(s) of {', '.join(doc['batches']) or '-'}")
     for kind, t in sorted(doc["transforms"].items()):
@@ -256,7 +256,7 @@ def calibrate(
 
     from pipeline.calibration.unit import calibrate_unit
     from pipeline.config import CalibrateParams
-    from pipeline.registry import store, units
+    from pipeline.registry import calibrations, store
 
     def say(message: str) -> None:
         typer.echo(f"calibrate: {message}", err=True)
@@ -270,11 +270,11 @@ def calibrate(
     with store.patience(write=True):  # MLflow's HTTP timeouts, for as long as the registry is used
         try:
             client = store.connect(tracking_uri, must_exist=True, write=True)  # it registers the calibration
-            champions = units.champion_models(client, log=say)
+            champions = calibrations.champion_models(client, log=say)
             if not champions:
                 where = client.tracking_uri
                 raise fail(f"the registry at {where} has no readable needle-force-<angle>@champion")
-            models = units.champion_predictors(client, champions, say)
+            models = calibrations.champion_predictors(client, champions, say)
         except store.RegistryUnreachable as e:
             raise fail(str(e), 2) from e
         except MlflowException as e:
@@ -298,7 +298,7 @@ def calibrate(
             typer.echo(f"dry run: {name} not registered")
             return
         try:
-            entry = units.register_unit(client, doc, units.document_bytes(doc), say)
+            entry = calibrations.register_unit(client, doc, calibrations.document_bytes(doc), say)
         except MlflowException as e:
             raise fail(f"MLflow registry ({e.error_code}): {e.message}") from e
         state = "registered" if entry["action"] == "registered" else "already registered"

@@ -23,7 +23,7 @@ import pandas as pd
 from pipeline.calibration.document import DIGITS, FORMAT
 from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
-from pipeline.cues.units import evidence_of, trial_features
+from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.predictor import Predictor
@@ -71,7 +71,7 @@ def calibrate_unit(
     """The calibration document of `unit_id` from its calibration `rows` (processed frame, any angles)
     through `models` ({kind: {angle: Predictor}}), for a pipeline trained at `trained_angles`; with
     `cues`, also what its calibration insertions tell the cue packs' angle estimator (its evidence,
-    `pipeline.cues.units`, gathered at the angle estimator's loading levels `cue_levels`, from
+    `pipeline.cues.unit_evidence`, gathered at the angle estimator's loading levels `cue_levels`, from
     `training_levels`). `front_end` is the circuit the unit's batches declare: its rows are read
     through it, and the document carries it for the simulator's client. The transforms' fits run on
     up to `workers` processes (the same document on any number)."""

@@ -24,7 +24,7 @@ from pipeline.config import CuesParams
 from pipeline.cues.reading import distances, log_scores, read_unit
 from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, cue_for_deviation
 from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
-from pipeline.cues.units import average_unit, evidence_of, trial_features
+from pipeline.cues.unit_evidence import average_unit, evidence_of, trial_features
 from pipeline.logs import Log
 from pipeline.rig.frontend import Circuit, circuit_key
 from pipeline.vocab import AXES, angle_name, channels_of
@@ -225,8 +225,9 @@ def fit_angle_estimator(
     circuits: Circuits | None = None,
 ) -> dict[str, Any]:
     """The angle estimator on every angle's training trials: per evidence stage, a linear discriminant
-    read through each unit's class means (`pipeline.cues.units`); its temperature by leave-one-batch-out
-    cross-validation, where a held-out batch's unit keeps only its other batches' trials."""
+    read through each unit's class means (`pipeline.cues.unit_evidence`); its temperature by
+    leave-one-batch-out cross-validation, where a held-out batch's unit keeps only its other batches'
+    trials."""
     log = log or (lambda _m: None)
     train_by_angle = {float(a): f for a, f in train_by_angle.items()}
     angles = sorted(train_by_angle)

@@ -6,7 +6,7 @@ Per evidence stage, a trial's features are modelled as
     the angle's mean for the average unit + the unit's offset + the unit's own departure at that angle
     + the trial's scatter (one covariance, shared by every unit and angle)
 
-(`pipeline.cues.units` fits the average unit; docs/units.md). A unit is known by its *cells*: per
+(`pipeline.cues.unit_evidence` fits the average unit; docs/units.md). A unit is known by its *cells*: per
 angle, how many of its trials reached the stage and their mean features (its training trials, or a
 new unit's calibration insertions). `read_unit` turns the cells into the unit's class means and the
 variance left in them; `log_scores` scores a trial's features with both, so that a unit whose means

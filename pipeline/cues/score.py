@@ -267,7 +267,7 @@ def evaluate_cues(
 
     `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
     angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
-    the calibrated units' evidence (`pipeline.cues.units`); a trial of a unit neither there nor
+    the calibrated units' evidence (`pipeline.cues.unit_evidence`); a trial of a unit neither there nor
     among the pack's training units is read as the average unit's. `paper_bound`: also score the
     paper's method on the measured force (its upper bound; the angle-estimate matrix comes with it).
     Without external trials with an insertion phase there is nothing to score: the result is

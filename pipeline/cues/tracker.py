@@ -91,7 +91,7 @@ def validated_reading(reading: str, validated: Sequence[str]) -> str | None:
 def unit_evidence(
     pack: Mapping[str, Any], unit_id: str | None, calibration: UnitEvidence | None = None
 ) -> UnitEvidence | None:
-    """What the angle estimator knows of an estimator unit (`pipeline.cues.units`): its calibration's
+    """What the angle estimator knows of an estimator unit (`pipeline.cues.unit_evidence`): its calibration's
     evidence when given, else a training unit's from the pack, else None (an uncalibrated unit: the
     estimator's average unit)."""
     if calibration:

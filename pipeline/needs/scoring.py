@@ -19,7 +19,7 @@ import pandas as pd
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack, try_fit_angle_estimator
 from pipeline.cues.score import WORTH_A_WORKER, evaluate_cues
-from pipeline.cues.units import evidence_of, trial_features
+from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.logs import Log
 from pipeline.needs.subsample import Key, Selection, select
 from pipeline.rig.frontend import Circuit

@@ -1,6 +1,6 @@
 """Registering: a candidate becomes a version of `needle-force-<angle>` and the aliases move by
 the champion rule; `rollback` moves the champion back. `register_all` is what the stage runs: it
-also registers the estimator units' calibrations (`pipeline.registry.units`)."""
+also registers the estimator units' calibrations (`pipeline.registry.calibrations`)."""
 
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ from pipeline.modelling.export import describe
 from pipeline.modelling.prediction_store import Predictions
 from pipeline.modelling.predictor import Predictor
 from pipeline.modelling.split_predictions import predict_frame
+from pipeline.registry.calibrations import load_documents, register_units
 from pipeline.registry.candidates import Trained, collect, kind_rank
 from pipeline.registry.champion import best_per_angle, decide
 from pipeline.registry.store import (
@@ -40,7 +41,6 @@ from pipeline.registry.store import (
     writing,
 )
 from pipeline.registry.tracking import TAG, Datasets, deploy_sha256, git_commit, track
-from pipeline.registry.units import load_documents, register_units
 from pipeline.vocab import AXES, DEPLOY_FORMAT
 
 if TYPE_CHECKING:

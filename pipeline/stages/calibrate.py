@@ -21,7 +21,7 @@ from pipeline.calibration.document import write_unit
 from pipeline.calibration.rows import calibration_rows
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
-from pipeline.cues.units import training_levels
+from pipeline.cues.unit_evidence import training_levels
 from pipeline.dataset.splits import SplitFiles, front_ends
 from pipeline.logs import setup
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE

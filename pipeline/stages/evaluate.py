@@ -5,7 +5,7 @@ Input: `DATA_DIR/<angle>/{external,test}.parquet` (the truth; `DATA_DIR/manifest
 units trained), the predict stage's `PRED_DIR` (the predictions), the units' calibrations in
 `CAL_DIR` and the cues stage's `CUES_EVAL` (evaluation.json); nothing is predicted here. Output:
 `EVALUATION_JSON`, every score (see `pipeline.metrics.evaluation`, per estimator unit
-`pipeline.metrics.units`, and the cues' headline `pipeline.metrics.cues`), which the report stage
+`pipeline.metrics.unit_transfer`, and the cues' headline `pipeline.metrics.cues`), which the report stage
 renders and the register stage logs; `METRICS_JSON`, about thirty headline figures for DVC's tables
 (`pipeline.metrics.headline`).
 
@@ -30,7 +30,7 @@ from pipeline.logs import setup
 from pipeline.metrics.cues import cue_headline
 from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
 from pipeline.metrics.headline import headline
-from pipeline.metrics.units import by_unit, calibration_summary, champions_by_angle, unit_transfer
+from pipeline.metrics.unit_transfer import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.prediction_store import Predictions
 from pipeline.vocab import angle_name
 

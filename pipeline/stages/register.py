@@ -4,7 +4,7 @@
 2. Registering (`pipeline.registry.versions`, rule in `pipeline.registry.champion`): per angle, the
    best deployable candidate becomes a version of `needle-force-<angle>`, `@champion` only if it
    beats the current champion on today's external set, else `@challenger`.
-3. Units (`pipeline.registry.units`): each `CAL_DIR/<unit_id>.json` (the calibrate stage's) becomes a
+3. Units (`pipeline.registry.calibrations`): each `CAL_DIR/<unit_id>.json` (the calibrate stage's) becomes a
    version of `needle-unit-<unit_id>` with the alias `@current`, unless those exact bytes already are
    one; a unit whose calibration was made with other models than today's champions is reported as
    stale ("run needlecue calibrate"), never an error.

@@ -24,7 +24,7 @@ from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.logs import setup
 from pipeline.metrics.evaluation import EVALUATION_FILE, gather, load_eval_sets
 from pipeline.modelling.prediction_store import Predictions, read_inputs
-from pipeline.reporting import cues, figures, report, units
+from pipeline.reporting import cues, figures, report, unit_transfer
 from pipeline.reporting.inputs import inputs_section
 from pipeline.reporting.needs import how_much_data_you_need
 from pipeline.vocab import angle_name
@@ -66,7 +66,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     figures.plot_profiles(eval_sets, scored, models, fig_dir / figures.FIGURES[0])
     figures.plot_gaps(eval_sets, scored, models, gaps, fig_dir / figures.FIGURES[1])
     figures.plot_gap_matrix(metrics, models, fig_dir / figures.FIGURES[2])
-    unit_section = inputs_section(read_inputs(pred_dir)) + units.estimator_units(metrics, evaluation)
+    unit_section = inputs_section(read_inputs(pred_dir)) + unit_transfer.estimator_units(metrics, evaluation)
     needs_file = reports_dir / "needs" / "needs.json"
     if needs_file.is_file():  # the needs stage drew its figure; the report links it
         unit_section += "\n\n" + how_much_data_you_need(json.loads(needs_file.read_text()), "needs/needs.png")

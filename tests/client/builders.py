@@ -15,7 +15,7 @@ from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, save_checkpoint
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import store, units
+from pipeline.registry import calibrations, store
 from pipeline.vocab import AXES, angle_name
 
 UNREACHABLE = "http://127.0.0.1:9"  # the discard port: connection refused at once
@@ -180,5 +180,7 @@ def unit_document(
 def register_unit(uri: str, doc: dict) -> int:
     """Register `doc` in store `uri` as the register stage does: its version number (`@current`)."""
     return int(
-        units.register_unit(store.connect(uri), doc, units.document_bytes(doc), lambda _m: None)["version"]
+        calibrations.register_unit(
+            store.connect(uri), doc, calibrations.document_bytes(doc), lambda _m: None
+        )["version"]
     )

@@ -28,7 +28,7 @@ from pipeline.modelling import export
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import store, units
+from pipeline.registry import calibrations, store
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
 from tests.helpers import stop_group
 
@@ -136,7 +136,7 @@ def _register_through(uri: str) -> tuple[dict, dict, str]:
         version = mlflow.register_model(info.model_uri, name).version
     client.set_registered_model_alias(name, store.CHAMPION, version)
     doc = unit_document(UNIT, {30: checkpoint}, MIX)
-    units.register_unit(client, doc, units.document_bytes(doc), lambda _m: None)
+    calibrations.register_unit(client, doc, calibrations.document_bytes(doc), lambda _m: None)
     return checkpoint, doc, client.get_experiment(exp_id).artifact_location
 
 

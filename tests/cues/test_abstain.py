@@ -19,7 +19,7 @@ from pipeline.cues.tracker import (
     validated_reading,
 )
 from pipeline.cues.trials import replay_evidence, stage_frames, trials_of
-from pipeline.cues.units import evidence_of, trial_features
+from pipeline.cues.unit_evidence import evidence_of, trial_features
 from tests.cues.synthetic import ANGLES, CHANNELS, make_trial, make_unit_split, run_tracker
 
 PARAMS = CuesParams(kinds=("ls",), evidence_levels=(0.05, 0.1, 0.2))

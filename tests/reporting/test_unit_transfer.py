@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 
-from pipeline.reporting.units import estimator_units
+from pipeline.reporting.unit_transfer import estimator_units
 
 SCORES = {"same_unit": 4.0, "new_uncalibrated": 5.0, "new_calibrated": 4.4}
 

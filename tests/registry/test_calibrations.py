@@ -17,7 +17,7 @@ from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, RegisterParams
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor, load_predictor
-from pipeline.registry import store, units
+from pipeline.registry import calibrations, store
 from tests.client.builders import TINY, cue_trials, register
 from tests.registry.test_versions import GOOD, quiet, run_stage, train_models, write_data
 
@@ -48,7 +48,7 @@ def champion(tmp_path: Path, mlflow_store: str) -> Predictor:
 
 
 def register_dir(cal_dir: Path) -> dict:
-    return units.register_units(store.connect(), units.load_documents(cal_dir), None, quiet)
+    return calibrations.register_units(store.connect(), calibrations.load_documents(cal_dir), None, quiet)
 
 
 def test_a_calibration_becomes_a_unit_version_with_the_current_alias(
@@ -67,7 +67,7 @@ def test_a_calibration_becomes_a_unit_version_with_the_current_alias(
     name = store.unit_model_name(UNIT)
     current = client.get_model_version_by_alias(name, store.UNIT_ALIAS)
     sha = hashlib.sha256(path.read_bytes()).hexdigest()
-    assert (int(current.version), current.tags[units.SHA_TAG]) == (1, sha)
+    assert (int(current.version), current.tags[calibrations.SHA_TAG]) == (1, sha)
     # and: one run of needle-units with the document's params, losses per kind, tags and the document
     run = client.get_run(current.run_id)
     assert client.get_experiment(run.info.experiment_id).name == "needle-units"
@@ -81,7 +81,7 @@ def test_a_calibration_becomes_a_unit_version_with_the_current_alias(
         "angles_used": "30",
         "angles_missing": "",
     }
-    assert run.data.tags[units.SHA_TAG] == sha
+    assert run.data.tags[calibrations.SHA_TAG] == sha
     # and: the version is the run's plain artifact folder, which downloads as calibration.json
     assert current.source == f"{run.info.artifact_uri}/calibration"
     import mlflow
@@ -158,8 +158,8 @@ def test_a_champion_without_a_readable_mlmodel_is_left_out_and_the_others_are_re
     Path(location.removeprefix("file://"), "MLmodel").unlink()
     said: list[str] = []
     # when: the champions are read, and their checkpoints loaded, as `needlecue calibrate` does
-    champions = units.champion_models(client, log=said.append)
-    models = units.champion_predictors(client, champions, said.append)
+    champions = calibrations.champion_models(client, log=said.append)
+    models = calibrations.champion_predictors(client, champions, said.append)
     # then: 30° is read and loaded; 5° and 45° are left out, each saying which version and why
     assert list(champions) == ["30"] and list(models["ls"]) == ["30"]
     assert {line.split(": no MLmodel among its files")[0] for line in said} == {
@@ -182,7 +182,7 @@ def test_a_registry_that_fails_while_the_champions_are_read_is_an_error_not_a_le
     monkeypatch.setattr(mlflow.artifacts, "list_artifacts", fails)
     # when / then: the failure is raised, not taken for a champion without a model
     with pytest.raises(MlflowException, match="503"):
-        units.champion_models(store.connect(), log=lambda _m: None)
+        calibrations.champion_models(store.connect(), log=lambda _m: None)
 
 
 def test_the_register_stage_registers_the_units_beside_the_champions(tmp_path: Path) -> None:

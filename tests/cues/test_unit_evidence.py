@@ -10,7 +10,7 @@ import pytest
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
 from pipeline.cues.tracker import CueTracker, unit_evidence
-from pipeline.cues.units import evidence_of, trial_features
+from pipeline.cues.unit_evidence import evidence_of, trial_features
 from tests.cues.synthetic import ANGLES, CHANNELS, make_unit_split, run_tracker
 
 
