@@ -42,7 +42,7 @@ deploy/node/node_modules/.installed: deploy/node/package.json deploy/node/packag
 firmware: setup-system  ## the estimator's firmware (firmware/build/needlecue.hex, to flash) and its emulated board
 	$(MAKE) -C firmware hex board
 
-team-start: setup setup-system  ## the team stack: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth (README, Team setup)
+team-start: setup setup-system  ## the team stack: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth (docs/team.md)
 	$(BIN)/needlecue team start
 team-stop: setup
 	$(BIN)/needlecue team stop

@@ -5,7 +5,7 @@ last ingest; check them (a bad batch is reported and set aside by the pipeline, 
 `dvc repro` (only what the new data touches reruns; `register` registers and promotes by the
 champion rule); write a retrain report. Nothing new: nothing runs, nothing is registered.
 
-Exit codes (also in the README):
+Exit codes (also in docs/retraining.md):
   0  nothing new: nothing ran, nothing was registered
   1  failed: `dvc repro` or a check failed; the report says where. The registry changes only in
      the last stage, so a failure before it leaves every alias as it was (one inside `register`

@@ -116,7 +116,7 @@ def _recording(share: Path, name: str, *, angle: int, variant: int) -> Path:
 
 
 def test_a_single_angle_lab_follows_the_readme_with_params_only(tmp_path):
-    # Given a lab with one angle, as the README's lab section says: hand-written rig-log/1 batches
+    # Given a lab with one angle, as docs/lab-data.md says: hand-written rig-log/1 batches
     # (4 channels, volts, mN) in a folder of its own, the simulator off, `train.angles: [30]`,
     # its held-out batch named in `split.external_batches`
     root = make_project(tmp_path / "proj", {"enabled": False})

@@ -1,6 +1,6 @@
 """The team commands of `needlecue` (`needlecue team ...`; `pipeline.cli` adds them): start, stop and
 look at the team stack, hand out its credentials, and publish champions to the simulators' bucket
-(README, Team setup). Heavy imports stay inside the functions, so `needlecue --help` stays quick."""
+(docs/team.md). Heavy imports stay inside the functions, so `needlecue --help` stays quick."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pipeline.exits import fail
 team = typer.Typer(
     no_args_is_help=True,
     help="The team stack on this machine: PostgreSQL, S3 (SeaweedFS), MLflow with basic auth and the "
-    "publisher of champions to simulators (README, Team setup).",
+    "publisher of champions to simulators (docs/team.md).",
 )
 TeamDir = Annotated[
     Path | None,
@@ -103,7 +103,7 @@ def team_units(
     out: Annotated[Path, typer.Option(help="where to write the unit files")] = Path("deploy/systemd"),
 ) -> None:
     """Write a systemd unit per server (and needlecue-team.target) that runs the stack as `team start`
-    does, restarted on failure: the registry outlives a terminal and a reboot (README, Team setup)."""
+    does, restarted on failure: the registry outlives a terminal and a reboot (docs/team.md)."""
     from pipeline.team.servers.base import StackError
     from pipeline.team.services import TARGET, write_units
 

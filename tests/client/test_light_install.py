@@ -2,7 +2,7 @@
 the project on PYTHONPATH, fetching a model and an estimator unit's calibration through a real MLflow
 server over HTTP and stepping them.
 
-What this test does is what README's "Installing just the client on a simulator" tells a simulator
+What this test does is what docs/client.md's "Installing just the client on a simulator" tells a simulator
 maker to do; change one with the other. Slow (it builds a venv: about a minute).
 """
 

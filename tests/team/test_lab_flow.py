@@ -1,4 +1,4 @@
-"""A lab on the team stack, as the README's Team setup has it: `dvc repro` registers into the server, a
+"""A lab on the team stack, as docs/team.md has it: `dvc repro` registers into the server, a
 simulator fetches its champion and is refused moving an alias, the lab (not a simulator) calibrates a
 new unit, `dvc push` / a fresh clone's pull bring back the exact data behind a version, the server
 killed mid-register changes no alias, 50 simulators fetch at once, PostgreSQL restarts under a fetch
