@@ -1,8 +1,12 @@
 """Our FNN against the peer a user would otherwise pick: scikit-learn's MLPRegressor.
 
-Same per-angle splits (data/processed, from `make repro`), same architecture (channels -> 20
--> 20 -> 3, tanh), same standardisation, early stopping on the validation split for ours and
-MLPRegressor's own `early_stopping` for the peer (it holds out 10 % of the training rows).
+Same per-angle splits (data/processed, from `make repro`), same inputs, same architecture
+(inputs -> 20 -> 20 -> 3, tanh), same standardisation, early stopping on the validation split for
+ours and MLPRegressor's own `early_stopping` for the peer (it holds out 10 % of the training rows).
+Ours is fitted as the train stage fits it (`load_angle`: the training units' circuit; the choose
+stage's inputs, data/choices/fnn.json); the peer reads those very inputs, computed by the pipeline's
+own `features_of` from the volts (e.g. `rest_volts`: each channel less its rest reading), not the
+raw volt columns.
 Both are trained with SEEDS seeds (params.yaml's fnn.seed and the next ones): one seed's
 difference between two nets this close is mostly the luck of the initialisation. Prints, per
 angle, the external-set NRMSE (mean over axes, then over seeds) and the median training wall
@@ -22,15 +26,20 @@ import pandas as pd
 from pipeline.config import FNNParams, load_section
 from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import nrmse_pct
+from pipeline.modelling.choice import load_choice
+from pipeline.modelling.features import ModelInputs, spec_of
 from pipeline.modelling.fit import fit
+from pipeline.modelling.inputs import features_of
+from pipeline.modelling.train import load_angle
 from pipeline.vocab import channels_of
 
 DATA = Path("data/processed")
+CHOICE = Path("data/choices/fnn.json")  # the choose stage's inputs for the FNN
 TARGETS = ["fx", "fy", "fz"]
 SEEDS = 3
 
 
-def peer(train: pd.DataFrame, channels: list[str], p: FNNParams):
+def peer(train: pd.DataFrame, channels: list[str], spec: ModelInputs, p: FNNParams):
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
@@ -49,26 +58,31 @@ def peer(train: pd.DataFrame, channels: list[str], p: FNNParams):
     pipe = make_pipeline(StandardScaler(), model)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        pipe.fit(train[channels], y_scaler.transform(train[TARGETS]))
-    return lambda frame: y_scaler.inverse_transform(pipe.predict(frame[channels]))
+        pipe.fit(features_of(train, channels, spec), y_scaler.transform(train[TARGETS]))
+    return lambda frame: y_scaler.inverse_transform(pipe.predict(features_of(frame, channels, spec)))
 
 
 def main() -> None:
     base = load_section(FNNParams, "fnn", Path("params.yaml"))
-    rows = []
+    decided = load_choice(CHOICE, "fnn") if base.inputs.kind == "auto" else None
+    rows, read = [], set()
     files = SplitFiles(DATA)
     for angle in files.angles():  # the angle folders only (not calibration/)
-        train, val, ext = (files.frame(angle, s) for s in ("train", "val", "external"))
+        data = load_angle(DATA / angle)
+        train, val, ext = data.train, data.val, files.frame(angle, "external")
         channels = channels_of(train)
         ref = ext[TARGETS].to_numpy()
         e_ours, e_peer, t_ours, t_peer = [], [], [], []
         for seed in range(base.seed, base.seed + SEEDS):
             p = base.model_copy(update={"seed": seed})
             t0 = time.perf_counter()
-            ours = fit("fnn", p, train, val).predictor
+            designs = data.other_designs
+            found = fit("fnn", p, train, val, front_end=data.circuit, other_designs=designs, decided=decided)
             t_ours.append(time.perf_counter() - t0)
+            ours, spec = found.predictor, spec_of(found.checkpoint.get("inputs"))
+            read.add(spec.kind)
             t0 = time.perf_counter()
-            theirs = peer(train, channels, p)
+            theirs = peer(train, channels, spec, p)
             t_peer.append(time.perf_counter() - t0)
             e_ours.append(float(np.mean(nrmse_pct(ours.predict(ext), ref))))
             e_peer.append(float(np.mean(nrmse_pct(theirs(ext), ref))))
@@ -85,6 +99,7 @@ def main() -> None:
             flush=True,
         )
     med = [statistics.median(r[i] for r in rows) for i in range(1, 5)]
+    print(f"both read the inputs {', '.join(sorted(read))}: the choose stage's (the peer's by features_of)")
     wins = sum(r[1] <= r[2] for r in rows)
     print(
         f"median NRMSE (mean of axes and of {SEEDS} seeds, external set): ours {med[0]:.3f} %, "
