@@ -13,7 +13,10 @@ from typing import Annotated, Literal, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from pipeline.vocab import KINDS
+
 DEFAULT_PARAMS = Path("params.yaml")
+ModelKind = Literal[KINDS]  # type: ignore[valid-type]  # one of vocab.KINDS: a typo fails loudly
 
 
 class Section(BaseModel):
@@ -148,7 +151,7 @@ class TrainParams(Section):
     """`train`: the matrix of per-angle models (dvc.yaml: train@<angle>-<model>)."""
 
     angles: tuple[float, ...] = (0, 15, 30, 45, 60, 75)
-    models: tuple[str, ...] = ("ls", "fnn", "lstm")
+    models: tuple[ModelKind, ...] = KINDS
 
 
 class EvaluateParams(Section):
@@ -215,7 +218,7 @@ AUTO_EVIDENCE_LEVELS = 9  # cues.evidence_levels: auto
 class CuesParams(Section):
     """`cues`: the simulator's angle cues (pipeline/cues/)."""
 
-    kinds: tuple[Literal["ls", "fnn", "lstm"], ...] = Field(("ls", "fnn", "lstm"), min_length=1)
+    kinds: tuple[ModelKind, ...] = Field(KINDS, min_length=1)
     # deviation bands: |angle - preset| below continue_below_deg -> continue, from stop_from_deg -> stop
     continue_below_deg: float = Field(7.5, gt=0)
     stop_from_deg: float = Field(22.5, gt=0)
@@ -304,7 +307,7 @@ class NeedsParams(Section):
 class RegisterParams(Section):
     """`register`: which models may be deployed and how a champion is chosen."""
 
-    candidates: tuple[Literal["ls", "fnn", "lstm"], ...] = Field(("ls", "fnn", "lstm"), min_length=1)
+    candidates: tuple[ModelKind, ...] = Field(KINDS, min_length=1)
     min_improvement_pct: float = Field(
         0.0, ge=0, description="NRMSE points (mean of axes) a new version must beat the champion by"
     )
