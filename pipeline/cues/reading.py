@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+Cell = tuple[int, float, np.ndarray]  # one class of a unit: (class, its trials n, their mean features)
+
 
 @dataclass(frozen=True)
 class UnitReading:
@@ -39,9 +41,7 @@ class UnitReading:
         return bool(np.isfinite(self.extra_var).all())
 
 
-def own_departure(
-    mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray | None
-) -> float:
+def own_departure(mu: np.ndarray, cells: Sequence[Cell], precision: np.ndarray | None) -> float:
     """The variance of a unit's own departures at an angle (whitened units per feature) as its cells
     show it: how far they sit from the average unit's means once shifted by their mean difference,
     beyond their trials' scatter (C cells have C - 1 degrees of freedom per feature around their
@@ -62,9 +62,7 @@ def neighbour_distance(mu: np.ndarray, precision: np.ndarray) -> float:
     return float(np.median(np.einsum("cf,fg,cg->c", step, precision, step))) / step.shape[1]
 
 
-def departs(
-    mu: np.ndarray, cells: Sequence[tuple[int, float, np.ndarray]], precision: np.ndarray | None
-) -> bool:
+def departs(mu: np.ndarray, cells: Sequence[Cell], precision: np.ndarray | None) -> bool:
     """Whether a unit's own departures (`own_departure`) are as large as the distance between
     neighbouring trained angles: its classes are then not laid out as training saw them (a turned
     connector; another FSR law), its insertions could stand in another order, and how its trials
@@ -76,7 +74,7 @@ def departs(
 
 def read_unit(
     mu: np.ndarray,
-    cells: Sequence[tuple[int, float, np.ndarray]],
+    cells: Sequence[Cell],
     k: float | None,
     spread: float | None,
     precision: np.ndarray | None = None,

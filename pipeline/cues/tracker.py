@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.config import CuesParams
-from pipeline.cues.reading import UnitReading, distances, log_scores, outside, read_unit
+from pipeline.cues.reading import Cell, UnitReading, distances, log_scores, outside, read_unit
 from pipeline.rig.frontend import Circuit, conductance_us, declared, legacy_divider
 from pipeline.vocab import format_problem
 
@@ -113,11 +113,8 @@ def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None
     return cues["evidence"] if same else None
 
 
-Cell = tuple[int, float, np.ndarray]  # (class, trials n, their mean features)
-
-
 def _cells(classes: Sequence[float], evidence: UnitEvidence | None, j: int) -> list[Cell]:
-    """[(class, trials n, their mean features)] of the unit's trials that reached evidence stage j."""
+    """The unit's cells at evidence stage j: per class, its trials that reached the stage."""
     cells = []
     for c, a in enumerate(classes):
         e = (evidence or {}).get(f"{float(a):g}")
@@ -126,45 +123,35 @@ def _cells(classes: Sequence[float], evidence: UnitEvidence | None, j: int) -> l
     return cells
 
 
-def unit_reading(
-    stage: Mapping[str, Any],
-    j: int,
-    classes: Sequence[float],
-    evidence: UnitEvidence | None,
-    trained: bool = False,
-) -> UnitReading:
-    """How evidence stage `j` reads the unit of `evidence` (None: an uncalibrated unit): its class
-    means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
-    `template_weight` and `offset_spread`; a unit training did not see (not `trained`) is also
-    tested, with the stage's precision, for departing from the training units' layout."""
-    return read_unit(
-        np.asarray(stage["means"], dtype=np.float64),
-        _cells(classes, evidence, j),
-        stage.get("template_weight"),
-        stage.get("offset_spread"),
-        None if trained else np.asarray(stage["precision"], dtype=np.float64),
-    )
-
-
 def unit_readings(
     stages: Sequence[Mapping[str, Any]],
     classes: Sequence[float],
     evidence: UnitEvidence | None,
     trained: bool = False,
 ) -> list[UnitReading]:
-    """`unit_reading` of every evidence stage, where a departure is kept at later stages that fewer of
-    the unit's classes reach: a stage's features hold every earlier stage's, and a departure seen
-    with an angle's cell cannot be undone by a stage without it (four cells of the middle angles
-    can fit a shift where six did not). A later stage with as many cells judges anew: it has more
-    features to judge by."""
+    """How each evidence stage reads the unit of `evidence` (None: an uncalibrated unit): its class
+    means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
+    `template_weight` and `offset_spread`. A unit training did not see (not `trained`) is also
+    tested, with the stage's precision, for departing from the training units' layout, and a
+    departure is kept at later stages that fewer of the unit's classes reach: a stage's features hold
+    every earlier stage's, and a departure seen with an angle's cell cannot be undone by a stage
+    without it (four cells of the middle angles can fit a shift where six did not). A later stage
+    with as many cells judges anew: it has more features to judge by."""
     out: list[UnitReading] = []
-    seen: list[tuple[int, bool]] = []  # per earlier stage: (its cells, whether it departed)
-    for j, s in enumerate(stages):
-        r = unit_reading(s, j, classes, evidence, trained)
-        n = len(_cells(classes, evidence, j))
-        if not r.departs and any(away and m > n for m, away in seen):
+    widest = 0  # the most cells an earlier stage departed with
+    for j, stage in enumerate(stages):
+        cells = _cells(classes, evidence, j)
+        r = read_unit(
+            np.asarray(stage["means"], dtype=np.float64),
+            cells,
+            stage.get("template_weight"),
+            stage.get("offset_spread"),
+            None if trained else np.asarray(stage["precision"], dtype=np.float64),
+        )
+        if not r.departs and widest > len(cells):
             r = replace(r, departs=True)
-        seen.append((n, r.departs))
+        if r.departs:
+            widest = max(widest, len(cells))
         out.append(r)
     return out
 
