@@ -38,8 +38,7 @@ DIR_ENV = "NEEDLECUE_TEAM_DIR"
 DEFAULT_DIR = "~/.local/state/needlecue/team"
 DEFAULT_BASE_PORT = 5480
 ROLES = ("admin", "lab", "simulator")
-KINDS: tuple[type[Server], ...] = (Postgres, S3, MLflow, Publisher)  # in start order; stopped in reverse
-SERVERS = tuple(kind.name for kind in KINDS)
+SERVERS = (Postgres.name, S3.name, MLflow.name, Publisher.name)  # in start order; stopped in reverse
 # SeaweedFS marks every volume read-only once its disk has less than 1 % free (the volume server's
 # -minFreeSpace default, which `weed mini` cannot change), after which every write fails with S3's bare
 # "InternalError" and MLflow's artifact proxy answers 500 (seen in CI on a shared, nearly full disk).
@@ -130,7 +129,10 @@ class Stack:
     def __init__(self, folder: Path | None = None) -> None:
         self.dir = (folder or default_dir()).expanduser().resolve()
         self.file = self.dir / "team.json"
-        self.servers: dict[str, Server] = {kind.name: kind(self) for kind in KINDS}
+        self.postgres, self.s3 = Postgres(self), S3(self)
+        self.servers: dict[str, Server] = {
+            s.name: s for s in (self.postgres, self.s3, MLflow(self), Publisher(self))
+        }
 
     # --- settings and where things are -------------------------------------------------------------
 
@@ -201,27 +203,19 @@ class Stack:
 
     def database_uri(self, database: str) -> str:
         """SQLAlchemy URI of one of the stack's databases."""
-        return self._postgres.uri(database)
-
-    @property
-    def _postgres(self) -> Postgres:
-        server = self.servers["postgres"]
-        assert isinstance(server, Postgres)
-        return server
+        return self.postgres.uri(database)
 
     @property
     def pg_dir(self) -> Path:
         """PostgreSQL's data folder."""
-        return self._postgres.data_dir
+        return self.postgres.data_dir
 
     def log(self, server: str) -> Path:
         return self._server(server).log
 
     def s3_client(self) -> Any:
         """A boto3 client on the stack's S3 store (the lab's credentials)."""
-        server = self.servers["s3"]
-        assert isinstance(server, S3)
-        return server.client()
+        return self.s3.client()
 
     def as_lab(self) -> contextlib.AbstractContextManager[None]:
         """A block in which MLflow calls go to this stack's server as the lab (its tracking
@@ -280,8 +274,6 @@ class Stack:
     def start(self, progress: Any = print) -> None:
         """Start whatever of the servers is not running (each waited for until it answers), making
         sure the `lab` and `simulator` users exist with their permissions before the publisher."""
-        self.dir.joinpath("logs").mkdir(parents=True, exist_ok=True)
-        self.dir.joinpath("run").mkdir(exist_ok=True)
         space = self.disk_space()
         if space.full:
             raise StackError(space.describe())
