@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.config import PARAMS_MODELS, load_section
+from pipeline.config import load_section
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.metrics.scores import nrmse_pct
-from pipeline.modelling.features import KINDS as INPUT_KINDS
-from pipeline.modelling.features import NEEDS_CIRCUIT
+from pipeline.modelling.features import INPUT_KINDS, NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
+from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.split_predictions import predict_model
 from pipeline.modelling.train import choose_folders, load_angle
 from pipeline.rig.frontend import Circuit
@@ -62,7 +62,7 @@ def main() -> None:
     circuits = files.front_ends()
     print(f"{'model':<6}{'inputs':<18}{'same unit %':>12}{'new unit %':>12}{'ratio':>8}{'train s':>9}")
     for kind in kinds:
-        base = load_section(PARAMS_MODELS[kind], kind, params)
+        base = load_section(kind_of(kind).params, kind, params)
         for inputs in [*INPUT_KINDS, AUTO]:
             p = base.model_copy(update={"inputs": base.inputs.model_copy(update={"kind": inputs})})
             same, new, seconds = [], [], 0.0

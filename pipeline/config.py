@@ -209,9 +209,6 @@ class LSTMParams(Section):
     inputs: InputParams = InputParams()
 
 
-PARAMS_MODELS: dict[str, type[Section]] = {"ls": LSParams, "fnn": FNNParams, "lstm": LSTMParams}
-
-
 AUTO_EVIDENCE_LEVELS = 9  # cues.evidence_levels: auto
 
 

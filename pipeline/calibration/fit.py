@@ -24,9 +24,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CalibrateParams
+from pipeline.modelling.determinism import deterministic_torch, exact_lbfgs
 from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform, rest_reading
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
-from pipeline.modelling.networks import deterministic_torch, exact_lbfgs
 from pipeline.modelling.predictor import Predictor
 from pipeline.rig.frontend import Circuit, conductance_us, volts_of_conductance
 from pipeline.vocab import AXES
@@ -69,7 +69,7 @@ class AngleData:
         codes, t = trial_codes(frame), times_of(frame)
         order, start = sequence_order(codes, t)
         y = frame[list(AXES)].to_numpy(np.float64)[order]
-        windows = window_index(start, predictor.window) if predictor.kind == "lstm" else None
+        windows = window_index(start, predictor.window) if predictor.sequence else None
         if front_end is None:
             x = features_of(frame, list(predictor.channels), predictor.inputs)[order]
             return cls(predictor, x, y, windows)

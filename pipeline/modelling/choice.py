@@ -2,12 +2,13 @@
 
 Which inputs carry the force best depends on the rig: the volts of one circuit are nearly linear in
 the load, another's saturate; a rest-relative reading removes a preload some rigs do not have. A lab
-cannot be expected to know which, so each candidate kind (`features.KINDS`; the conductance kinds
+cannot be expected to know which, so each candidate kind (`features.INPUT_KINDS`; the conductance kinds
 only where the training units declare their circuit) is scored on held-out data, and the best is
 trained. Training the network once per candidate would cost several times the training; a fixed
-stand-in costs a few linear solves: for least squares the model itself (linear in the inputs), for
-the networks a ridge regression on each input, its square and the pairwise products (a smooth map
-of the inputs, as a small network fits), plus, for the LSTM, the inputs a quarter and a half of its
+stand-in costs a few linear solves, and each model kind says which (`StandIn`, from its module in
+`pipeline.modelling.kinds`): for least squares the model itself (linear in the inputs), for the
+networks a ridge regression on each input, its square and the pairwise products (a smooth map of
+the inputs, as a small network fits), plus, for the LSTM, the inputs a quarter and a half of its
 window back (its memory). The folds:
 
 - leave-one-unit-out when the training rows come from several estimator units: what a new unit
@@ -16,7 +17,7 @@ window back (its memory). The folds:
   that is empty).
 
 The score is the mean over folds of the NRMSE (% of each axis' range, mean of fx, fy, fz). Ties go
-to the simpler kind (the order of `KINDS`). A model kind has one choice for all its angles (`pool`:
+to the simpler kind (the order of `INPUT_KINDS`). A model kind has one choice for all its angles (`pool`:
 each candidate's score averaged over the angles): per angle, the choice flips between near-tied kinds,
 while a unit's calibration transform is one for all angles' models. Pure numpy.
 """
@@ -32,8 +33,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.modelling.features import KINDS, ModelInputs
+from pipeline.modelling.features import INPUT_KINDS, ModelInputs
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes
+from pipeline.modelling.kinds.base import StandIn
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES
 
@@ -62,8 +64,8 @@ def candidates(front_end: Circuit | None, other_designs: Sequence[str] = ()) -> 
     only they when it must also serve units that declare another circuit (`other_designs`): the
     volts of one design are not the volts of another, the FSR's conductance is."""
     if front_end is None:
-        return [k for k in KINDS if not k.endswith("conductance")]
-    return [k for k in KINDS if k.endswith("conductance") or not other_designs]
+        return [k for k in INPUT_KINDS if not k.endswith("conductance")]
+    return [k for k in INPUT_KINDS if k.endswith("conductance") or not other_designs]
 
 
 def stand_in_basis(
@@ -120,20 +122,17 @@ def _folds(
 
 
 def choose_inputs(
-    model_kind: str,
+    stand_in: StandIn,
     train: pd.DataFrame,
     val: pd.DataFrame,
     channels: list[str],
     front_end: Circuit | None,
     rest_s: float,
-    window: int = 1,
-    intercept: bool = True,
     other_designs: Sequence[str] = (),
 ) -> Choice:
-    """The input kind that the stand-in predicts the force from best on held-out rows (module
+    """The input kind that `stand_in` predicts the force from best on held-out rows (module
     docstring), among `candidates(front_end, other_designs)`."""
     folds_txt, folds, rows = _folds(train, val)
-    lags = sorted({max(1, window // 4), max(1, window // 2)}) if model_kind == "lstm" and window > 1 else []
     y = rows[list(AXES)].to_numpy(np.float64)
     codes, t = trial_codes(rows), times_of(rows)
     scores: dict[str, float | None] = {}
@@ -142,7 +141,8 @@ def choose_inputs(
         spec = ModelInputs(
             kind=kind, rest_s=rest_s, front_end=front_end if kind.endswith("conductance") else None
         )
-        a = stand_in_basis(features_of(rows, channels, spec), model_kind == "ls", intercept, lags, codes, t)
+        x = features_of(rows, channels, spec)
+        a = stand_in_basis(x, stand_in.linear, stand_in.intercept, stand_in.lags, codes, t)
         found = []
         for fit_rows, score_rows in folds:
             if score_rows.sum() < MIN_FOLD_ROWS or fit_rows.sum() <= a.shape[1]:
@@ -151,19 +151,17 @@ def choose_inputs(
             found.append(_nrmse(a[score_rows] @ w, y[score_rows]))
         scores[kind] = float(np.mean(found)) if found else None
     known = {k: s for k, s in scores.items() if s is not None and np.isfinite(s)}
-    chosen = min(known, key=lambda k: (round(known[k], 6), KINDS.index(k))) if known else kinds[0]
-    if model_kind == "ls":
-        stand_in = "least squares on the inputs" + ("" if intercept else ", no intercept")
-    else:
-        stand_in = "ridge on inputs, squares and pairwise products" + (
-            f", lags {lags} samples" if lags else ""
-        )
+    chosen = min(known, key=lambda k: (round(known[k], 6), INPUT_KINDS.index(k))) if known else kinds[0]
     only = None
     if front_end is not None and other_designs:
         verb = "declares" if len(other_designs) == 1 else "declare"
         only = f"the conductance kinds: {', '.join(other_designs)} {verb} another circuit"
     return Choice(
-        chosen, {k: None if s is None else round(s, 4) for k, s in scores.items()}, folds_txt, stand_in, only
+        chosen,
+        {k: None if s is None else round(s, 4) for k, s in scores.items()},
+        folds_txt,
+        stand_in.describe(),
+        only,
     )
 
 
@@ -184,7 +182,7 @@ def pool(by_angle: Mapping[str, Choice]) -> Choice:
         found = [s for c in choices if (s := c.scores[kind]) is not None and np.isfinite(s)]
         scores[kind] = round(float(np.mean(found)), 4) if found else None
     known = {k: s for k, s in scores.items() if s is not None}
-    chosen = min(known, key=lambda k: (known[k], KINDS.index(k))) if known else kinds[0]
+    chosen = min(known, key=lambda k: (known[k], INPUT_KINDS.index(k))) if known else kinds[0]
     folds = sorted({c.folds for c in choices})
     where = f"at each of {len(choices)} angles, scores averaged" if len(choices) > 1 else "at one angle"
     return replace(

@@ -37,7 +37,7 @@ from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpo
 from pipeline.modelling.features import features_at, rest_reading, spec_of, unit_inputs
 from pipeline.modelling.front import front_module
 from pipeline.modelling.inputs import window_index
-from pipeline.modelling.networks import build_network
+from pipeline.modelling.kinds import kind_of
 from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, description_sha256
 
 if TYPE_CHECKING:
@@ -60,42 +60,15 @@ _EXPORTER_NOISE = (
 
 
 def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
-    """The checkpoint's network as one module, the graph's inputs (`INPUT_NAMES`) in, newtons out (eval
-    mode): the front (float64) computes the model's inputs, the network runs in float32."""
-    import torch
+    """The checkpoint's model as one module, the graph's inputs (`INPUT_NAMES`) in, newtons out (eval
+    mode): the front (float64) computes the model's inputs, the model's kind gives the rest (float32)."""
     from torch import nn
 
     check_checkpoint(checkpoint, "export")
+    kind = kind_of(checkpoint["kind"], "export")
     cfg = ModelConfig.from_dict(checkpoint["config"])
-    state = checkpoint["state_dict"]
-    with torch.random.fork_rng(devices=[]):  # the throwaway initialisation must not use the caller's RNG
-        if cfg.kind == "ls":
-            # F = C x (+ b): the paper's calibration matrix on the unscaled inputs (as Predictor does)
-            net: nn.Module = nn.Linear(cfg.n_in, cfg.n_out)
-            net.load_state_dict({k: state[k].float() for k in ("weight", "bias")})
-        else:
-            net = build_network(cfg)
-            net.load_state_dict(state)
-    pre = None if cfg.kind == "ls" else checkpoint["preprocessing"]
-
-    class Deployable(nn.Module):
-        """(inputs - x_mean) / x_std -> net -> * y_std + y_mean, in float32."""
-
-        def __init__(self) -> None:
-            super().__init__()
-            self.net = net
-            self.scaled = pre is not None
-            if pre is not None:
-                for key in ("x_mean", "x_std", "y_mean", "y_std"):
-                    self.register_buffer(key, pre[key].float().clone())
-
-        def forward(self, x: torch.Tensor) -> torch.Tensor:
-            if not self.scaled:
-                return self.net(x)
-            return self.net((x - self.x_mean) / self.x_std) * self.y_std + self.y_mean
-
-    network = Deployable().float().eval()
-    front = front_module(spec_of(checkpoint.get("inputs")), sequence=cfg.kind == "lstm")
+    network = kind.load(cfg, checkpoint["state_dict"], checkpoint["preprocessing"]).graph()
+    front = front_module(spec_of(checkpoint.get("inputs")), sequence=kind.sequence)
 
     class Graph(nn.Module):
         def __init__(self) -> None:
@@ -109,8 +82,8 @@ def deployable_module(checkpoint: dict[str, Any]) -> torch.nn.Module:
 
 
 def graph_window(checkpoint: dict[str, Any]) -> int:
-    """Samples per row of the graph's `reading` (the LSTM's window, else 1)."""
-    return int(checkpoint["config"].get("window", 1)) if checkpoint["kind"] == "lstm" else 1
+    """Samples per row of the graph's `reading` (a sequence kind's window, else 1)."""
+    return kind_of(checkpoint["kind"], "export").window(ModelConfig.from_dict(checkpoint["config"]))
 
 
 def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes:

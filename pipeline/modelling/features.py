@@ -44,7 +44,7 @@ from pipeline.rig.frontend import (
     volts_of_conductance,
 )
 
-KINDS: tuple[str, ...] = tuple(
+INPUT_KINDS: tuple[str, ...] = tuple(
     k for k in get_args(InputParams.model_fields["kind"].annotation) if k != "auto"
 )
 NEEDS_CIRCUIT = ("conductance", "rest_conductance")
@@ -86,8 +86,8 @@ class ModelInputs(BaseModel):
 def inputs_for(kind: str, rest_s: float, front_end: Divider | Transimpedance | None) -> ModelInputs:
     """The inputs a model trains on: `kind` (chosen or pinned), through the training units' circuit
     if it reads one (ValueError, saying what to declare, when it needs one and there is none)."""
-    if kind not in KINDS:
-        raise ValueError(f"inputs kind {kind!r} is not one of {', '.join(KINDS)}")
+    if kind not in INPUT_KINDS:
+        raise ValueError(f"inputs kind {kind!r} is not one of {', '.join(INPUT_KINDS)}")
     return ModelInputs(kind=kind, rest_s=rest_s, front_end=front_end if kind in NEEDS_CIRCUIT else None)
 
 

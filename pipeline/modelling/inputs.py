@@ -1,4 +1,4 @@
-"""Model inputs from processed frames: trial codes, time order, features, the LSTM's windows, scaling.
+"""Model inputs from processed frames: trial codes, time order, features, windows, scaling.
 
 Shared by training and prediction, so that a model sees at run time exactly what it trained on.
 """
@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.modelling.checkpoint import ModelConfig
 from pipeline.modelling.features import ModelInputs, features
 from pipeline.vocab import TRIAL_KEY
 
@@ -59,27 +58,3 @@ def times_of(frame: pd.DataFrame) -> np.ndarray:
 def features_of(frame: pd.DataFrame, channels: list[str], spec: ModelInputs) -> np.ndarray:
     """(n, channels) model inputs of a frame's rows (`features.features` per trial), in its order."""
     return features(frame[channels].to_numpy(np.float64), trial_codes(frame), times_of(frame), spec)
-
-
-def inputs_of(
-    cfg: ModelConfig,
-    frame: pd.DataFrame,
-    channels: list[str],
-    x_mean: np.ndarray,
-    x_std: np.ndarray,
-    spec: ModelInputs,
-) -> np.ndarray:
-    """Standardised float32 network inputs of a frame's rows, in the frame's order."""
-    x = (features_of(frame, channels, spec) - x_mean) / x_std
-    return network_inputs(cfg, x, trial_codes(frame), times_of(frame))
-
-
-def network_inputs(cfg: ModelConfig, x_std: np.ndarray, codes: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(n, c) for the FNN; (n, window, c) for the LSTM, each row's window built within its trial."""
-    if cfg.kind != "lstm":
-        return x_std.astype(np.float32)
-    order, start = sequence_order(codes, t)
-    windows = x_std[order][window_index(start, cfg.window)]  # sorted rows' windows
-    out = np.empty_like(windows)
-    out[order] = windows  # back to the frame's row order
-    return out.astype(np.float32)

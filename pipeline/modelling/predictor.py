@@ -14,20 +14,18 @@ import pandas as pd
 
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
 from pipeline.modelling.features import InputTransform, features, spec_of
-from pipeline.modelling.inputs import network_inputs, times_of, trial_codes
-from pipeline.modelling.networks import build_network, deterministic_torch
+from pipeline.modelling.inputs import times_of, trial_codes
+from pipeline.modelling.kinds import kind_of
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import KINDS
-
-PREDICT_CHUNK = 65_536  # rows per forward pass at prediction time
 
 
 class Predictor:
     """A trained model behind one call: volts in, force in newtons out.
 
-    Attributes: `kind`, `channels` (the order it reads them in), `inputs` (the `ModelInputs` it
-    computes from the volts), `targets`, `rate_hz`, `angle_deg`, `window` (samples of history it
-    uses, 1 for ls/fnn), `config`, `checkpoint`. A unit's calibration is an `InputTransform` passed
+    Attributes: `kind` (its name), `model_kind` (`pipeline.modelling.kinds`), `channels` (the order
+    it reads them in), `inputs` (the `ModelInputs` it computes from the volts), `targets`, `rate_hz`,
+    `angle_deg`, `window` (samples of history it uses, 1 for ls/fnn), `sequence` (it reads them as
+    a window per row), `config`, `checkpoint`. A unit's calibration is an `InputTransform` passed
     to `predict`: it maps the unit's inputs before the model reads them.
     """
 
@@ -36,8 +34,7 @@ class Predictor:
             raise ValueError(f"not a {FORMAT} checkpoint (format {checkpoint.get('format')!r})")
         self.checkpoint = checkpoint
         self.kind: str = checkpoint["kind"]
-        if self.kind not in KINDS:
-            raise ValueError(f"unknown model kind {self.kind!r} in checkpoint")
+        self.model_kind = kind_of(self.kind, "run")
         self.config = ModelConfig.from_dict(checkpoint["config"])
         self.channels: tuple[str, ...] = tuple(checkpoint["channels"])
         self.inputs = spec_of(checkpoint.get("inputs"))
@@ -45,24 +42,8 @@ class Predictor:
         self.rate_hz: float = float(checkpoint["rate_hz"])
         self.angle_deg: float = float(checkpoint["angle_deg"])
         self.window: int = self.config.window
-        pre = checkpoint["preprocessing"]
-        self._x_mean, self._x_std, self._y_mean, self._y_std = (
-            pre[k].double().numpy() for k in ("x_mean", "x_std", "y_mean", "y_std")
-        )
-        state = checkpoint["state_dict"]
-        self._net: Any = None
-        if self.kind == "ls":
-            self._weight = state["weight"].double().numpy()
-            self._bias = state["bias"].double().numpy()
-        else:
-            import torch
-
-            with torch.random.fork_rng(
-                devices=[]
-            ):  # the throwaway initialisation must not use the caller's RNG
-                self._net = build_network(self.config)
-            self._net.load_state_dict(state)
-            self._net.eval()
+        self.sequence: bool = self.model_kind.sequence  # reads a window of samples per row
+        self._model = self.model_kind.load(self.config, checkpoint["state_dict"], checkpoint["preprocessing"])
 
     def __repr__(self) -> str:
         return f"Predictor(kind={self.kind!r}, angle_deg={self.angle_deg:g}, channels={list(self.channels)})"
@@ -142,32 +123,13 @@ class Predictor:
     def _forward(self, x_in: np.ndarray, codes: np.ndarray, t: np.ndarray) -> np.ndarray:
         if len(x_in) == 0:
             return np.zeros((0, len(self.targets)))
-        if self.kind == "ls":
-            return x_in @ self._weight.T + self._bias
-        import torch
-
-        x = torch.from_numpy(network_inputs(self.config, (x_in - self._x_mean) / self._x_std, codes, t))
-        with deterministic_torch(), torch.no_grad():  # same thread count as training: same float sums
-            # fixed-size chunks bound the memory of long recordings (an LSTM keeps every step's state)
-            y = torch.cat([self._net(x[i : i + PREDICT_CHUNK]) for i in range(0, len(x), PREDICT_CHUNK)])
-        return y.double().numpy() * self._y_std + self._y_mean
+        return self._model.forward(x_in, codes, t)
 
     def torch_forward(self) -> Any:
         """The frozen model as a float64 torch function of its inputs, (n, c) -> (n, 3) N, that
-        gradients flow through (LSTM: (n, window, c) windows); for fitting a unit's calibration."""
-        import copy
-
-        import torch
-
-        y_mean, y_std = torch.from_numpy(self._y_mean), torch.from_numpy(self._y_std)
-        if self.kind == "ls":
-            weight, bias = torch.from_numpy(self._weight), torch.from_numpy(self._bias)
-            return lambda x: x @ weight.T + bias
-        net = copy.deepcopy(self._net).double()
-        for p in net.parameters():
-            p.requires_grad_(False)
-        x_mean, x_std = torch.from_numpy(self._x_mean), torch.from_numpy(self._x_std)
-        return lambda x: net((x - x_mean) / x_std) * y_std + y_mean
+        gradients flow through (a sequence kind: (n, window, c) windows); for fitting a unit's
+        calibration."""
+        return self._model.torch_forward()
 
 
 def load_predictor(model_dir_or_file: Path) -> Predictor:

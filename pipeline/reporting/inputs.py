@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from pipeline.modelling.choice import Choice, pool
-from pipeline.modelling.features import KINDS
+from pipeline.modelling.features import INPUT_KINDS
 from pipeline.reporting.style import table
 from pipeline.vocab import kind_label, sorted_angles
 
@@ -32,7 +32,7 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
         for r in m.values()
         for k in ((r.get("inputs_choice") or {}).get("scores") or {})
     }
-    kinds_seen = [k for k in KINDS if k in scored]  # the kinds' own order: simplest first
+    kinds_seen = [k for k in INPUT_KINDS if k in scored]  # the kinds' own order: simplest first
     rows = []
     folds = set()
 

@@ -16,12 +16,12 @@ from typing import cast
 
 import typer
 
-from pipeline.config import PARAMS_MODELS, TrainParams, load_section
+from pipeline.config import TrainParams, load_section
 from pipeline.logs import setup
 from pipeline.modelling.choice import save_choice
 from pipeline.modelling.fit import ModelParams
+from pipeline.modelling.kinds import TABLE
 from pipeline.modelling.train import choose_folders
-from pipeline.vocab import KINDS
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
@@ -29,10 +29,10 @@ _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs a
 def main(model: str, data_root: Path, out_file: Path, params: Path = Path("params.yaml")) -> None:
     """Choose one model kind's inputs on all the trained angles' processed folders."""
     setup("choose")
-    if model not in KINDS:
-        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
+    if model not in TABLE:
+        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(TABLE)}")
     try:
-        section = cast("ModelParams", load_section(PARAMS_MODELS[model], model, params))
+        section = cast("ModelParams", load_section(TABLE[model].params, model, params))
         if section.inputs.kind != "auto":
             _log(f"{model}: inputs pinned in params ({section.inputs.kind}), nothing to choose")
             save_choice(out_file, model, None, pinned=section.inputs.kind)

@@ -18,12 +18,12 @@ from typing import cast
 
 import typer
 
-from pipeline.config import PARAMS_MODELS, load_section
+from pipeline.config import load_section
 from pipeline.logs import setup
 from pipeline.modelling.choice import load_choice
 from pipeline.modelling.fit import ModelParams
+from pipeline.modelling.kinds import TABLE
 from pipeline.modelling.train import train_folder
-from pipeline.vocab import KINDS
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
@@ -33,10 +33,10 @@ def main(
 ) -> None:
     """Train one model (ls, fnn or lstm) on one angle's processed data folder."""
     setup("train")
-    if model not in KINDS:
-        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(KINDS)}")
+    if model not in TABLE:
+        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(TABLE)}")
     try:
-        section = cast("ModelParams", load_section(PARAMS_MODELS[model], model, params))
+        section = cast("ModelParams", load_section(TABLE[model].params, model, params))
         chosen = load_choice(choice, model) if choice is not None and section.inputs.kind == "auto" else None
         train_folder(model, section, data_dir, out_dir, _log, chosen)
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback

@@ -9,14 +9,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.config import FNNParams, InputParams, LSParams
+from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling.choice import Choice, candidates, choose_inputs, load_choice, pool, save_choice
 from pipeline.modelling.fit import fit
+from pipeline.modelling.kinds import kind_of
 from pipeline.rig.frontend import Divider, Transimpedance, volts_of
 from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0)
+LEAST_SQUARES = kind_of("ls").stand_in(LSParams(fit_intercept=False))  # each kind's own stand-in
+NETWORK = kind_of("fnn").stand_in(FNNParams())
+LSTM_15 = kind_of("lstm").stand_in(LSTMParams(window=15))
 MIX = np.array([[0.8, -0.4, 0.1], [0.2, 0.5, -0.6], [0.4, 0.4, 0.4]])  # load on each FSR -> force
 
 
@@ -55,7 +59,7 @@ def test_across_units_of_different_preload_a_rest_relative_conductance_wins():
     # given: three units of one declared circuit whose preloads differ
     rows = _units(DIVIDER, UNITS)
     # when: least squares' inputs are chosen by leave-one-unit-out
-    choice = choose_inputs("ls", rows, rows.iloc[:0], CHANNELS, DIVIDER, rest_s=0.5, intercept=False)
+    choice = choose_inputs(LEAST_SQUARES, rows, rows.iloc[:0], CHANNELS, DIVIDER, rest_s=0.5)
     # then: the kind that is linear in the load and blind to the preload wins, by far
     assert choice.folds == "leave-one-unit-out (3 units)"
     assert choice.chosen == "rest_conductance"
@@ -65,7 +69,7 @@ def test_across_units_of_different_preload_a_rest_relative_conductance_wins():
 def test_without_a_declared_circuit_no_conductance_is_a_candidate():
     rows = _units(DIVIDER, UNITS)
     assert candidates(None) == ["volts", "rest_volts"]
-    choice = choose_inputs("fnn", rows, rows.iloc[:0], CHANNELS, None, rest_s=0.5)
+    choice = choose_inputs(NETWORK, rows, rows.iloc[:0], CHANNELS, None, rest_s=0.5)
     assert set(choice.scores) == {"volts", "rest_volts"} and choice.chosen == "rest_volts"
 
 
@@ -73,7 +77,7 @@ def test_a_model_that_must_serve_a_unit_of_another_circuit_reads_conductance():
     # given: units of one divider, and a held-out unit that declares an op-amp front end
     rows = _units(DIVIDER, UNITS)
     # when: the networks' inputs are chosen knowing of that unit
-    choice = choose_inputs("fnn", rows, rows.iloc[:0], CHANNELS, DIVIDER, rest_s=0.5, other_designs=["u9"])
+    choice = choose_inputs(NETWORK, rows, rows.iloc[:0], CHANNELS, DIVIDER, rest_s=0.5, other_designs=["u9"])
     # then: only the kinds that read the FSR itself were candidates, and the record says why
     assert candidates(DIVIDER, ["u9"]) == ["conductance", "rest_conductance"]
     assert set(choice.scores) == {"conductance", "rest_conductance"}
@@ -86,7 +90,7 @@ def test_on_one_unit_the_choice_is_by_trial_on_the_validation_split():
     # given: one unit (a transimpedance front end: volts linear in conductance), train and val trials
     rows = _units(Transimpedance(circuit="transimpedance", drive_v=1.0, feedback_kohm=47.0), {"u1": 0.01})
     train, val = rows[rows.trial_id != "t3"], rows[rows.trial_id == "t3"]
-    choice = choose_inputs("ls", train, val, CHANNELS, None, rest_s=0.5, intercept=False)
+    choice = choose_inputs(LEAST_SQUARES, train, val, CHANNELS, None, rest_s=0.5)
     assert choice.folds == "by trial: train split -> validation split"
     # the output is linear in the load above the preload's offset: rest_volts takes the offset out
     assert choice.chosen == "rest_volts"
@@ -111,8 +115,8 @@ def test_a_pinned_conductance_without_a_circuit_says_what_to_declare():
 
 def test_the_choice_is_deterministic():
     rows = _units(DIVIDER, UNITS, seed=3)
-    a = choose_inputs("lstm", rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5, window=15)
-    b = choose_inputs("lstm", rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5, window=15)
+    a = choose_inputs(LSTM_15, rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5)
+    b = choose_inputs(LSTM_15, rows, rows.iloc[:0], CHANNELS, DIVIDER, 0.5)
     assert a == b and "lags [3, 7] samples" in a.stand_in
 
 

@@ -11,9 +11,8 @@ import torch
 
 from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
 from pipeline.modelling.checkpoint import ModelConfig, save_checkpoint
-from pipeline.modelling.fit import Adam, fit
+from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import sequence_order, window_index
-from pipeline.modelling.networks import build_network, exact_sqrt
 from pipeline.modelling.predictor import load_predictor
 from pipeline.vocab import KINDS
 from tests.modelling.frames import CHANNELS, make_frame
@@ -205,29 +204,6 @@ def test_empty_validation_trains_all_epochs(train_val) -> None:
     assert result.metrics["epochs_run"] == result.metrics["best_epoch"] == FAST["fnn"].max_epochs
     assert result.metrics["best_val_loss"] is None
     assert any("no validation rows" in msg for msg in messages)
-
-
-def test_adam_matches_torch_optim_bit_for_bit_given_the_same_square_root(monkeypatch) -> None:
-    # given: two identical networks and a few batches; torch.optim.Adam taking the exact square root
-    # ours takes (torch's own depends on the CPU)
-    monkeypatch.setattr(torch.Tensor, "sqrt", exact_sqrt)
-    torch.manual_seed(0)
-    cfg = ModelConfig("fnn", n_in=3, hidden=(8,), activation="tanh")
-    net_a = build_network(cfg)
-    net_b = build_network(cfg)
-    net_b.load_state_dict(net_a.state_dict())
-    ours = Adam(net_a.parameters(), lr=0.01, weight_decay=0.001)
-    reference = torch.optim.Adam(net_b.parameters(), lr=0.01, weight_decay=0.001, foreach=False)
-    x, y = torch.randn(64, 3), torch.randn(64, 3)
-    # when: taking the same steps with each optimiser
-    for _ in range(20):
-        for net, opt in ((net_a, ours), (net_b, reference)):
-            opt.zero_grad()
-            torch.nn.functional.mse_loss(net(x), y).backward()
-            opt.step()
-    # then: identical weights
-    sa, sb = net_a.state_dict(), net_b.state_dict()
-    assert all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
 def test_validation_with_other_channels_is_rejected(train_val) -> None:

@@ -9,8 +9,9 @@ from typing import Any
 import pytest
 import torch
 
-from pipeline.config import PARAMS_MODELS, load_section
+from pipeline.config import load_section
 from pipeline.modelling.checkpoint import load_checkpoint
+from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.train import train_folder
 from tests.modelling.folders import PARAMS, write_split
 from tests.modelling.frames import make_frame
@@ -24,7 +25,7 @@ def params_file(tmp_path: Path) -> Path:
 
 
 def run(kind: str, data: Path, out: Path, params_file: Path) -> dict[str, Any]:
-    params = load_section(PARAMS_MODELS[kind], kind, params_file)
+    params = load_section(kind_of(kind).params, kind, params_file)
     return train_folder(kind, params, data, out, lambda msg: print(msg, file=sys.stderr))  # type: ignore[arg-type]
 
 

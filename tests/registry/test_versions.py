@@ -12,7 +12,8 @@ import typer
 from mlflow import MlflowClient
 from typer.testing import CliRunner
 
-from pipeline.config import PARAMS_MODELS, RegisterParams, load_section
+from pipeline.config import RegisterParams, load_section
+from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.split_predictions import predict_all
 from pipeline.modelling.train import train_folder
 from pipeline.registry import versions
@@ -45,7 +46,7 @@ def train_models(tmp: Path, name: str, fnn_params: str, kinds: tuple[str, ...] =
 
 
 def train(kind: str, data: Path, out: Path, params: Path) -> None:
-    train_folder(kind, load_section(PARAMS_MODELS[kind], kind, params), data, out, quiet)  # type: ignore[arg-type]
+    train_folder(kind, load_section(kind_of(kind).params, kind, params), data, out, quiet)  # type: ignore[arg-type]
 
 
 def quiet(_msg: str) -> None:

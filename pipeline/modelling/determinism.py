@@ -1,16 +1,13 @@
-"""The networks' torch modules, and the deterministic torch settings they train and run under.
+"""The deterministic torch settings the networks train and run under, and exact square roots.
 
 torch is imported inside the functions, so importing this module stays cheap.
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
-
-from pipeline.modelling.checkpoint import ModelConfig
 
 if TYPE_CHECKING:
     import torch
@@ -20,49 +17,6 @@ if TYPE_CHECKING:
 # weights, the same on any machine (1 and 2 threads happen to agree at the default sizes; larger
 # layers cross torch's parallel grain and would not).
 TRAIN_THREADS = 1
-
-
-@functools.cache
-def _lstm_class() -> type:
-    """The LSTM regressor's module class (defined lazily so that importing this file skips torch)."""
-    from torch import nn
-
-    class LSTMRegressor(nn.Module):
-        """Stacked LSTM over the window; a linear head on the last step's output."""
-
-        def __init__(self, cfg: ModelConfig) -> None:
-            super().__init__()
-            self.lstm = nn.LSTM(cfg.n_in, cfg.hidden[0], num_layers=len(cfg.hidden), batch_first=True)
-            self.head = nn.Linear(cfg.hidden[0], cfg.n_out)
-
-        def forward(self, x: torch.Tensor) -> torch.Tensor:
-            out, _ = self.lstm(x)
-            return self.head(out[:, -1])
-
-    return LSTMRegressor
-
-
-def build_network(cfg: ModelConfig) -> torch.nn.Module:
-    """The torch module of an `fnn` or `lstm` config (float32, freshly initialised)."""
-    from collections import OrderedDict
-
-    from torch import nn
-
-    if cfg.kind == "fnn":
-        act = {"tanh": nn.Tanh, "relu": nn.ReLU}[cfg.activation]
-        layers: OrderedDict[str, nn.Module] = OrderedDict()
-        width = cfg.n_in
-        for i, h in enumerate(cfg.hidden, start=1):
-            layers[f"fc{i}"] = nn.Linear(width, h)
-            layers[f"act{i}"] = act()
-            width = h
-        layers["out"] = nn.Linear(width, cfg.n_out)
-        return nn.Sequential(layers)
-    if cfg.kind == "lstm":
-        if len(set(cfg.hidden)) != 1:
-            raise ValueError(f"an LSTM's layers share one width, got hidden={cfg.hidden}")
-        return _lstm_class()(cfg)
-    raise ValueError(f"no network for model kind {cfg.kind!r}")
 
 
 def _set_deterministic(mode: bool, warn_only: bool = False) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pipeline.modelling.networks import deterministic_torch, exact_lbfgs, exact_sqrt
+from pipeline.modelling.determinism import deterministic_torch, exact_lbfgs, exact_sqrt
 
 
 def test_deterministic_torch_pins_then_restores_the_callers_settings() -> None:
