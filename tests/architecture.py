@@ -1,6 +1,7 @@
 """The package's import graph, read statically (every `import`, at the top or inside a function):
-which project files a module can load. `python -m tests.architecture` prints, per dvc.yaml stage,
-the code deps that dvc.yaml must list."""
+which project files a module can load, and so which code each dvc.yaml stage depends on.
+`python -m tests.architecture` prints, per stage, the code deps dvc.yaml must list;
+`python -m tests.architecture --write` puts them into dvc.yaml."""
 
 from __future__ import annotations
 
@@ -109,15 +110,52 @@ def code_deps(stage_file: Path) -> list[str]:
     return sorted(p.relative_to(REPO).as_posix() for p in files)
 
 
+def stage_deps(stage_file: Path) -> list[str]:
+    """The code deps dvc.yaml lists for a stage, grouped by package: each library package the stage
+    loads anything from as its folder (`pipeline/modelling`, subpackages included), the top-level
+    modules and the stage's own module as files. The folders first, then the files, each sorted."""
+    out = set()
+    for dep in code_deps(stage_file):
+        parts = dep.split("/")
+        library = len(parts) > 2 and parts[1] != "stages"
+        out.add("/".join(parts[:2]) if library else dep)
+    return sorted(out, key=lambda dep: (dep.endswith(".py"), dep))
+
+
 def listed_code_deps(stage: dict) -> list[str]:
-    """The deps of a dvc.yaml stage that are project code."""
-    return sorted(d for d in stage.get("deps", []) if str(d).startswith(f"{PACKAGE}/"))
+    """The deps of a dvc.yaml stage that are project code (files and package folders)."""
+    return [d for d in stage.get("deps", []) if str(d).startswith(f"{PACKAGE}/")]
+
+
+CODE_DEP = re.compile(rf"^      - {PACKAGE}/\S*$")  # one code dep of a stage, as dvc.yaml writes it
+STAGE = re.compile(r"^  (\w+):\s*$")
+
+
+def write_dvc_yaml(path: Path) -> None:
+    """Replace each stage's run of code deps in dvc.yaml by `stage_deps` (everything else kept)."""
+    modules = stage_modules()
+    lines, out, stage = path.read_text().split("\n"), [], None
+    i = 0
+    while i < len(lines):
+        if match := STAGE.match(lines[i]):
+            stage = match.group(1)
+        if stage in modules and CODE_DEP.match(lines[i]):
+            while i < len(lines) and CODE_DEP.match(lines[i]):
+                i += 1
+            out += [f"      - {dep}" for dep in stage_deps(modules[stage])]
+            continue
+        out.append(lines[i])
+        i += 1
+    path.write_text("\n".join(out))
 
 
 def main() -> None:
+    if sys.argv[1:] == ["--write"]:
+        write_dvc_yaml(REPO / "dvc.yaml")
+        return
     for name, path in stage_modules().items():
         print(f"{name}:")
-        for dep in code_deps(path):
+        for dep in stage_deps(path):
             print(f"  - {dep}")
 
 
