@@ -137,18 +137,24 @@ def repro_figures(root: Path) -> dict[str, Any]:
     seconds = time.perf_counter() - started
     if done.returncode:
         return {"error": (done.stdout + done.stderr)[-2000:], "seconds": seconds}
-    metrics = json.loads((root / "reports" / "evaluation.json").read_text())
-    champ = (metrics.get("unit_transfer") or {}).get("champion") or {}
-    cues = metrics.get("cues") or {}
+    from pipeline.metrics.document import read_evaluation
+
+    metrics = read_evaluation(root / "reports" / "evaluation.json")
+    champ = metrics.unit_transfer["champion"]
+    cues = metrics.cues
     seen = cues.get("lstm") or next(iter(cues.values()), {})  # the combined cue: the same for every kind
-    same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
+    same, uncal, cal = champ.same_unit, champ.new_uncalibrated, champ.new_calibrated
     return {
         "same_unit_pct": same,
         "new_uncalibrated_pct": uncal,
         "new_calibrated_pct": cal,
         "calibrated_ratio": None if not same or cal is None else cal / same,
         "uncalibrated_ratio": None if not same or uncal is None else uncal / same,
-        "cues": {group: seen.get(group) for group in ("same_unit", "new_calibrated", "new_uncalibrated")},
+        "cues": {
+            group: seen[group].model_dump()
+            for group in ("same_unit", "new_calibrated", "new_uncalibrated")
+            if group in seen
+        },
         "seconds": seconds,
     }
 

@@ -39,7 +39,7 @@ from typing import Any
 from pipeline.config import DataParams, IngestParams, load_section
 from pipeline.ledger import USED, of_batches
 from pipeline.logs import Log
-from pipeline.metrics.evaluation import EVALUATION_FILE
+from pipeline.metrics.document import EVALUATION_FILE, Evaluation, read_evaluation
 from pipeline.reporting.ledger import entry_text
 
 EXIT_NOTHING, EXIT_FAILED, EXIT_RETRAINED, EXIT_SET_ASIDE, EXIT_BUSY = 0, 1, 2, 3, 4
@@ -203,12 +203,21 @@ def _read_json(path: Path) -> dict[str, Any]:
         return {}
 
 
-def _mean_nrmse(metrics: dict[str, Any]) -> dict[str, dict[str, float]]:
+def _read_evaluation(path: Path) -> Evaluation | None:
+    """evaluation.json, or None where there is none yet or this needlecue cannot read it (then the
+    report has no figures to compare, rather than failing the retrain)."""
+    try:
+        return read_evaluation(path)
+    except (OSError, ValueError):
+        return None
+
+
+def _mean_nrmse(evaluation: Evaluation | None) -> dict[str, dict[str, float]]:
     """{angle: {model: external NRMSE, mean of axes}} from evaluation.json's within_angle."""
     out: dict[str, dict[str, float]] = {}
-    for model, angles in (metrics.get("within_angle") or {}).items():
+    for model, angles in ({} if evaluation is None else evaluation.within_angle).items():
         for angle, axes in angles.items():
-            values = [a["nrmse_pct"] for a in axes.values() if a.get("nrmse_pct") is not None]
+            values = [a.nrmse_pct for a in axes.values() if a.nrmse_pct is not None]
             if values:
                 out.setdefault(angle, {})[model] = round(sum(values) / len(values), 4)
     return out
@@ -217,8 +226,8 @@ def _mean_nrmse(metrics: dict[str, Any]) -> dict[str, dict[str, float]]:
 def summarise(
     pending: list[Pending],
     ran: list[str],
-    before: dict[str, Any],
-    after: dict[str, Any],
+    before: Evaluation | None,
+    after: Evaluation | None,
     registry: dict[str, Any],
     ledger: dict[str, Any],
 ) -> dict[str, Any]:
@@ -384,14 +393,14 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
         log(f"checked {p.batch_id} ({p.status}): {state}")
         for problem in p.problems[:5]:
             log(f"    {problem}")
-    before = _read_json(root / "reports" / EVALUATION_FILE)
+    before = _read_evaluation(root / "reports" / EVALUATION_FILE)
     log(f"dvc repro ({len(changed)} stage(s) out of date)")
     code, ran, tail = dvc_repro(root, log)
     report = summarise(
         pending,
         ran,
         before,
-        _read_json(root / "reports" / EVALUATION_FILE),
+        _read_evaluation(root / "reports" / EVALUATION_FILE),
         _read_json(root / "reports" / "registry.json"),
         _read_json(root / LEDGER),
     )

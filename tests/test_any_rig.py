@@ -14,6 +14,7 @@ import yaml
 
 from pipeline.client import ForceClient
 from pipeline.config import SimulateParams
+from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.checkpoint import load_checkpoint
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.prediction_store import Predictions
@@ -77,8 +78,9 @@ def test_a_new_unit_of_another_design_is_read_through_its_own_declared_circuit(t
         assert ck["inputs_choice"]["only"] == f"the conductance kinds: {D} declares another circuit"
         assert set(ck["inputs_choice"]["scores"]) == {"conductance", "rest_conductance"}
     # and through its own circuit and calibration, D's force is within the target of the same units'
-    transfer = json.loads((root / "reports" / "evaluation.json").read_text())["unit_transfer"]["champion"]
-    assert transfer["new_calibrated"] <= 1.2 * transfer["same_unit"]
+    transfer = read_evaluation(root / "reports" / "evaluation.json").unit_transfer["champion"]
+    assert transfer.new_calibrated is not None and transfer.same_unit is not None
+    assert transfer.new_calibrated <= 1.2 * transfer.same_unit
     doc = json.loads((root / "data" / "calibration" / f"{D}.json").read_text())
     assert doc["front_end"] == new
     # and the cue packs say which circuit their directions are in

@@ -16,6 +16,7 @@ from mlflow import MlflowClient
 from pipeline import retrain
 from pipeline.config import IngestParams
 from tests.helpers import tree_hash
+from tests.metrics.documents import evaluation
 from tests.projects import LAB_BATCH, copy_project, run
 
 
@@ -49,6 +50,10 @@ def test_pending_batches_are_the_new_and_the_changed(tmp_path: Path) -> None:
     assert [(p.batch_id, p.status) for p in pending] == [("lab-bench-a", "changed"), ("lab-bench-b", "new")]
 
 
+def _nrmse(value: float) -> dict:
+    return {"rmse": None, "nrmse_pct": value}
+
+
 def test_summary_lists_retrained_angles_metrics_and_promotions() -> None:
     # given: a run that retrained 15° and registered a better model there
     pending = [
@@ -56,8 +61,8 @@ def test_summary_lists_retrained_angles_metrics_and_promotions() -> None:
         retrain.Pending("bad", "data/raw/bad", "new"),
     ]
     ran = ["ingest", "resample", "split", "train@15-ls", "train@15-fnn", "cues", "evaluate", "register"]
-    before = {"within_angle": {"fnn": {"15": {"fx": {"nrmse_pct": 6.0}, "fy": {"nrmse_pct": 4.0}}}}}
-    after = {"within_angle": {"fnn": {"15": {"fx": {"nrmse_pct": 5.0}, "fy": {"nrmse_pct": 3.0}}}}}
+    before = evaluation(within_angle={"fnn": {"15": {"fx": _nrmse(6.0), "fy": _nrmse(4.0)}}})
+    after = evaluation(within_angle={"fnn": {"15": {"fx": _nrmse(5.0), "fy": _nrmse(3.0)}}})
     entry = {
         "model": "needle-force-15",
         "version": 2,
@@ -122,7 +127,7 @@ def test_outcome_is_retrained_only_when_every_new_trial_was_used() -> None:
     assert retrain.outcome(2, clean)[0] == retrain.EXIT_FAILED
     # a batch the ledger does not know is not called used
     ghost = retrain.Pending("ghost", "data/raw/ghost", "new", ["data/raw/ghost: no batch.yaml"])
-    report = retrain.summarise([ghost], [], {}, {}, {}, {})
+    report = retrain.summarise([ghost], [], None, None, {}, {})
     assert report["batches_set_aside"] == ["ghost"]
     assert retrain.outcome(0, report)[0] == retrain.EXIT_SET_ASIDE
     # and the report still shows what the check before the run found in it
@@ -279,7 +284,7 @@ def test_a_new_batch_that_split_sets_aside_makes_retrain_exit_3(tmp_path: Path) 
     doc = ledger.document(
         ledger.build(records["batches"], records["quarantine"], rows, manifest, [], trained=[30, 45])
     )
-    report = retrain.summarise([retrain.Pending("lab-bench-b", str(new), "new")], [], {}, {}, {}, doc)
+    report = retrain.summarise([retrain.Pending("lab-bench-b", str(new), "new")], [], None, None, {}, doc)
     # then: the new trial is set aside at split, with the reason, and the retrain exits 3
     assert [(e["trial_id"], e["stage"]) for e in report["trials_set_aside"]] == [("t001", "split")]
     assert (

@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 
 from pipeline.client import ForceClient, UncalibratedUnit
+from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
 from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models
 
@@ -34,11 +35,11 @@ def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
             frame = pd.read_parquet(root / "data" / "processed" / angle / f"{split}.parquet")
             assert not set(frame.batch_id) & set(cal.batch_id)
     # And D's held-out batch is scored as a calibrated unit, next to the training units
-    metrics = json.loads((root / "reports" / "evaluation.json").read_text())
-    assert metrics["by_unit"][D]["calibrated"] is True
-    assert {metrics["by_unit"][u]["role"] for u in (A, B, C) if u in metrics["by_unit"]} == {"training"}
-    assert set(metrics["calibration"][D]["angles_used"]) == {"15", "45"}
-    assert "new_calibrated" in metrics["unit_transfer"]["champion"]
+    metrics = read_evaluation(root / "reports" / "evaluation.json")
+    assert metrics.by_unit[D].calibrated is True
+    assert {metrics.by_unit[u].role for u in (A, B, C) if u in metrics.by_unit} == {"training"}
+    assert set(metrics.calibration[D].angles_used) == {"15", "45"}
+    assert metrics.unit_transfer["champion"].new_calibrated is not None
     # And the report has the section
     assert "## Estimator units" in (root / "reports" / "report.md").read_text()
 

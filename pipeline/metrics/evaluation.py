@@ -24,10 +24,7 @@ import pandas as pd
 from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores, gap_summary, gaps_present, mean_known, mean_over_axes
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import AXES, TRIAL_KEY, dump_json, sorted_angles
-
-EVALUATION_FILE = "evaluation.json"  # the full evaluation, in the reports folder (metrics.json: its headline)
-DIGITS = 4  # precision of evaluation.json and metrics.json: 0.1 mN for RMSE, 0.0001 % for NRMSE
+from pipeline.vocab import AXES, TRIAL_KEY, sorted_angles
 
 
 @dataclass(frozen=True)
@@ -117,7 +114,8 @@ def _n_trials(frame: pd.DataFrame) -> int:
 def compute_metrics(
     eval_sets: Mapping[str, EvalSet], preds: Scored, gaps_deg: Sequence[float]
 ) -> dict[str, Any]:
-    """Every number of the report, rounded to 4 decimals (NaN -> null), ready for evaluation.json."""
+    """The force scores of evaluation.json (`pipeline.metrics.document.Evaluation`; the evaluate stage
+    adds the per-unit and cue sections, and `write_evaluation` rounds and writes it)."""
     within: dict[str, dict[str, Any]] = {}
     within_test: dict[str, dict[str, Any]] = {}
     matrix: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
@@ -185,8 +183,3 @@ def compute_metrics(
         "gaps_deg": [f"{g:g}" for g in gaps_deg],
         "models_evaluated": sorted(f"{m}/{a}" for m, a in preds.loaded),
     }
-
-
-def metrics_json(metrics: Mapping[str, Any]) -> str:
-    """Deterministic text of evaluation.json or metrics.json: rounded to DIGITS, sorted keys, no NaN."""
-    return dump_json(metrics, DIGITS)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import itertools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
+from pipeline.metrics.document import AxisScore, Evaluation, ForceScores, MeanNrmse
 from pipeline.metrics.scores import mean_over_axes
 from pipeline.vocab import AXES, KINDS, kind_label, sorted_angles
 
@@ -57,25 +57,26 @@ def _axes_dict(values: Sequence[float]) -> dict[str, float]:
     return dict(zip(AXES, (float(v) for v in values), strict=True))
 
 
-def paper_metrics() -> dict[str, Any]:
-    """The paper's numbers in our evaluation.json shape, so the same checks run on both."""
-    within: dict[str, dict[str, Any]] = {
-        m: {a: {ax: {"nrmse_pct": v} for ax, v in _axes_dict(vals).items()} for a, vals in rows.items()}
-        for m, rows in PAPER_TABLE1.items()
-    }
-    within["lstm"] = {
-        "30": {ax: {"nrmse_pct": v} for ax, v in _axes_dict(PAPER_TABLE3[("lstm", "30")]).items()}
-    }
+def _scores(values: Sequence[float]) -> dict[str, AxisScore]:
+    return {ax: AxisScore(rmse=None, nrmse_pct=v) for ax, v in _axes_dict(values).items()}  # NRMSE only
+
+
+def paper_metrics() -> ForceScores:
+    """The paper's numbers in our evaluation's shape, so the same checks run on both."""
+    within = {m: {a: _scores(vals) for a, vals in rows.items()} for m, rows in PAPER_TABLE1.items()}
+    within["lstm"] = {"30": _scores(PAPER_TABLE3[("lstm", "30")])}
     mean = {}
     for m, vals in PAPER_MEAN_NRMSE.items():
         nrmse = _axes_dict(vals)
         overall = mean_over_axes(nrmse)
-        mean[m] = {"within_angle": nrmse, "accuracy_pct": None if overall is None else 100.0 - overall}
+        mean[m] = MeanNrmse(within_angle=nrmse, accuracy_pct=None if overall is None else 100.0 - overall)
     angle_gap = {
         "fnn": {g: _axes_dict(v) for g, v in PAPER_TABLE2["fnn"].items()},
         "lstm": {"15": _axes_dict(PAPER_TABLE3[("lstm", "gap15")])},
     }
-    return {"within_angle": within, "mean": mean, "angle_gap": angle_gap}
+    return ForceScores.model_validate(
+        {"within_angle": within, "mean": mean, "angle_gap": angle_gap, "gaps_deg": list(PAPER_TABLE2["fnn"])}
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -91,13 +92,24 @@ class Check:
     text: str
 
 
-def _nrmse(metrics: Mapping[str, Any], model: str, angle: str, axis: str) -> float | None:
-    return metrics.get("within_angle", {}).get(model, {}).get(angle, {}).get(axis, {}).get("nrmse_pct")
+def _nrmse(metrics: ForceScores, model: str, angle: str, axis: str) -> float | None:
+    score = metrics.within_angle.get(model, {}).get(angle, {}).get(axis)  # type: ignore[call-overload]
+    return None if score is None else score.nrmse_pct
 
 
-def models_in(metrics: Mapping[str, Any]) -> list[str]:
+def _mean(metrics: ForceScores, model: str) -> MeanNrmse | None:
+    return metrics.mean.get(model)
+
+
+def _mean_nrmse(metrics: ForceScores, model: str) -> float | None:
+    """The model's within-angle NRMSE averaged over its angles and axes (None: not known)."""
+    mean = _mean(metrics, model)
+    return mean_over_axes({} if mean is None else mean.within_angle)
+
+
+def models_in(metrics: Evaluation) -> list[str]:
     """The model kinds evaluation.json has results for: ls, fnn, lstm first, then any other."""
-    present = set(metrics.get("within_angle", {})) | set(metrics.get("angle_gap_matrix", {}))
+    present = set(metrics.within_angle) | set(metrics.angle_gap_matrix)
     known = [m for m in KINDS if m in present]
     return known + sorted(present - set(known))
 
@@ -113,9 +125,9 @@ def pct(x: float | None) -> str:
     return "—" if x is None else f"{x:.2f}%"
 
 
-def check_ls_worse(metrics: Mapping[str, Any]) -> Check:
+def check_ls_worse(metrics: ForceScores) -> Check:
     """LS has a higher NRMSE than every network on every axis, at every angle with both."""
-    within = metrics.get("within_angle", {})
+    within = metrics.within_angle
     if "ls" not in within:
         return Check(None, "no LS results")
     compared, clean, exceptions = 0, 0, []
@@ -147,11 +159,12 @@ def check_ls_worse(metrics: Mapping[str, Any]) -> Check:
     return Check(clean == compared, text)
 
 
-def _accuracy(metrics: Mapping[str, Any], model: str) -> float | None:
-    return metrics.get("mean", {}).get(model, {}).get("accuracy_pct")
+def _accuracy(metrics: ForceScores, model: str) -> float | None:
+    mean = _mean(metrics, model)
+    return None if mean is None else mean.accuracy_pct
 
 
-def check_fnn_accuracy(metrics: Mapping[str, Any], threshold: float = 90.0) -> Check:
+def check_fnn_accuracy(metrics: ForceScores, threshold: float = 90.0) -> Check:
     """The FNN's average within-angle accuracy (100 − mean NRMSE) is above 90 %."""
     acc = _accuracy(metrics, "fnn")
     if acc is None:
@@ -163,21 +176,19 @@ def check_fnn_accuracy(metrics: Mapping[str, Any], threshold: float = 90.0) -> C
     )
 
 
-def check_ls_twice(metrics: Mapping[str, Any]) -> Check:
+def check_ls_twice(metrics: ForceScores) -> Check:
     """LS's average NRMSE is at least twice the FNN's (the paper's "about two times")."""
-    means = metrics.get("mean", {})
-    ls = mean_over_axes(means.get("ls", {}).get("within_angle", {}))
-    fnn = mean_over_axes(means.get("fnn", {}).get("within_angle", {}))
+    ls, fnn = (_mean_nrmse(metrics, m) for m in ("ls", "fnn"))
     if ls is None or fnn is None or fnn <= 0:
         return Check(None, "needs both LS and FNN averages")
     ratio = ls / fnn
     return Check(ratio >= 2.0, f"LS mean NRMSE {ls:.2f}% is {ratio:.2f}× the FNN's {fnn:.2f}%")
 
 
-def check_gap_growth(metrics: Mapping[str, Any], model: str) -> Check:
+def check_gap_growth(metrics: ForceScores, model: str) -> Check:
     """Mean NRMSE grows strictly from the model's own angle (gap 0) through each summarised gap."""
-    base = mean_over_axes(metrics.get("mean", {}).get(model, {}).get("within_angle", {}))
-    gaps = metrics.get("angle_gap", {}).get(model, {})
+    base = _mean_nrmse(metrics, model)
+    gaps = metrics.angle_gap.get(model, {})
     steps = [("0", base)] + [(g, mean_over_axes(gaps[g])) for g in sorted(gaps, key=float)]
     if len(steps) < 2 or any(v is None for _, v in steps):
         return Check(None, f"{kind_label(model)}: not every gap has results")
@@ -187,16 +198,16 @@ def check_gap_growth(metrics: Mapping[str, Any], model: str) -> Check:
     return Check(grows, f"{kind_label(model)}: {path}: {'grows' if grows else 'does not grow'} with the gap")
 
 
-def check_fnn_beats_lstm_at(metrics: Mapping[str, Any], angle: str) -> Check:
+def check_fnn_beats_lstm_at(metrics: ForceScores, angle: str) -> Check:
     """FNN has a lower mean NRMSE than the LSTM on the within-angle set of `angle`."""
     fnn = {a: _nrmse(metrics, "fnn", angle, a) for a in AXES}
     lstm = {a: _nrmse(metrics, "lstm", angle, a) for a in AXES}
     return _versus(fnn, lstm, f"at {angle}°")
 
 
-def check_fnn_beats_lstm_gap(metrics: Mapping[str, Any], gap: str) -> Check:
+def check_fnn_beats_lstm_gap(metrics: ForceScores, gap: str) -> Check:
     """FNN has a lower mean NRMSE than the LSTM over the pairs with angle gap `gap`."""
-    gaps = metrics.get("angle_gap", {})
+    gaps = metrics.angle_gap
     return _versus(gaps.get("fnn", {}).get(gap, {}), gaps.get("lstm", {}).get(gap, {}), f"at the {gap}° gap")
 
 
@@ -210,10 +221,11 @@ def _versus(fnn: Mapping[str, float | None], lstm: Mapping[str, float | None], w
     )
 
 
-def check_gap30_vs_ls(metrics: Mapping[str, Any], gap: str) -> Check:
+def check_gap30_vs_ls(metrics: ForceScores, gap: str) -> Check:
     """With a large gap the FNN is no better than LS at its own angle, on X and Y (section V)."""
-    fnn = metrics.get("angle_gap", {}).get("fnn", {}).get(gap, {})
-    ls = metrics.get("mean", {}).get("ls", {}).get("within_angle", {})
+    fnn = metrics.angle_gap.get("fnn", {}).get(gap, {})
+    ls_mean = _mean(metrics, "ls")
+    ls = {} if ls_mean is None else ls_mean.within_angle
     if not fnn or not ls or any(fnn.get(a) is None or ls.get(a) is None for a in ("fx", "fy")):
         return Check(None, f"needs FNN at the {gap}° gap and LS averages")
     worse = [a for a in AXES if fnn.get(a) is not None and ls.get(a) is not None and fnn[a] >= ls[a]]
@@ -241,18 +253,16 @@ class Finding:
         return "agree" if self.paper.holds == self.ours.holds else "disagree"
 
 
-def gap_key(metrics: Mapping[str, Any], wanted: float) -> str:
+def gap_key(metrics: ForceScores, wanted: float) -> str:
     """The summarised gap closest to `wanted` (the paper's 15° or 30°)."""
-    gaps = metrics.get("gaps_deg") or [f"{wanted:g}"]
+    gaps = metrics.gaps_deg or [f"{wanted:g}"]
     return min(gaps, key=lambda g: abs(float(g) - wanted))
 
 
-def findings(metrics: Mapping[str, Any]) -> list[Finding]:
+def findings(metrics: Evaluation) -> list[Finding]:
     """Every computed comparison of our numbers with the paper's."""
     paper = paper_metrics()
-    angles = list(metrics.get("datasets", {})) or sorted_angles(
-        a for m in metrics.get("within_angle", {}).values() for a in m
-    )
+    angles = list(metrics.datasets) or sorted_angles(a for m in metrics.within_angle.values() for a in m)
     ref = reference_angle(angles) or "30"
     small, large = gap_key(metrics, 15.0), gap_key(metrics, 30.0)
     out = [
@@ -297,13 +307,13 @@ def findings(metrics: Mapping[str, Any]) -> list[Finding]:
     return out
 
 
-def gap_curve_statement(metrics: Mapping[str, Any]) -> list[str]:
+def gap_curve_statement(metrics: Evaluation) -> list[str]:
     """Per model: does the mean NRMSE rise with every step of the full gap curve (0° … max)?"""
     lines = []
-    curves = metrics.get("gap_curve", {})
+    curves = metrics.gap_curve
     for model in [m for m in models_in(metrics) if m in curves]:
         curve = curves[model]
-        steps = sorted(((float(g), v.get("mean")) for g, v in curve.items()), key=lambda s: s[0])
+        steps = sorted(((float(g), v.mean) for g, v in curve.items()), key=lambda s: s[0])
         vals = [v for _, v in steps]
         if any(v is None for v in vals):
             lines.append(f"{kind_label(model)}: some gaps have no value")

@@ -20,6 +20,7 @@ import pandas as pd
 
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
+from pipeline.metrics.document import Evaluation
 from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
 from pipeline.registry.candidates import Trained
@@ -31,9 +32,10 @@ if TYPE_CHECKING:
     from mlflow import MlflowClient
 
 
-def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:
+def run_metrics(t: Trained, metrics: Evaluation | None) -> dict[str, float]:
     """The run's flat metrics: `<split>_<rmse|nrmse_pct>_<axis|mean>`, accuracy, gap NRMSE, and the
-    cues of its kind (`cues_<group>_<balanced_within_s|wrong_final|wrong_frames|...>_pct`)."""
+    cues of its kind (`cues_<group>_<balanced_within_s|wrong_final|wrong_frames|...>_pct`); without an
+    evaluation (`metrics` None), its own scores only."""
     out: dict[str, float] = {}
     for split, scores in t.scores.items():
         for what in ("rmse", "nrmse_pct"):
@@ -42,16 +44,16 @@ def run_metrics(t: Trained, metrics: Mapping[str, Any]) -> dict[str, float]:
             out[f"{split}_{what}_mean"] = float(np.mean(values))
     out["external_accuracy_pct"] = 100.0 - out["external_nrmse_pct_mean"]
     # This model on the other angles' external sets, averaged per gap (the paper's Table II, per model).
-    row = metrics.get("angle_gap_matrix", {}).get(t.kind, {}).get(t.angle, {})
-    for gap in metrics.get("gaps_deg", []):
+    row = {} if metrics is None else metrics.angle_gap_matrix.get(t.kind, {}).get(t.angle, {})
+    for gap in [] if metrics is None else metrics.gaps_deg:
         cells = [row[d] for d in row if abs(gap_of(t.angle, d) - float(gap)) < 1e-9]
         for a in AXES:
             vals = [c[a] for c in cells if c.get(a) is not None]
             if vals:
                 out[f"gap{float(gap):g}_nrmse_pct_{a}"] = float(np.mean(vals))
     # What a trainee sees with this kind's cues, over every preset angle (evaluation.json "cues")
-    for group, figures in (metrics.get("cues") or {}).get(t.kind, {}).items():
-        for what, v in figures.items():
+    for group, figures in ({} if metrics is None else metrics.cues.get(t.kind, {})).items():
+        for what, v in figures.model_dump().items():
             if v is not None and what != "trials":
                 out[f"cues_{group}_{what}_pct"] = float(v)
     for key in ("best_epoch", "epochs_run", "best_val_loss"):
@@ -163,7 +165,7 @@ def track(
     t: Trained,
     exp_id: str,
     datasets: Datasets,
-    metrics: Mapping[str, Any],
+    metrics: Evaluation | None,
     cue_pack: dict[str, Any] | None,
     deploy: str,
     figures: list[Path],

@@ -17,7 +17,7 @@ import pandas as pd
 from pipeline.config import RegisterParams
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
-from pipeline.metrics.evaluation import EVALUATION_FILE
+from pipeline.metrics.document import EVALUATION_FILE, read_evaluation
 from pipeline.metrics.scores import axis_scores, mean_nrmse
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pipeline.modelling.export import describe
@@ -229,7 +229,7 @@ def register_all(
             raise RegistryUnreachable(f"{e}\nNothing was registered and every alias is as it was.") from e
         documents = [] if cal_dir is None else load_documents(cal_dir)  # a bad one fails before any change
         metrics_path = reports_dir / EVALUATION_FILE
-        metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+        metrics = read_evaluation(metrics_path) if metrics_path.is_file() else None
         figures = sorted((reports_dir / "figures").glob("*.png"))
         files = SplitFiles(data_dir)
         trained = collect(models_dir, files, Predictions(pred_dir), params.candidates, log)

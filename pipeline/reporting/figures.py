@@ -6,11 +6,12 @@ from __future__ import annotations
 import csv
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 
+from pipeline.metrics.document import Evaluation, GapPoint
 from pipeline.metrics.evaluation import EvalSet, Scored
 from pipeline.metrics.paper import reference_angle
 from pipeline.metrics.scores import GAP_TOL, gap_of, mean_over_axes
@@ -24,14 +25,18 @@ if TYPE_CHECKING:
 FIGURES = ("fig7_profiles.png", "fig8_gaps.png", "gap_matrix.png")
 
 
-def gap_rows(metrics: Mapping[str, Any], models: Sequence[str]) -> list[dict[str, str]]:
+def gap_rows(metrics: Evaluation, models: Sequence[str]) -> list[dict[str, str]]:
     """plots/gap.csv: one row per gap present, mean NRMSE over axes and pairs per model."""
-    curve = metrics["gap_curve"]
+    curve = metrics.gap_curve
     gaps = sorted({float(g) for m in curve.values() for g in m})
     return [
-        {"gap_deg": f"{g:g}", **{m: fmt(curve.get(m, {}).get(f"{g:g}", {}).get("mean")) for m in models}}
-        for g in gaps
+        {"gap_deg": f"{g:g}", **{m: fmt(_gap_mean(curve.get(m, {}), f"{g:g}")) for m in models}} for g in gaps
     ]
+
+
+def _gap_mean(points: Mapping[str, GapPoint], gap: str) -> float | None:
+    point = points.get(gap)
+    return None if point is None else point.mean
 
 
 def first_trial(frame: pd.DataFrame) -> np.ndarray:
@@ -176,11 +181,11 @@ def plot_gaps(
     _finish_profiles(fig, grid, path)
 
 
-def plot_gap_matrix(metrics: Mapping[str, Any], models: Sequence[str], path: Path) -> None:
+def plot_gap_matrix(metrics: Evaluation, models: Sequence[str], path: Path) -> None:
     """Heatmaps of mean NRMSE over axes, train angle (rows) against data angle (cols), per model."""
     from matplotlib.figure import Figure
 
-    matrix = metrics["angle_gap_matrix"]
+    matrix = metrics.angle_gap_matrix
     shown = [m for m in models if m in matrix]
     if not shown:
         placeholder_png(path, "no trained model to plot")

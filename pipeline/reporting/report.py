@@ -1,6 +1,7 @@
 """report.md, assembled from small section functions: each heading is written by the function of
 the same name (`datasets` writes "## Datasets", `table1` "## Table I ...", and so on), and
-`render` puts them in order. Inputs are data only: metrics.json, the cue evaluation, the packs."""
+`render` puts them in order. Inputs are data only: the evaluation (`pipeline.metrics.document`), the
+cue evaluation, the packs."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.metrics.document import AxisNrmse, Evaluation, Scores
 from pipeline.metrics.paper import (
     PAPER_ACCURACY,
     PAPER_MEAN_NRMSE,
@@ -57,14 +59,13 @@ def _paper_cells(values: Sequence[float] | None) -> list[str]:
     return [pct(v) for v in values] if values else ["—"] * len(AXES)
 
 
-def _within_nrmse(
-    metrics: Mapping[str, Any], key: str, model: str, angle: str
-) -> dict[str, float | None] | None:
-    scores = metrics.get(key, {}).get(model, {}).get(angle)
-    return None if scores is None else {a: scores[a]["nrmse_pct"] for a in AXES}
+def _within_nrmse(table: Mapping[str, Mapping[str, Scores]], model: str, angle: str) -> AxisNrmse | None:
+    """NRMSE per axis of one (model, angle) of `within_angle` or `within_angle_test`."""
+    scores = table.get(model, {}).get(angle)
+    return None if scores is None else {a: scores[a].nrmse_pct for a in AXES}
 
 
-def title(metrics: Mapping[str, Any]) -> list[str]:
+def title(metrics: Evaluation) -> list[str]:
     """# Evaluation: the title and how the numbers are defined."""
     out = ["# Evaluation: needle force estimators against the paper (Tang et al., IEEE Sensors J. 2024)", ""]
     out += [
@@ -80,10 +81,10 @@ def title(metrics: Mapping[str, Any]) -> list[str]:
     return out
 
 
-def datasets(metrics: Mapping[str, Any], flagged: Sequence[Mapping[str, Any]] = ()) -> list[str]:
+def datasets(metrics: Evaluation, flagged: Sequence[Mapping[str, Any]] = ()) -> list[str]:
     """## Datasets: which set each angle is scored on, and the trials used with a flag (ledger
     entries)."""
-    datasets = metrics.get("datasets", {})
+    datasets = metrics.datasets
     out = [
         "## Datasets",
         "",
@@ -99,16 +100,16 @@ def datasets(metrics: Mapping[str, Any], flagged: Sequence[Mapping[str, Any]] = 
         (
             [
                 f"{a}°",
-                d["source"],
-                str(d["n_trials"]),
-                str(d["n_rows"]),
-                str(d["n_test_rows"]),
-                ", ".join(d["batches"]),
+                d.source,
+                str(d.n_trials),
+                str(d.n_rows),
+                str(d.n_test_rows),
+                ", ".join(d.batches),
             ]
             for a, d in ((a, datasets[a]) for a in sorted_angles(datasets))
         ),
     )
-    without = [a for a in sorted_angles(datasets) if datasets[a]["source"] != "external"]
+    without = [a for a in sorted_angles(datasets) if datasets[a].source != "external"]
     if without:
         out += [
             "",
@@ -132,14 +133,14 @@ def datasets(metrics: Mapping[str, Any], flagged: Sequence[Mapping[str, Any]] = 
     return out
 
 
-def table1(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> list[str]:
+def table1(metrics: Evaluation, models: list[str], angles: list[str]) -> list[str]:
     """## Table I: within-angle NRMSE on the external set, with the average RMSE."""
     out: list[str] = []
     out += ["", "## Table I: within-angle NRMSE on the external set", ""]
     rows = []
     for angle in angles:
         for m in models:
-            ours = _within_nrmse(metrics, "within_angle", m, angle)
+            ours = _within_nrmse(metrics.within_angle, m, angle)
             paper = PAPER_TABLE1.get(m, {}).get(angle) or (
                 PAPER_TABLE3[("lstm", "30")] if (m, angle) == ("lstm", "30") else None
             )
@@ -147,12 +148,12 @@ def table1(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> 
                 continue
             rows.append([f"{kind_label(m)} ({angle}°)", *_axis_cells(ours), *_paper_cells(paper)])
     for m in models:
-        mean = metrics.get("mean", {}).get(m, {})
-        n = mean.get("n_angles", 0)
+        mean = metrics.mean.get(m)
+        n = 0 if mean is None else mean.n_angles
         rows.append(
             [
                 f"**{kind_label(m)} average** ({n} angles)",
-                *_axis_cells(mean.get("within_angle")),
+                *_axis_cells(None if mean is None else mean.within_angle),
                 *_paper_cells(PAPER_MEAN_NRMSE.get(m)),
             ]
         )
@@ -173,7 +174,8 @@ def table1(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> 
     ]
     rmse_rows = []
     for m in models:
-        r = metrics.get("mean", {}).get(m, {}).get("within_angle_rmse", {})
+        mean = metrics.mean.get(m)
+        r = {} if mean is None else mean.within_angle_rmse
         paper_r = PAPER_MEAN_RMSE.get(m)
         rmse_rows.append(
             [
@@ -186,21 +188,21 @@ def table1(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> 
     return out
 
 
-def test_split(metrics: Mapping[str, Any], models: list[str], angles: list[str]) -> list[str]:
+def test_split(metrics: Evaluation, models: list[str], angles: list[str]) -> list[str]:
     """### Within-angle NRMSE on the test split."""
     out: list[str] = []
     out += ["", "### Within-angle NRMSE on the test split (ours only)", ""]
     rows = [
-        [f"{kind_label(m)} ({a}°)", *_axis_cells(_within_nrmse(metrics, "within_angle_test", m, a))]
+        [f"{kind_label(m)} ({a}°)", *_axis_cells(_within_nrmse(metrics.within_angle_test, m, a))]
         for a in angles
         for m in models
-        if _within_nrmse(metrics, "within_angle_test", m, a) is not None
+        if _within_nrmse(metrics.within_angle_test, m, a) is not None
     ]
     out += table(["method", "Fx", "Fy", "Fz"], rows) if rows else ["No test-split results."]
     return out
 
 
-def table2(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
+def table2(metrics: Evaluation, models: list[str]) -> list[str]:
     """## Table II: angle gaps, and the train-by-data angle matrix per model."""
     out: list[str] = []
     out += [
@@ -209,10 +211,10 @@ def table2(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
         "",
     ]
     rows = []
-    pairs = metrics.get("angle_gap_pairs", {})
-    for g in metrics.get("gaps_deg", []):
+    pairs = metrics.angle_gap_pairs
+    for g in metrics.gaps_deg:
         for m in models:
-            ours = metrics.get("angle_gap", {}).get(m, {}).get(g)
+            ours = metrics.angle_gap.get(m, {}).get(g)
             if ours is None:
                 continue
             rows.append(
@@ -226,7 +228,7 @@ def table2(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
     out += table(["model", "pairs", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
     out += ["", "Mean NRMSE over axes, train angle (rows) against data angle (columns):", ""]
     for m in models:
-        mat = metrics.get("angle_gap_matrix", {}).get(m)
+        mat = metrics.angle_gap_matrix.get(m)
         if not mat:
             continue
         cols = sorted_angles(d for row in mat.values() for d in row)
@@ -242,7 +244,7 @@ def table2(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
     return out
 
 
-def table3(metrics: Mapping[str, Any], angles: list[str]) -> list[str]:
+def table3(metrics: Evaluation, angles: list[str]) -> list[str]:
     """## Table III: FNN against LSTM."""
     out: list[str] = []
     ref = reference_angle(angles) or "30"
@@ -253,7 +255,7 @@ def table3(metrics: Mapping[str, Any], angles: list[str]) -> list[str]:
         rows.append(
             [
                 f"{kind_label(m)} ({ref}°)",
-                *_axis_cells(_within_nrmse(metrics, "within_angle", m, ref)),
+                *_axis_cells(_within_nrmse(metrics.within_angle, m, ref)),
                 *_paper_cells(PAPER_TABLE3.get((m, "30"))),
             ]
         )
@@ -261,7 +263,7 @@ def table3(metrics: Mapping[str, Any], angles: list[str]) -> list[str]:
         rows.append(
             [
                 f"{kind_label(m)} (angle gap {small}°)",
-                *_axis_cells(metrics.get("angle_gap", {}).get(m, {}).get(small)),
+                *_axis_cells(metrics.angle_gap.get(m, {}).get(small)),
                 *_paper_cells(PAPER_TABLE3.get((m, "gap15"))),
             ]
         )
@@ -269,22 +271,22 @@ def table3(metrics: Mapping[str, Any], angles: list[str]) -> list[str]:
     return out
 
 
-def accuracy(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
+def accuracy(metrics: Evaluation, models: list[str]) -> list[str]:
     """## Accuracy: 100 − mean NRMSE, own angle and per gap."""
     out: list[str] = []
     out += ["", "## Accuracy (100 − mean NRMSE over axes)", ""]
     rows = []
     for m in models:
-        mean = metrics.get("mean", {}).get(m, {})
-        gap_acc = mean.get("angle_gap_accuracy_pct", {})
+        mean = metrics.mean.get(m)
+        gap_acc = {} if mean is None else mean.angle_gap_accuracy_pct
         rows.append(
             [
                 kind_label(m),
-                pct(mean.get("accuracy_pct")),
-                *(pct(gap_acc.get(g)) for g in metrics.get("gaps_deg", [])),
+                pct(None if mean is None else mean.accuracy_pct),
+                *(pct(gap_acc.get(g)) for g in metrics.gaps_deg),
             ]
         )
-    out += table(["model", "own angle", *(f"{g}° gap" for g in metrics.get("gaps_deg", []))], rows)
+    out += table(["model", "own angle", *(f"{g}° gap" for g in metrics.gaps_deg)], rows)
     out += [
         "",
         f"Paper: FNN above 90 % (section V averages: {100 - float(np.mean(PAPER_MEAN_NRMSE['fnn'])):.2f} %), "
@@ -312,7 +314,7 @@ def figures_section(figures: Sequence[str]) -> list[str]:
     return out
 
 
-def agreement(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
+def agreement(metrics: Evaluation, models: list[str]) -> list[str]:
     """## Where we agree with the paper and where we do not; why a simulator differs."""
     out: list[str] = []
     out += ["", "## Where we agree with the paper and where we do not", ""]
@@ -323,9 +325,9 @@ def agreement(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
             f"  Paper: {fd.paper.text}.",
             f"  Ours: {fd.ours.text}.",
         ]
-    growth = [check_gap_growth(metrics, m) for m in models if m in metrics.get("angle_gap", {})]
+    growth = [check_gap_growth(metrics, m) for m in models if m in metrics.angle_gap]
     if growth:
-        gaps = ", ".join(f"{g}°" for g in metrics.get("gaps_deg", []))
+        gaps = ", ".join(f"{g}°" for g in metrics.gaps_deg)
         out += ["", f"Error grows with the angle gap for each model (own angle, then {gaps}):", ""]
         out += [f"- {'yes' if c.holds else 'no'}: {c.text}." for c in growth]
     curve = gap_curve_statement(metrics)
@@ -337,7 +339,7 @@ def agreement(metrics: Mapping[str, Any], models: list[str]) -> list[str]:
 
 
 def render(
-    metrics: Mapping[str, Any],
+    metrics: Evaluation,
     figures: Sequence[str] = (),
     cue_sections: Sequence[str] = (),
     unit_section: str = "",
@@ -347,9 +349,7 @@ def render(
     `unit_section` (the estimator units') come last; `flagged`: the ledger's entries used with a
     flag."""
     models = models_in(metrics)
-    angles = sorted_angles(
-        list(metrics.get("datasets", {})) + [a for m in metrics.get("within_angle", {}).values() for a in m]
-    )
+    angles = sorted_angles(list(metrics.datasets) + [a for m in metrics.within_angle.values() for a in m])
     out = title(metrics) + datasets(metrics, flagged)
     out += table1(metrics, models, angles) + test_split(metrics, models, angles)
     out += table2(metrics, models) + table3(metrics, angles) + accuracy(metrics, models)

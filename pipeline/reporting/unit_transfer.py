@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from pipeline.metrics.document import CalibrationSummary, Evaluation, TransferRow, UnitScores
 from pipeline.metrics.scores import mean_known, mean_over_axes
 from pipeline.reporting.style import fmt, table
 from pipeline.vocab import AXES, kind_label
@@ -42,12 +43,12 @@ def _value(x: float | None, spec: str, unit: str, why: str) -> str:
     return f"{MISSING} ({why})" if x is None else f"{format(x, spec)}{unit}"
 
 
-def force_table(transfer: Mapping[str, Any]) -> list[str]:
+def force_table(transfer: Mapping[str, TransferRow]) -> list[str]:
     rows = []
     for kind, r in transfer.items():
         label = "**champion**" if kind == "champion" else kind_label(kind)
-        cells = [fmt(r.get(g), ".2f") or "–" for g in GROUP_LABELS]
-        rows.append([label, *cells, fmt(r.get("ratio"), ".2f") or "–"])
+        cells = [fmt(getattr(r, g), ".2f") or "–" for g in GROUP_LABELS]
+        rows.append([label, *cells, fmt(r.ratio, ".2f") or "–"])
     header = ["model", *(f"{g} (%)" for g in GROUP_LABELS.values()), "new calibrated / same"]
     return table(header, rows)
 
@@ -56,18 +57,22 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None or b == 0 else a / b
 
 
-def targets(transfer: Mapping[str, Any], cue_groups: Mapping[str, Any]) -> list[str]:
+def targets(transfer: Mapping[str, TransferRow], cue_groups: Mapping[str, Any]) -> list[str]:
     """The targets' lines, every figure from this run's metrics; a figure the data cannot give reads
     as missing, with the trials it would need."""
-    champ = transfer.get("champion") or {}
-    same, uncal, cal = champ.get("same_unit"), champ.get("new_uncalibrated"), champ.get("new_calibrated")
+    champ = transfer.get("champion")
+    same, uncal, cal = (
+        (None, None, None)
+        if champ is None
+        else (
+            champ.same_unit,
+            champ.new_uncalibrated,
+            champ.new_calibrated,
+        )
+    )
     ratio = _ratio(cal, same)
     raw_ratio = _ratio(uncal, same)
-    kinds = {
-        k: r.get("same_unit")
-        for k, r in transfer.items()
-        if k != "champion" and r.get("same_unit") is not None
-    }
+    kinds = {k: r.same_unit for k, r in transfer.items() if k != "champion" and r.same_unit is not None}
     best_kind = min(kinds, key=lambda k: kinds[k]) if kinds else None
     why_ratio = NEEDS["same_unit"] if same is None else NEEDS["new_calibrated"]
     lines = [
@@ -177,47 +182,47 @@ def cue_table(cue_groups: Mapping[str, Any]) -> list[str]:
     ]
 
 
-def unit_table(by_unit: Mapping[str, Any], by_unit_uncal: Mapping[str, Any]) -> list[str]:
-    kinds = sorted({k for u in by_unit.values() for k in u if k not in ("role", "calibrated")})
+def unit_table(by_unit: Mapping[str, UnitScores], by_unit_uncal: Mapping[str, UnitScores]) -> list[str]:
+    kinds = sorted({k for u in by_unit.values() for k in u.kinds()})
     rows = []
     for unit, entry in sorted(by_unit.items()):
         cells = []
         for kind in kinds:
-            per_angle = entry.get(kind, {})
-            m = mean_known(mean_over_axes({a: s[a]["nrmse_pct"] for a in AXES}) for s in per_angle.values())
-            raw = by_unit_uncal.get(unit, {}).get(kind, {})
-            r = mean_known(mean_over_axes({a: s[a]["nrmse_pct"] for a in AXES}) for s in raw.values())
+            per_angle = entry.kind(kind)
+            m = mean_known(mean_over_axes({a: s[a].nrmse_pct for a in AXES}) for s in per_angle.values())
+            raw = by_unit_uncal[unit].kind(kind) if unit in by_unit_uncal else {}
+            r = mean_known(mean_over_axes({a: s[a].nrmse_pct for a in AXES}) for s in raw.values())
             cells.append(fmt(m, ".2f") + ("" if not raw else f" ({fmt(r, '.2f')} uncalibrated)"))
-        rows.append([unit, entry.get("role", "?"), "yes" if entry.get("calibrated") else "no", *cells])
+        rows.append([unit, entry.role, "yes" if entry.calibrated else "no", *cells])
     return table(["unit", "role", "calibrated", *(f"{kind_label(k)} (%)" for k in kinds)], rows)
 
 
-def calibration_table(calibration: Mapping[str, Any]) -> list[str]:
+def calibration_table(calibration: Mapping[str, CalibrationSummary]) -> list[str]:
     out: list[str] = []
     for unit, c in sorted(calibration.items()):
-        used = ", ".join(f"{a}°" for a in c.get("angles_used", [])) or "none"
-        missing = c.get("angles_missing") or []
-        n_all = len(c.get("angles_used", [])) + len(missing)
+        used = ", ".join(f"{a}°" for a in c.angles_used) or "none"
+        missing = c.angles_missing
+        n_all = len(c.angles_used) + len(missing)
         note = (
-            f"; **calibrated on {len(c.get('angles_used', []))} of {n_all} angles**, none at "
+            f"; **calibrated on {len(c.angles_used)} of {n_all} angles**, none at "
             + ", ".join(f"{a}°" for a in missing)
             if missing
             else ""
         )
-        batches = ", ".join(c.get("batches", [])) or "–"
-        out.append(f"- **{unit}**: {c.get('n_trials', 0)} trial(s) from {batches} at {used}{note}.")
-        for kind, loss in (c.get("loss") or {}).items():
-            kept = f" (identity kept: {loss['identity_kept']})" if loss.get("identity_kept") else ""
-            before, after = fmt(loss.get("before"), ".4f"), fmt(loss.get("after"), ".4f")
+        batches = ", ".join(c.batches) or "–"
+        out.append(f"- **{unit}**: {c.n_trials} trial(s) from {batches} at {used}{note}.")
+        for kind, loss in c.loss.items():
+            kept = f" (identity kept: {loss.identity_kept})" if loss.identity_kept else ""
+            before, after = fmt(loss.before, ".4f"), fmt(loss.after, ".4f")
             out.append(f"  - {kind_label(kind)}: loss {before} → {after}{kept}")
-        for s in c.get("set_aside", []):
+        for s in c.set_aside:
             out.append(f"  - set aside: {s}")
     return out or ["No unit has a calibration batch (`purpose: calibration`)."]
 
 
-def estimator_units(metrics: Mapping[str, Any], cue_eval: Mapping[str, Any] | None) -> str:
+def estimator_units(metrics: Evaluation, cue_eval: Mapping[str, Any] | None) -> str:
     """The section's Markdown ("" when evaluation.json has no per-unit scores)."""
-    transfer = metrics.get("unit_transfer") or {}
+    transfer = metrics.unit_transfer
     if not transfer:
         return ""
     cue_groups = (cue_eval or {}).get("by_unit_group") or {}
@@ -241,10 +246,10 @@ def estimator_units(metrics: Mapping[str, Any], cue_eval: Mapping[str, Any] | No
         "",
         "### Per unit",
         "",
-        *unit_table(metrics.get("by_unit") or {}, metrics.get("by_unit_uncalibrated") or {}),
+        *unit_table(metrics.by_unit, metrics.by_unit_uncalibrated),
         "",
     ]
     if cue_groups:
         out += ["### Cues per unit group", "", *cue_table(cue_groups), ""]
-    out += ["### Calibrations", "", *calibration_table(metrics.get("calibration") or {}), ""]
+    out += ["### Calibrations", "", *calibration_table(metrics.calibration), ""]
     return "\n".join(out)

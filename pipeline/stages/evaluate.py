@@ -28,7 +28,8 @@ from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.dataset.splits import unit_roles
 from pipeline.logs import setup
 from pipeline.metrics.cues import cue_headline
-from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets, metrics_json
+from pipeline.metrics.document import metrics_json, write_evaluation
+from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets
 from pipeline.metrics.headline import headline
 from pipeline.metrics.unit_transfer import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.prediction_store import Predictions
@@ -80,10 +81,9 @@ def main(
         _log(
             f"warning: no cue evaluation at {cues_eval}: evaluation.json and metrics.json have no cue figures"
         )
+    evaluation = write_evaluation(evaluation_json, metrics)
     metrics_json_path.parent.mkdir(parents=True, exist_ok=True)
-    evaluation_json.parent.mkdir(parents=True, exist_ok=True)
-    evaluation_json.write_text(metrics_json(metrics))
-    metrics_json_path.write_text(metrics_json(headline(metrics)))
+    metrics_json_path.write_text(metrics_json(headline(evaluation)))
     elapsed = time.perf_counter() - start
     _log(f"{len(scored.loaded)} models on {len(eval_sets)} angles in {elapsed:.1f} s -> {metrics_json_path}")
 

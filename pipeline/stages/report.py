@@ -22,7 +22,8 @@ import typer
 
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.logs import setup
-from pipeline.metrics.evaluation import EVALUATION_FILE, gather, load_eval_sets
+from pipeline.metrics.document import EVALUATION_FILE, read_evaluation
+from pipeline.metrics.evaluation import gather, load_eval_sets
 from pipeline.modelling.prediction_store import Predictions, read_inputs
 from pipeline.reporting import cues, figures, report, unit_transfer
 from pipeline.reporting.inputs import inputs_section
@@ -39,10 +40,10 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     gaps = [float(g) for g in load_section(EvaluateParams, "evaluate", params).gaps_deg]
     angles, models = [angle_name(a) for a in train.angles], list(train.models)
     try:
-        metrics = json.loads((reports_dir / EVALUATION_FILE).read_text())
+        metrics = read_evaluation(reports_dir / EVALUATION_FILE)
         eval_sets = load_eval_sets(data_dir, angles, lambda _m: None)  # evaluate has warned already
         scored = gather(eval_sets, Predictions(pred_dir), models, angles, lambda _m: None)
-    except FileNotFoundError as e:
+    except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e} (run the stages before report)")
         raise typer.Exit(1) from e
     cue_sections: list[str] = []

@@ -9,11 +9,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.metrics.document import Evaluation
 from pipeline.metrics.evaluation import EvalSet, Scored, compute_metrics
 from pipeline.modelling import prediction_store
 from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.split_predictions import predict_model
 from pipeline.vocab import AXES
+from tests.metrics.documents import evaluation
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
 ANGLES = ["0", "15", "30", "45"]
@@ -106,8 +108,9 @@ def write_predictions(
     return pred_dir
 
 
-def in_memory_metrics(error: ErrorFn, models: tuple[str, ...] = ("ls", "fnn", "lstm")) -> dict:
-    """metrics for all angles x models without touching disk (for the report tests)."""
+def in_memory_metrics(error: ErrorFn, models: tuple[str, ...] = ("ls", "fnn", "lstm")) -> Evaluation:
+    """The evaluation of all angles x models without touching disk (for the report tests): the force
+    sections, the per-unit and cue sections empty."""
     angles = ["0", "15", "30", "45", "60", "75"]
     sets = {a: EvalSet(a, "external", angle_frame(a, "h"), angle_frame(a, "t", 1)) for a in angles}
     preds = Scored()
@@ -118,4 +121,4 @@ def in_memory_metrics(error: ErrorFn, models: tuple[str, ...] = ("ls", "fnn", "l
             for d, es in sets.items():
                 preds.on_eval[(m, t, d)] = p.predict(es.frame.drop(columns=list(AXES)))
             preds.on_test[(m, t)] = p.predict(sets[t].test.drop(columns=list(AXES)))
-    return compute_metrics(sets, preds, (15, 30))
+    return evaluation(**compute_metrics(sets, preds, (15, 30)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pipeline.metrics.document import Evaluation
 from pipeline.metrics.paper import Finding, findings
 from pipeline.reporting.report import render
 from tests.metrics.fakes import ErrorFn, in_memory_metrics
@@ -13,7 +14,7 @@ def network_error(ls: float, fnn: float, lstm: float) -> ErrorFn:
     return lambda model, train, data: base[model] + 0.1 * abs(train - data) / 15
 
 
-def finding(metrics: dict, start: str) -> Finding:
+def finding(metrics: Evaluation, start: str) -> Finding:
     return next(f for f in findings(metrics) if f.claim.startswith(start))
 
 
@@ -65,11 +66,12 @@ def test_report_says_no_when_error_does_not_grow_with_the_gap():
 def test_an_angle_without_an_external_set_is_said_in_words():
     # Given metrics where 30° was scored on its test split (its held-out trials all set aside)
     m = in_memory_metrics(network_error(0.20, 0.05, 0.06))
-    m["datasets"]["30"]["source"] = "test"
+    on_test = m.model_copy(
+        update={"datasets": {**m.datasets, "30": m.datasets["30"].model_copy(update={"source": "test"})}}
+    )
     # When the report is rendered, then it says so in a sentence, not only in the table's column
-    assert "**No external set at 30°.**" in render(m)
+    assert "**No external set at 30°.**" in render(on_test)
     # and says nothing of the kind when every angle has one
-    m["datasets"]["30"]["source"] = "external"
     assert "No external set" not in render(m)
 
 

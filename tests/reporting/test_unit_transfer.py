@@ -5,17 +5,20 @@ from __future__ import annotations
 
 import re
 
+from pipeline.metrics.document import Evaluation
 from pipeline.reporting.unit_transfer import estimator_units
+from tests.metrics.documents import evaluation
 
 SCORES = {"same_unit": 4.0, "new_uncalibrated": 5.0, "new_calibrated": 4.4}
 
 
-def _metrics(**groups: float | None) -> dict:
+def _metrics(**groups: float | None) -> Evaluation:
     row = {**SCORES, **groups}
     same, new = row["same_unit"], row["new_calibrated"]
     row["ratio"] = None if same is None or new is None else new / same
     worse = {k: (None if v is None else v + 1.0) for k, v in row.items() if k != "ratio"}
-    return {"unit_transfer": {"ls": {**worse, "ratio": None}, "fnn": dict(row), "champion": dict(row)}}
+    transfer = {"ls": {**worse, "ratio": None}, "fnn": dict(row), "champion": dict(row)}
+    return evaluation(unit_transfer=transfer)
 
 
 def test_the_targets_give_this_runs_figures():
