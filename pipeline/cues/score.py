@@ -32,12 +32,11 @@ from pipeline.cues.tracker import (
 from pipeline.cues.trials import Trial, trials_of
 from pipeline.logs import Log
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import TRIAL_KEY, angle_name, dump_json
+from pipeline.vocab import TRIAL_KEY, angle_name
 from pipeline.workers import ordered_map, workers_for
 
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
 WORTH_A_WORKER = 300_000  # frames replayed: fewer take less than a worker process's start
-DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages
 # (kind, preset angle, true angle) -> the preset model's forces on that angle's external frame
 ForcesOf = Callable[[str, float, float], np.ndarray | None]
 
@@ -415,11 +414,6 @@ def _ratio(num: int, matrix: list[list[int]]) -> float | None:
 # ---------------------------------------------------------------------------------------------
 # Outputs
 # ---------------------------------------------------------------------------------------------
-
-
-def evaluation_json(evaluation: Mapping[str, Any]) -> str:
-    """Deterministic text of evaluation.json."""
-    return dump_json(evaluation, DIGITS, indent=1)
 
 
 UNIT_GROUPS = ("same_unit", "new_uncalibrated", "new_calibrated")

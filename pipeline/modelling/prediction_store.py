@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline.modelling.choice import Choice
+from pipeline.modelling.features import ModelInputs, spec_of
 from pipeline.vocab import AXES, angle_name, sorted_angles
 
 UNCALIBRATED = "external-uncalibrated"  # the external rows predicted without any unit's calibration
@@ -55,16 +58,42 @@ def prediction_table(angle: str, split: str, force: np.ndarray) -> pa.Table:
 INPUTS_FILE = "inputs.json"  # what each predicted model reads: {kind: {angle: {inputs, inputs_choice}}}
 
 
-def write_inputs(inputs: Mapping[str, Mapping[str, Any]], pred_dir: Path) -> None:
+@dataclass(frozen=True)
+class ModelReads:
+    """What one trained model reads (its checkpoint's `inputs`) and how that was chosen (its
+    `inputs_choice`; None: pinned in params)."""
+
+    inputs: ModelInputs
+    choice: Choice | None
+
+    def to_dict(self) -> dict[str, Any]:
+        choice = None if self.choice is None else self.choice.to_dict()
+        return {"inputs": self.inputs.model_dump(mode="json"), "inputs_choice": choice}
+
+
+def write_inputs(inputs: Mapping[str, Mapping[str, ModelReads]], pred_dir: Path) -> None:
     """INPUTS_FILE: each model's inputs and how they were chosen (from its checkpoint), for the report."""
+    doc = {kind: {angle: r.to_dict() for angle, r in by_angle.items()} for kind, by_angle in inputs.items()}
     pred_dir.mkdir(parents=True, exist_ok=True)
-    (pred_dir / INPUTS_FILE).write_text(json.dumps(inputs, indent=2, sort_keys=True) + "\n")
+    (pred_dir / INPUTS_FILE).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
 
 
-def read_inputs(pred_dir: Path) -> dict[str, dict[str, Any]]:
-    """INPUTS_FILE's content ({} if the predict stage wrote none)."""
+def read_inputs(pred_dir: Path) -> dict[str, dict[str, ModelReads]]:
+    """INPUTS_FILE's content ({} if the predict stage wrote none); ValueError naming the file and
+    what is wrong when it is not one."""
     path = Path(pred_dir) / INPUTS_FILE
-    return json.loads(path.read_text()) if path.is_file() else {}
+    if not path.is_file():
+        return {}
+    try:
+        doc = json.loads(path.read_text())
+        return {kind: {angle: _reads(r) for angle, r in by_angle.items()} for kind, by_angle in doc.items()}
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not the predict stage's inputs record ({e!r}); rerun predict") from e
+
+
+def _reads(record: Mapping[str, Any]) -> ModelReads:
+    choice = record["inputs_choice"]
+    return ModelReads(spec_of(record["inputs"]), None if choice is None else Choice(**choice))
 
 
 def write_predictions(blocks: list[pa.Table], path: Path) -> int:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -16,9 +15,11 @@ import pyarrow as pa
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
+from pipeline.modelling.choice import Choice
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.prediction_store import (
     UNCALIBRATED,
+    ModelReads,
     prediction_table,
     write_inputs,
     write_predictions,
@@ -117,7 +118,7 @@ def _set_frames(frames: dict[tuple[str, str], pd.DataFrame]) -> None:
 
 def _predict_one(
     job: tuple[str, str, Path, Path, UnitTransforms, Mapping[str, Circuit | None]],
-) -> tuple[int, float, list[str], dict[str, Any]]:
+) -> tuple[int, float, list[str], ModelReads]:
     """One model's predictions on every split, written to its file: (rows, seconds, warnings, what it
     reads)."""
     kind, angle, model_dir, target, units, circuits = job
@@ -126,10 +127,11 @@ def _predict_one(
     predictor = load_predictor(model_dir)
     blocks = predict_model(predictor, _FRAMES, f"{kind}/{angle}", warnings.append, units, circuits)
     rows = write_predictions(blocks, target)
-    reads = {
-        "inputs": predictor.inputs.model_dump(mode="json"),
-        "inputs_choice": predictor.checkpoint.get("inputs_choice"),
-    }
+    choice = predictor.checkpoint.get("inputs_choice")
+    reads = ModelReads(
+        inputs=predictor.inputs,
+        choice=None if choice is None else Choice(**choice),
+    )
     return rows, time.perf_counter() - started, warnings, reads
 
 
@@ -168,7 +170,7 @@ def predict_all(
             jobs.append(
                 (kind, angle, model_dir, target, dict((units or {}).get((kind, angle), {})), circuits)
             )
-    inputs: dict[str, dict[str, Any]] = {}
+    inputs: dict[str, dict[str, ModelReads]] = {}
     workers = workers_for(len(jobs) * sum(len(f) for f in frames.values()), WORTH_A_WORKER, workers)
     for (kind, angle, *_), (rows, seconds, warnings, reads) in zip(
         jobs, ordered_map(_predict_one, jobs, workers, _set_frames, (frames,)), strict=True
@@ -176,6 +178,6 @@ def predict_all(
         for warning in warnings:
             log(warning)
         inputs.setdefault(kind, {})[angle] = reads
-        log(f"{kind}/{angle}: {rows} rows predicted ({seconds:.1f} s), inputs {reads['inputs']['kind']}")
+        log(f"{kind}/{angle}: {rows} rows predicted ({seconds:.1f} s), inputs {reads.inputs.kind}")
     write_inputs(inputs, Path(out_dir))
     return [(kind, angle) for kind, angle, *_ in jobs]

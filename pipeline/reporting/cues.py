@@ -1,5 +1,5 @@
 """The angle cues in the report: the `## Angle cues` section, the confusion matrices and the
-time-to-cue curves, rendered from the cues stage's evaluation.json and packs."""
+time-to-cue curves, rendered from the cues stage's evaluation (`pipeline.cues.document`) and packs."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.cues.document import AngleMatrix, CueEvaluation, MethodResult, Results, ScoredCues, SkippedCues
 from pipeline.cues.score import DEVIATION_GROUPS
 from pipeline.cues.tracker import CUES, METHODS, REFERENCE, VERDICTS
 from pipeline.reporting.style import save_png
@@ -21,14 +22,18 @@ def _label(method: str) -> str:
     return {"combined": "angle estimate + force check (ours)", "paper": "profile comparison (paper)"}[method]
 
 
-def _no_results(evaluation: Mapping[str, Any]) -> str | None:
+def _no_results(evaluation: CueEvaluation) -> str | None:
     """Why there is nothing to plot (None if there is)."""
-    res = evaluation.get("results") or {}
-    if evaluation.get("skipped"):
-        return f"Cue evaluation skipped: {evaluation['skipped']}"
-    if not [k for k in evaluation.get("kinds", []) if k in res]:
+    if isinstance(evaluation, SkippedCues):
+        return f"Cue evaluation skipped: {evaluation.skipped}"
+    if not _kinds(evaluation):
         return "No model's cues were scored"
     return None
+
+
+def _kinds(evaluation: CueEvaluation) -> list[str]:
+    """The model kinds with results, in the evaluation's order."""
+    return [k for k in evaluation.kinds if k in evaluation.results]
 
 
 def _placeholder(message: str, path: Path) -> None:
@@ -41,14 +46,13 @@ def _placeholder(message: str, path: Path) -> None:
     save_png(fig, path)
 
 
-def plot_confusion(evaluation: Mapping[str, Any], path: Path) -> None:
+def plot_confusion(evaluation: CueEvaluation, path: Path) -> None:
     from matplotlib.figure import Figure
 
     if (why := _no_results(evaluation)) is not None:
         _placeholder(why, path)
         return
-    res = evaluation["results"]
-    kinds = [k for k in evaluation["kinds"] if k in res]
+    res, kinds = evaluation.results, _kinds(evaluation)
     methods = [m for m in METHODS if any(m in res[k] for k in kinds)]
     rows = max(len(kinds), 1)
     fig = Figure(figsize=(5 * len(methods), 3.2 * rows))
@@ -59,7 +63,7 @@ def plot_confusion(evaluation: Mapping[str, Any], path: Path) -> None:
                 axes[r][c].set_axis_off()
                 continue
             ax = axes[r][c]
-            m = np.asarray(res[kind][method]["confusion_final"]["counts"])
+            m = np.asarray(res[kind][method].confusion_final.counts)
             share = m / np.maximum(m.sum(axis=1, keepdims=True), 1)
             ax.imshow(share, cmap="Blues", vmin=0, vmax=1, aspect="auto")
             for i in range(m.shape[0]):
@@ -75,7 +79,7 @@ def plot_confusion(evaluation: Mapping[str, Any], path: Path) -> None:
                     )
             ax.set_xticks(range(len(CUES)), CUES)
             ax.set_yticks(range(len(VERDICTS)), VERDICTS)
-            acc = res[kind][method]["accuracy_final"]
+            acc = res[kind][method].accuracy_final
             ax.set_title(f"{kind.upper()}: {_label(method)}\naccuracy {100 * (acc or 0):.1f} %", fontsize=9)
             ax.set_xlabel("cue at the end of the insertion")
             ax.set_ylabel("true cue")
@@ -83,15 +87,14 @@ def plot_confusion(evaluation: Mapping[str, Any], path: Path) -> None:
     save_png(fig, path)
 
 
-def plot_time_to_cue(evaluation: Mapping[str, Any], path: Path) -> None:
+def plot_time_to_cue(evaluation: CueEvaluation, path: Path) -> None:
     """ECDF of the seconds into the insertion until the cue is right (and stays right)."""
     from matplotlib.figure import Figure
 
     if (why := _no_results(evaluation)) is not None:
         _placeholder(why, path)
         return
-    res = evaluation["results"]
-    kinds = [k for k in evaluation["kinds"] if k in res]
+    res, kinds = evaluation.results, _kinds(evaluation)
     cols = max(len(kinds), 1)
     fig = Figure(figsize=(4.2 * cols, 3.6))
     axes = fig.subplots(1, cols, squeeze=False)[0]
@@ -101,12 +104,12 @@ def plot_time_to_cue(evaluation: Mapping[str, Any], path: Path) -> None:
             if method not in res[kind]:
                 continue
             for g in DEVIATION_GROUPS:
-                d = res[kind][method]["time_to_cue"][g]
-                if not d["trials"]:
+                d = res[kind][method].time_to_cue[g]
+                if not d.trials:
                     continue
-                right = np.asarray(d["seconds"], dtype=float)
+                right = np.asarray(d.seconds, dtype=float)
                 x = np.concatenate([[0.0], right, [12.0]])
-                y = np.concatenate([[0.0], np.arange(1, len(right) + 1), [len(right)]]) / d["trials"]
+                y = np.concatenate([[0.0], np.arange(1, len(right) + 1), [len(right)]]) / d.trials
                 ax.step(
                     x,
                     y,
@@ -156,7 +159,7 @@ def _confidence(pack: Mapping[str, Any]) -> str:
     return "; ".join(parts) + f", {first['chosen_by']}"
 
 
-def seen_table(res: Mapping[str, Any], kinds: Sequence[str], within_s: float) -> list[str]:
+def seen_table(res: Results, kinds: Sequence[str], within_s: float) -> list[str]:
     """What a trainee sees, side by side: the balanced accuracy within `within_s`, the wrong cues
     (at the insertion's end, at any time during it, per frame) and the coverage."""
     lines = [
@@ -169,16 +172,16 @@ def seen_table(res: Mapping[str, Any], kinds: Sequence[str], within_s: float) ->
         "|---|---|---|---|---|---|---|",
     ]
     for _kind, method, label, r in _rows(res, kinds):
-        seen = r.get("seen") or {}
+        seen = r.seen
         lines.append(
-            f"| {label} | {_label(method)} | {_pct(r.get('balanced_within_s'))} | "
-            f"{_pct(seen.get('wrong_final'))} | {_pct(seen.get('wrong_ever'))} | "
-            f"{_pct(seen.get('wrong_frames'))} | {_pct(seen.get('coverage_frames'))} |"
+            f"| {label} | {_label(method)} | {_pct(r.balanced_within_s)} | "
+            f"{_pct(seen.wrong_final)} | {_pct(seen.wrong_ever)} | "
+            f"{_pct(seen.wrong_frames)} | {_pct(seen.coverage_frames)} |"
         )
     return lines
 
 
-def _rows(res: Mapping[str, Any], kinds: Sequence[str]) -> list[tuple[str, str, str, Mapping[str, Any]]]:
+def _rows(res: Results, kinds: Sequence[str]) -> list[tuple[str, str, str, MethodResult]]:
     """(kind, method, label, result) in report order, the reference-force bound last."""
     out = [(k, m, f"{k.upper()}", res[k][m]) for k in kinds for m in METHODS if m in res[k]]
     if REFERENCE in res and "paper" in res[REFERENCE]:
@@ -186,18 +189,17 @@ def _rows(res: Mapping[str, Any], kinds: Sequence[str]) -> list[tuple[str, str, 
     return out
 
 
-def angle_cues(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, Any]]) -> str:
+def angle_cues(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any]]) -> str:
     """The `## Angle cues` section of the report (image links relative to `reports/`). What the stage
     could not build or score is listed, with why, right under the description."""
     not_done = _not_done(evaluation, packs)
-    if evaluation.get("skipped") or not packs:
+    if not isinstance(evaluation, ScoredCues) or not packs:
         return _render_built_only(packs, not_done)
-    res = evaluation["results"]
-    kinds = [k for k in evaluation["kinds"] if k in res]
-    ae = evaluation.get("angle_estimate_at_insertion_end")
+    res, kinds = evaluation.results, _kinds(evaluation)
+    ae = evaluation.angle_estimate_at_insertion_end
     some = next(iter(packs.values()))
     pp = some["params"]
-    n_trials = sorted(set(evaluation["external_trials"].values()))
+    n_trials = sorted(set(evaluation.external_trials.values()))
     lines = [
         "## Angle cues",
         "",
@@ -226,18 +228,18 @@ def angle_cues(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str,
         "(from the reference force, for scoring only: the tracker never sees it).",
         "",
         *([*_NOT_DONE_HEAD, *not_done, ""] if not_done else []),
-        *seen_table(res, kinds, float(evaluation.get("within_s") or pp["cue_within_s"])),
+        *seen_table(res, kinds, float(pp["cue_within_s"])),
         "",
         "| model | method | right at insertion end | per frame during insertion | "
         "recall continue / correct / stop | force-check stops |",
         "|---|---|---|---|---|---|",
     ]
     for _kind, method, label, r in _rows(res, kinds):
-        rec = " / ".join(_f(None if v is None else 100 * v, ".0f") for v in r["recall_final"].values())
-        alarms = "–" if r["force_alarm_trials"] is None else f"{r['force_alarm_trials']} trials"
+        rec = " / ".join(_f(None if v is None else 100 * v, ".0f") for v in r.recall_final.values())
+        alarms = "–" if r.force_alarm_trials is None else f"{r.force_alarm_trials} trials"
         lines.append(
-            f"| {label} | {_label(method)} | {_f(100 * (r['accuracy_final'] or 0))} % | "
-            f"{_f(100 * (r['accuracy_frames'] or 0))} % | {rec} % | {alarms} |"
+            f"| {label} | {_label(method)} | {_f(100 * (r.accuracy_final or 0))} % | "
+            f"{_f(100 * (r.accuracy_frames or 0))} % | {rec} % | {alarms} |"
         )
     lines += [
         "",
@@ -251,14 +253,14 @@ def angle_cues(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str,
     for _kind, method, label, r in _rows(res, kinds):
         cells = []
         for g in DEVIATION_GROUPS:
-            d = r["time_to_cue"][g]
-            cells.append(f"{_f(d['median_s'])} / {_f(d['p90_s'])} s; wrong {d['never_right']}/{d['trials']}")
+            d = r.time_to_cue[g]
+            cells.append(f"{_f(d.median_s)} / {_f(d.p90_s)} s; wrong {d.never_right}/{d.trials}")
         lines.append(f"| {label} | {_label(method)} | " + " | ".join(cells) + " |")
     lines += ["", "Confusion at the end of the insertion (rows: true cue; columns: cue shown):", ""]
     header = "| model | method | true cue | " + " | ".join(CUES) + " |"
     lines += [header, "|---|---|---|" + "---|" * len(CUES)]
     for _kind, method, label, r in _rows(res, kinds):
-        for name, row in zip(VERDICTS, r["confusion_final"]["counts"], strict=True):
+        for name, row in zip(VERDICTS, r.confusion_final.counts, strict=True):
             lines.append(f"| {label} | {_label(method)} | {name} | " + " | ".join(str(v) for v in row) + " |")
     if ae is not None and some.get("angle_estimator"):
         lines += _angle_estimate_lines(ae, some["angle_estimator"])
@@ -277,7 +279,7 @@ def angle_cues(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str,
 _NOT_DONE_HEAD = ["What this stage could not do, and why:", ""]
 
 
-def _not_done(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, Any]]) -> list[str]:
+def _not_done(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any]]) -> list[str]:
     """Bullet lines: what is missing from the packs or the evaluation, and why (empty if nothing)."""
     out = []
     missing = {a: p.get("unavailable") or {} for a, p in sorted(packs.items())}
@@ -300,9 +302,9 @@ def _not_done(evaluation: Mapping[str, Any], packs: Mapping[float, Mapping[str, 
         else:
             kind = what.rsplit(".", 1)[-1]
             out.append(f"- **No paper-method thresholds** for {kind} at {at}: {why}.")
-    if evaluation.get("skipped"):
+    if isinstance(evaluation, SkippedCues):
         out.append(
-            f"- **Cue evaluation skipped**: {evaluation['skipped']}. `cues/evaluation.json` says so; "
+            f"- **Cue evaluation skipped**: {evaluation.skipped}. `cues/evaluation.json` says so; "
             "its two figures only carry that message."
         )
     return out
@@ -341,9 +343,9 @@ def _render_built_only(packs: Mapping[float, Mapping[str, Any]], not_done: Seque
     return "\n".join(["## Angle cues", "", text, "", *_NOT_DONE_HEAD, *not_done, ""])
 
 
-def _angle_estimate_lines(ae: Mapping[str, Any], estimator: Mapping[str, Any]) -> list[str]:
+def _angle_estimate_lines(ae: AngleMatrix, estimator: Mapping[str, Any]) -> list[str]:
     stages = estimator["stages"]
-    est_cols = ae["cols_estimated_deg"]
+    est_cols = ae.cols_estimated_deg
     lines = [
         "",
         "Our angle estimate at the end of the insertion (rows: true angle; columns: estimate; the same "
@@ -352,12 +354,12 @@ def _angle_estimate_lines(ae: Mapping[str, Any], estimator: Mapping[str, Any]) -
         "| true \\ estimated | " + " | ".join(f"{a:g}°" for a in est_cols) + " |",
         "|---|" + "---|" * len(est_cols),
     ]
-    for a, row in zip(ae["rows_true_deg"], ae["counts"], strict=True):
+    for a, row in zip(ae.rows_true_deg, ae.counts, strict=True):
         lines.append(f"| {a:g}° | " + " | ".join(str(v) for v in row) + " |")
     lines += [
         "",
-        f"Exact in {_f(100 * (ae['exact'] or 0))} % of the held-out trials, within 15° in "
-        f"{_f(100 * (ae['within_15'] or 0))} %. Cross-validated accuracy on the training splits "
+        f"Exact in {_f(100 * (ae.exact or 0))} % of the held-out trials, within 15° in "
+        f"{_f(100 * (ae.within_15 or 0))} %. Cross-validated accuracy on the training splits "
         f"({estimator['cv']}) per evidence stage: "
         + ", ".join(
             f"{'rest' if i == 0 else f'level {i}'} "
@@ -369,36 +371,36 @@ def _angle_estimate_lines(ae: Mapping[str, Any], estimator: Mapping[str, Any]) -
     return lines
 
 
-def _findings(res: Mapping[str, Any], kinds: Sequence[str]) -> list[str]:
+def _findings(res: Results, kinds: Sequence[str]) -> list[str]:
     """What the numbers say, computed, never written in advance."""
     out = []
     for kind in kinds:
         if "combined" not in res[kind]:
             continue
         ours, paper = res[kind]["combined"], res[kind]["paper"]
-        a, b = ours["accuracy_final"] or 0, paper["accuracy_final"] or 0
+        a, b = ours.accuracy_final or 0, paper.accuracy_final or 0
         verdict = "helps" if a > b + 0.02 else ("does not help" if a < b - 0.02 else "changes little")
         line = (
             f"- {kind.upper()}: going past the paper {verdict}: {100 * a:.1f} % against {100 * b:.1f} % "
             "right at the end of the insertion."
         )
-        weak = [c for c, v in paper["recall_final"].items() if v is not None and v < 0.5]
+        weak = [c for c, v in paper.recall_final.items() if v is not None and v < 0.5]
         if weak:
             line += f" The profile comparison alone gets under half of the true *{'*, *'.join(weak)}* right."
-        weak = [c for c, v in ours["recall_final"].items() if v is not None and v < 0.8]
+        weak = [c for c, v in ours.recall_final.items() if v is not None and v < 0.8]
         if weak:
             line += f" Ours is weak on *{'*, *'.join(weak)}* (recall under 80 %)."
-        if ours["force_alarm_trials"]:
-            fin = ours["confusion_final"]["counts"]
+        if ours.force_alarm_trials:
+            fin = ours.confusion_final.counts
             line += (
-                f" Its force check fired in {ours['force_alarm_trials']} trials "
+                f" Its force check fired in {ours.force_alarm_trials} trials "
                 f"(true *continue* trials ending on *stop*: {fin[0][3]})."
             )
         out.append(line)
     ref = res.get(REFERENCE, {}).get("paper")
     if ref and kinds:
-        best = max((res[k]["paper"]["accuracy_final"] or 0) for k in kinds)
-        r = ref["accuracy_final"] or 0
+        best = max((res[k]["paper"].accuracy_final or 0) for k in kinds)
+        r = ref.accuracy_final or 0
         if r > best + 0.1:
             out.append(
                 f"- The profile comparison itself is not the weak link: on the measured force it is right "
@@ -413,7 +415,7 @@ def _findings(res: Mapping[str, Any], kinds: Sequence[str]) -> list[str]:
                 f"- On the measured force the profile comparison is right in {100 * r:.1f} % of the trials "
                 f"(at most {100 * best:.1f} % on a model's prediction)."
             )
-    models_agree = len({json.dumps(res[k].get("combined", {}).get("confusion_final")) for k in kinds}) == 1
+    models_agree = len({json.dumps(_final_counts(res[k].get("combined"))) for k in kinds}) == 1
     if len(kinds) > 1 and all("combined" in res[k] for k in kinds):
         out.append(
             "- Our cue reads the model's force only for the force-in-range check, so it "
@@ -424,3 +426,7 @@ def _findings(res: Mapping[str, Any], kinds: Sequence[str]) -> list[str]:
             )
         )
     return out
+
+
+def _final_counts(result: MethodResult | None) -> list[list[int]] | None:
+    return None if result is None else result.confusion_final.counts

@@ -5,33 +5,29 @@ Data in: the predict stage's `inputs.json` (from the checkpoints)."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
 from pipeline.modelling.choice import Choice, pool
-from pipeline.modelling.features import INPUT_KINDS
+from pipeline.modelling.features import INPUT_KINDS, ModelInputs
+from pipeline.modelling.prediction_store import ModelReads
 from pipeline.reporting.style import table
+from pipeline.rig.frontend import Divider
 from pipeline.vocab import kind_label, sorted_angles
 
 
-def _circuit(inputs: Mapping[str, Any]) -> str:
-    fe = inputs.get("front_end")
-    if not fe:
+def _circuit(inputs: ModelInputs) -> str:
+    fe = inputs.front_end
+    if fe is None:
         return "–"
-    if fe.get("circuit") == "divider":
-        return f"divider {fe['supply_v']:g} V, {fe['fixed_kohm']:g} kΩ, FSR at {fe.get('fsr_at', 'supply')}"
-    return f"transimpedance {fe['drive_v']:g} V, {fe['feedback_kohm']:g} kΩ"
+    if isinstance(fe, Divider):
+        return f"divider {fe.supply_v:g} V, {fe.fixed_kohm:g} kΩ, FSR at {fe.fsr_at}"
+    return f"transimpedance {fe.drive_v:g} V, {fe.feedback_kohm:g} kΩ"
 
 
-def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
+def inputs_section(models: Mapping[str, Mapping[str, ModelReads]]) -> str:
     """The section's Markdown ("" when the predict stage recorded no model)."""
     if not models:
         return ""
-    scored = {
-        k
-        for m in models.values()
-        for r in m.values()
-        for k in ((r.get("inputs_choice") or {}).get("scores") or {})
-    }
+    scored = {k for m in models.values() for r in m.values() if r.choice is not None for k in r.choice.scores}
     kinds_seen = [k for k in INPUT_KINDS if k in scored]  # the kinds' own order: simplest first
     rows = []
     folds = set()
@@ -46,16 +42,14 @@ def inputs_section(models: Mapping[str, Mapping[str, Any]]) -> str:
         scored: dict[str, Choice] = {}  # each angle's own scores: their mean chose one kind for all
         for angle in sorted_angles(models[kind]):
             r = models[kind][angle]
-            choice = r.get("inputs_choice") or {}
-            if choice:
-                only = f"; candidates: {choice['only']}" if choice.get("only") else ""
-                folds.add(f"{choice.get('folds')}; stand-in: {choice.get('stand_in')}{only}")
-                scored[angle] = Choice(**choice)
-            how = "validation" if choice else "params"
-            rows.append(
-                [kind_label(kind), f"{angle}°", f"**{r['inputs']['kind']}**", how, _circuit(r["inputs"])]
-            )
-            rows[-1] += cells(choice.get("scores") or {})
+            choice = r.choice
+            if choice is not None:
+                only = f"; candidates: {choice.only}" if choice.only else ""
+                folds.add(f"{choice.folds}; stand-in: {choice.stand_in}{only}")
+                scored[angle] = choice
+            how = "validation" if choice is not None else "params"
+            rows.append([kind_label(kind), f"{angle}°", f"**{r.inputs.kind}**", how, _circuit(r.inputs)])
+            rows[-1] += cells({} if choice is None else choice.scores)
         read = {c.chosen for c in scored.values()}
         if len(scored) > 1 and len(read) == 1:  # one kind for all angles: the mean that chose it
             mean = pool(scored).scores

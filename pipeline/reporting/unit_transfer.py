@@ -5,8 +5,8 @@ evaluation.json (`unit_transfer`, `by_unit`, `calibration`) and the cue evaluati
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
 
+from pipeline.cues.document import CueEvaluation, GroupResult, Seen, UnitGroup
 from pipeline.metrics.document import CalibrationSummary, Evaluation, TransferRow, UnitScores
 from pipeline.metrics.scores import mean_known, mean_over_axes
 from pipeline.reporting.style import fmt, table
@@ -57,7 +57,7 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None or b == 0 else a / b
 
 
-def targets(transfer: Mapping[str, TransferRow], cue_groups: Mapping[str, Any]) -> list[str]:
+def targets(transfer: Mapping[str, TransferRow], cue_groups: Mapping[str, UnitGroup]) -> list[str]:
     """The targets' lines, every figure from this run's metrics; a figure the data cannot give reads
     as missing, with the trials it would need."""
     champ = transfer.get("champion")
@@ -89,7 +89,7 @@ def targets(transfer: Mapping[str, TransferRow], cue_groups: Mapping[str, Any]) 
         f"- New unit without its calibration, champion NRMSE (reported; at most {UNCALIBRATED_RATIO:g}× "
         "where the front end is declared): " + _value(raw_ratio, ".2f", "× the same-unit figure", why_ratio),
     ]
-    best = best_cue(cue_groups.get("new_calibrated") or {})
+    best = best_cue(cue_groups.get("new_calibrated"))
     cue_line = (
         "- Cues on the calibrated new unit, balanced accuracy within the window at least "
         f"{CUE_BALANCED:.0%}: "
@@ -105,22 +105,26 @@ def targets(transfer: Mapping[str, TransferRow], cue_groups: Mapping[str, Any]) 
     return lines
 
 
-def _wrong_lines(cue_groups: Mapping[str, Any]) -> list[str]:
+def _results(group: UnitGroup | None) -> dict[str, dict[str, GroupResult]]:
+    return {} if group is None else group.results
+
+
+def _wrong_lines(cue_groups: Mapping[str, UnitGroup]) -> list[str]:
     """Per unit group, the combined cue's wrong cues against MAX_WRONG (the worst model kind's)."""
     out = []
     for group, label in GROUP_LABELS.items():
         seen = [
-            r["seen"]
-            for kind, methods in ((cue_groups.get(group) or {}).get("results") or {}).items()
+            r.seen
+            for kind, methods in _results(cue_groups.get(group)).items()
             if kind != "reference"
             for method, r in methods.items()
-            if method == "combined" and r.get("seen")
+            if method == "combined"
         ]
         if not seen:
             continue
-        end = max(s["wrong_final"] or 0.0 for s in seen)
-        frames = max(s["wrong_frames"] or 0.0 for s in seen)
-        cover = min(s["coverage_frames"] or 0.0 for s in seen)
+        end = max(s.wrong_final or 0.0 for s in seen)
+        frames = max(s.wrong_frames or 0.0 for s in seen)
+        cover = min(s.coverage_frames or 0.0 for s in seen)
         out.append(
             f"- Cues, {label}: a wrong cue at the insertion's end in at most {MAX_WRONG:.0%} of trials and "
             f"of insertion frames: {end:.1%} and {frames:.1%}{_mark(max(end, frames) <= MAX_WRONG)} "
@@ -129,14 +133,14 @@ def _wrong_lines(cue_groups: Mapping[str, Any]) -> list[str]:
     return out
 
 
-def best_cue(group: Mapping[str, Any]) -> tuple[str, str, float] | None:
+def best_cue(group: UnitGroup | None) -> tuple[str, str, float] | None:
     """(kind, method, balanced accuracy within the window) of the best deployable cue in a group."""
     found = [
-        (r["balanced_within_s"], kind, method)
-        for kind, methods in (group.get("results") or {}).items()
+        (r.balanced_within_s, kind, method)
+        for kind, methods in _results(group).items()
         if kind != "reference"
         for method, r in methods.items()
-        if r.get("balanced_within_s") is not None
+        if r.balanced_within_s is not None
     ]
     if not found:
         return None
@@ -144,32 +148,25 @@ def best_cue(group: Mapping[str, Any]) -> tuple[str, str, float] | None:
     return kind, method, value
 
 
-def _seen_cell(seen: Mapping[str, Any]) -> str:
-    pct = {k: 100 * (seen.get(k) or 0.0) for k in ("wrong_final", "wrong_frames", "coverage_frames")}
+def _seen_cell(seen: Seen) -> str:
+    pct = {k: 100 * (getattr(seen, k) or 0.0) for k in ("wrong_final", "wrong_frames", "coverage_frames")}
     return f"wrong {pct['wrong_final']:.1f} / {pct['wrong_frames']:.1f} %; cue {pct['coverage_frames']:.0f} %"
 
 
-def cue_table(cue_groups: Mapping[str, Any]) -> list[str]:
+def cue_table(cue_groups: Mapping[str, UnitGroup]) -> list[str]:
     kinds = sorted(
-        {(k, m) for g in cue_groups.values() for k, ms in (g.get("results") or {}).items() for m in ms},
+        {(k, m) for g in cue_groups.values() for k, ms in g.results.items() for m in ms},
         key=lambda km: (km[0] == "reference", km),
     )
-    within = next(
-        (
-            r.get("within_s")
-            for g in cue_groups.values()
-            for ms in (g.get("results") or {}).values()
-            for r in ms.values()
-        ),
-        3.0,
-    )
+    results = [r for g in cue_groups.values() for ms in g.results.values() for r in ms.values()]
+    within = results[0].within_s if results else 3.0
     rows = []
     for kind, method in kinds:
         cells = []
         for group in GROUP_LABELS:
-            r = ((cue_groups.get(group) or {}).get("results") or {}).get(kind, {}).get(method)
-            v = None if r is None else r.get("balanced_within_s")
-            cells.append("–" if v is None else f"{v:.1%}; {_seen_cell((r or {}).get('seen') or {})}")
+            r = _results(cue_groups.get(group)).get(kind, {}).get(method)
+            v = None if r is None else r.balanced_within_s
+            cells.append("–" if r is None or v is None else f"{v:.1%}; {_seen_cell(r.seen)}")
         rows.append([f"{kind_label(kind)} {method}", *cells])
     header = ["cue (model, method)", *(GROUP_LABELS[g] for g in GROUP_LABELS)]
     return [
@@ -220,12 +217,12 @@ def calibration_table(calibration: Mapping[str, CalibrationSummary]) -> list[str
     return out or ["No unit has a calibration batch (`purpose: calibration`)."]
 
 
-def estimator_units(metrics: Evaluation, cue_eval: Mapping[str, Any] | None) -> str:
+def estimator_units(metrics: Evaluation, cue_eval: CueEvaluation | None) -> str:
     """The section's Markdown ("" when evaluation.json has no per-unit scores)."""
     transfer = metrics.unit_transfer
     if not transfer:
         return ""
-    cue_groups = (cue_eval or {}).get("by_unit_group") or {}
+    cue_groups = (None if cue_eval is None else cue_eval.by_unit_group) or {}
     out = [
         "## Estimator units: same unit, new unit, after calibration",
         "",

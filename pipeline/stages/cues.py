@@ -22,8 +22,9 @@ import typer
 
 from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
+from pipeline.cues.document import write_cue_evaluation
 from pipeline.cues.fit import Predicted, build_packs, pack_json
-from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, evaluation_json, skipped_evaluation
+from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, skipped_evaluation
 from pipeline.cues.tracker import calibration_evidence, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
@@ -121,7 +122,7 @@ def main(
         stale.unlink()
     for preset, pack in packs.items():
         (out_dir / "packs" / f"{angle_name(preset)}.json").write_text(pack_json(pack))
-    (out_dir / "evaluation.json").write_text(evaluation_json(evaluation))
+    write_cue_evaluation(out_dir / "evaluation.json", evaluation)
     _log(f"done in {time.perf_counter() - started:.1f} s -> {out_dir}")
 
 

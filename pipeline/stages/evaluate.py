@@ -16,7 +16,6 @@ Usage:
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ import typer
 
 from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import EvaluateParams, TrainParams, load_section
+from pipeline.cues.document import read_cue_evaluation
 from pipeline.dataset.splits import unit_roles
 from pipeline.logs import setup
 from pipeline.metrics.cues import cue_headline
@@ -60,7 +60,7 @@ def main(
         scored = gather(eval_sets, predictions, list(train.models), angles, _log)
         roles = unit_roles(data_dir)
         units = read_units(cal_dir)
-        cues = json.loads(cues_eval.read_text()) if cues_eval.is_file() else None
+        cues = read_cue_evaluation(cues_eval) if cues_eval.is_file() else None
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e

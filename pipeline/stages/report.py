@@ -21,6 +21,7 @@ from pathlib import Path
 import typer
 
 from pipeline.config import EvaluateParams, TrainParams, load_section
+from pipeline.cues.document import read_cue_evaluation
 from pipeline.logs import setup
 from pipeline.metrics.document import EVALUATION_FILE, read_evaluation
 from pipeline.metrics.evaluation import gather, load_eval_sets
@@ -50,7 +51,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     cues_dir = reports_dir / "cues"
     evaluation = None
     if (cues_dir / "evaluation.json").is_file():
-        evaluation = json.loads((cues_dir / "evaluation.json").read_text())
+        evaluation = read_cue_evaluation(cues_dir / "evaluation.json")
         packs = {float(p.stem): json.loads(p.read_text()) for p in (cues_dir / "packs").glob("*.json")}
         cues.plot_confusion(evaluation, cues_dir / "confusion.png")
         cues.plot_time_to_cue(evaluation, cues_dir / "time_to_cue.png")

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipeline.config import CuesParams
+from pipeline.cues.document import write_cue_evaluation
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.score import Run, evaluate_cues, evaluation_json, summarise_runs, time_to_cue
+from pipeline.cues.score import Run, evaluate_cues, summarise_runs, time_to_cue
 from pipeline.reporting import cues as cue_report
 from tests.cues.synthetic import (
     ANGLES,
@@ -121,7 +121,8 @@ def test_evaluation_without_an_estimator_scores_the_paper_method_only(
     assert set(ev["results"]["ls"]) == {"paper"}
     assert ev["angle_estimate_at_insertion_end"] is None
     assert ev["unavailable"] == {"30": {"angle_estimator": "a reason"}}
-    summary = cue_report.angle_cues(json.loads(evaluation_json(ev)), {30.0: pack})
+    written = write_cue_evaluation(tmp_path / "evaluation.json", ev)  # as the stage writes it
+    summary = cue_report.angle_cues(written, {30.0: pack})
     assert "**No angle estimator** (a reason)" in summary and "| LS | profile comparison (paper) |" in summary
-    cue_report.plot_confusion(ev, tmp_path / "c.png")
-    cue_report.plot_time_to_cue(ev, tmp_path / "t.png")
+    cue_report.plot_confusion(written, tmp_path / "c.png")
+    cue_report.plot_time_to_cue(written, tmp_path / "t.png")

@@ -12,6 +12,7 @@ import typer
 from typer.testing import CliRunner
 
 from pipeline.config import LSParams
+from pipeline.cues.document import read_cue_evaluation
 from pipeline.modelling.checkpoint import save_checkpoint
 from pipeline.modelling.fit import fit
 from pipeline.modelling.split_predictions import predict_all
@@ -45,7 +46,7 @@ def train_and_predict(processed: Path, frames: dict, tmp_path: Path) -> Path:
 
 def render(out: Path) -> str:
     """What the report stage makes of the cues stage's outputs: summary.md and the two figures."""
-    evaluation = json.loads((out / "evaluation.json").read_text())
+    evaluation = read_cue_evaluation(out / "evaluation.json")
     packs = {float(p.stem): json.loads(p.read_text()) for p in sorted((out / "packs").glob("*.json"))}
     cue_report.plot_confusion(evaluation, out / "confusion.png")
     cue_report.plot_time_to_cue(evaluation, out / "time_to_cue.png")
