@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
-from typing import Annotated, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -148,10 +148,17 @@ class SplitParams(Section):
 
 
 class TrainParams(Section):
-    """`train`: the matrix of per-angle models (dvc.yaml: train@<angle>-<model>)."""
+    """`train`: the matrix of per-angle models (dvc.yaml: train@<angle>-<kind>)."""
 
     angles: tuple[float, ...] = (0, 15, 30, 45, 60, 75)
-    models: tuple[ModelKind, ...] = KINDS
+    kinds: tuple[ModelKind, ...] = KINDS
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "models" in data:  # a params.yaml from before the rename
+            raise ValueError("train.models is now train.kinds (the model kinds to train): rename the key")
+        return data
 
 
 class EvaluateParams(Section):

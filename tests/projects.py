@@ -73,7 +73,7 @@ def use_small_models(root: Path, kinds: tuple[str, ...] = ("ls", "fnn")) -> dict
     """Train, cue and register only `kinds`, with few-epoch networks (end-to-end tests of the plumbing,
     not of accuracy); returns the params written."""
     params = yaml.safe_load((root / "params.yaml").read_text())
-    params["train"]["models"] = list(kinds)
+    params["train"]["kinds"] = list(kinds)
     params["cues"]["kinds"] = params["register"]["candidates"] = list(kinds)
     for model, update in TINY_MODELS.items():
         params[model].update(update)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from pipeline.config import CuesParams, load_section
+from pipeline.config import CuesParams, TrainParams, load_section
 
 
 def test_bad_params_fail_loudly(tmp_path: Path) -> None:
@@ -27,3 +27,14 @@ def test_bad_params_fail_loudly(tmp_path: Path) -> None:
         load_section(CuesParams, "cues", path)
     path.write_text("train:\n  angles: [0]\n")
     assert load_section(CuesParams, "cues", path) == CuesParams()
+
+
+def test_a_params_file_from_before_the_rename_says_what_the_key_is_now(tmp_path: Path) -> None:
+    # given: a lab's params.yaml that still names the model kinds to train `train.models`
+    path = tmp_path / "params.yaml"
+    path.write_text("train:\n  angles: [0, 15]\n  models: [ls, fnn]\n")
+    # when / then: it fails, saying the new name; with it, the kinds are read
+    with pytest.raises(ValidationError, match=r"train\.models is now train\.kinds"):
+        load_section(TrainParams, "train", path)
+    path.write_text("train:\n  angles: [0, 15]\n  kinds: [ls, fnn]\n")
+    assert load_section(TrainParams, "train", path).kinds == ("ls", "fnn")

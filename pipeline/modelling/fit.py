@@ -79,9 +79,9 @@ def fit(
     or the kind `decided` for all the model kind's angles (the choose stage's), with this angle's
     scores beside it.
     """
-    model = kind_of(kind, "train")
-    if not isinstance(params, model.params):
-        raise TypeError(f"{kind} takes {model.params.__name__}, got {type(params).__name__}")
+    model_kind = kind_of(kind, "train")
+    if not isinstance(params, model_kind.params):
+        raise TypeError(f"{kind} takes {model_kind.params.__name__}, got {type(params).__name__}")
     if train.empty:
         raise ValueError("no training rows")
     val = train.iloc[:0] if val is None else val
@@ -95,7 +95,7 @@ def fit(
         raise ValueError(f"validation channels {channels_of(val)} differ from training channels {channels}")
 
     log = log or (lambda _msg: None)
-    model.import_backends()  # before the clock: train_seconds measures the work, not the imports
+    model_kind.import_backends()  # before the clock: train_seconds measures the work, not the imports
     codes = trial_codes(train)
     started = time.perf_counter()
     choice = None
@@ -110,8 +110,8 @@ def fit(
         who = ", ".join(other_designs)
         log(f"warning: {who}: another circuit declared, which {params.inputs.kind} inputs cannot read")
     spec = inputs_for(choice.chosen if choice else params.inputs.kind, params.inputs.rest_s, front_end)
-    cfg = model.config(params, len(channels))
-    state, pre, history, summary = model.train(cfg, params, spec, train, val, channels, log)
+    cfg = model_kind.config(params, len(channels))
+    state, pre, history, summary = model_kind.train(cfg, params, spec, train, val, channels, log)
 
     seconds = time.perf_counter() - started
     sha = train_data_sha256 or data_sha256(train, val)

@@ -54,7 +54,7 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
             for a in angles
             if (models_dir / kind / a / CHECKPOINT_FILE).is_file()
         }
-        for kind in train.models
+        for kind in train.kinds
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     written = set()

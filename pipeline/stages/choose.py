@@ -26,19 +26,19 @@ from pipeline.modelling.train import choose_folders
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 
 
-def main(model: str, data_root: Path, out_file: Path, params: Path = Path("params.yaml")) -> None:
+def main(kind: str, data_root: Path, out_file: Path, params: Path = Path("params.yaml")) -> None:
     """Choose one model kind's inputs on all the trained angles' processed folders."""
     setup("choose")
-    if model not in TABLE:
-        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(TABLE)}")
+    if kind not in TABLE:
+        raise typer.BadParameter(f"unknown model kind {kind!r}; expected one of {', '.join(TABLE)}")
     try:
-        section = cast("ModelParams", load_section(TABLE[model].params, model, params))
+        section = cast("ModelParams", load_section(TABLE[kind].params, kind, params))
         if section.inputs.kind != "auto":
-            _log(f"{model}: inputs pinned in params ({section.inputs.kind}), nothing to choose")
-            save_choice(out_file, model, None, pinned=section.inputs.kind)
+            _log(f"{kind}: inputs pinned in params ({section.inputs.kind}), nothing to choose")
+            save_choice(out_file, kind, None, pinned=section.inputs.kind)
             return
         angles = load_section(TrainParams, "train", params).angles
-        save_choice(out_file, model, choose_folders(model, section, data_root, angles, _log))
+        save_choice(out_file, kind, choose_folders(kind, section, data_root, angles, _log))
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback
         _log(f"error: {e}")
         raise typer.Exit(1) from e

@@ -57,7 +57,7 @@ def main(
     try:
         eval_sets = load_eval_sets(data_dir, angles, _log)
         predictions = Predictions(pred_dir)
-        scored = gather(eval_sets, predictions, list(train.models), angles, _log)
+        scored = gather(eval_sets, predictions, list(train.kinds), angles, _log)
         roles = unit_roles(data_dir)
         units = read_units(cal_dir)
         cues = read_cue_evaluation(cues_eval) if cues_eval.is_file() else None
@@ -68,7 +68,7 @@ def main(
         _log(f"warning: no trained model found (no predictions under {pred_dir})")
     metrics = compute_metrics(eval_sets, scored, p.gaps_deg)
     calibrated = calibrated_units(units)
-    models = list(train.models)
+    models = list(train.kinds)
     metrics["by_unit"] = by_unit(eval_sets, predictions, models, roles, calibrated)
     metrics["by_unit_uncalibrated"] = by_unit(
         eval_sets, predictions, models, roles, calibrated, uncalibrated=True

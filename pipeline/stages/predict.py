@@ -34,11 +34,11 @@ def main(
     train = load_section(TrainParams, "train", params)
     started = time.perf_counter()
     try:
-        units = unit_transforms(cal_dir, models_dir, train.models, train.angles)
+        units = unit_transforms(cal_dir, models_dir, train.kinds, train.angles)
         for unit in sorted({u for found in units.values() for u in found}):
             models = sorted(f"{k}/{a}" for (k, a), found in units.items() if unit in found)
             _log(f"unit {unit}: external rows through its calibration for {len(models)} model(s)")
-        done = predict_all(data_dir, models_dir, out_dir, train.models, train.angles, _log, units=units)
+        done = predict_all(data_dir, models_dir, out_dir, train.kinds, train.angles, _log, units=units)
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
         raise typer.Exit(1) from e

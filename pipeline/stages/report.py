@@ -39,7 +39,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     setup("report")
     train = load_section(TrainParams, "train", params)
     gaps = [float(g) for g in load_section(EvaluateParams, "evaluate", params).gaps_deg]
-    angles, models = [angle_name(a) for a in train.angles], list(train.models)
+    angles, models = [angle_name(a) for a in train.angles], list(train.kinds)
     try:
         metrics = read_evaluation(reports_dir / EVALUATION_FILE)
         eval_sets = load_eval_sets(data_dir, angles, lambda _m: None)  # evaluate has warned already

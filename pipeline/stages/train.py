@@ -1,11 +1,11 @@
-"""`train` stage: one model (ls, fnn or lstm) for one angle's processed data.
+"""`train` stage: one model of a kind (ls, fnn or lstm) for one angle's processed data.
 
 Input: `DATA_DIR/train.parquet` and `DATA_DIR/val.parquet` (the split stage's; val may be empty,
 then the networks train all `max_epochs` without early stopping), and `DATA_DIR/front_ends.json`
 (the circuit the training units declare). With `inputs.kind: auto` the inputs are those of the
 choose stage's `--choice` file (all angles'; without it, chosen on this angle alone). Output in `OUT_DIR`:
 `model.pt` (see `pipeline.modelling.checkpoint`), `train_metrics.json`, `history.csv`.
-Only the model's own params section is read, so editing `fnn` never retrains `lstm`.
+Only the kind's own params section is read, so editing `fnn` never retrains `lstm`.
 
 Usage: `python -m pipeline.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--choice FILE] [--params params.yaml]`.
 """
@@ -29,16 +29,16 @@ _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs a
 
 
 def main(
-    model: str, data_dir: Path, out_dir: Path, choice: Path | None = None, params: Path = Path("params.yaml")
+    kind: str, data_dir: Path, out_dir: Path, choice: Path | None = None, params: Path = Path("params.yaml")
 ) -> None:
-    """Train one model (ls, fnn or lstm) on one angle's processed data folder."""
+    """Train one model of `kind` (ls, fnn or lstm) on one angle's processed data folder."""
     setup("train")
-    if model not in TABLE:
-        raise typer.BadParameter(f"unknown model {model!r}; expected one of {', '.join(TABLE)}")
+    if kind not in TABLE:
+        raise typer.BadParameter(f"unknown model kind {kind!r}; expected one of {', '.join(TABLE)}")
     try:
-        section = cast("ModelParams", load_section(TABLE[model].params, model, params))
-        chosen = load_choice(choice, model) if choice is not None and section.inputs.kind == "auto" else None
-        train_folder(model, section, data_dir, out_dir, _log, chosen)
+        section = cast("ModelParams", load_section(TABLE[kind].params, kind, params))
+        chosen = load_choice(choice, kind) if choice is not None and section.inputs.kind == "auto" else None
+        train_folder(kind, section, data_dir, out_dir, _log, chosen)
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback
         _log(f"error: {e}")
         raise typer.Exit(1) from e

@@ -47,7 +47,7 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
     client = MlflowClient()
     runs = client.search_runs([client.get_experiment_by_name(store.EXPERIMENT).experiment_id])
     expected = {r.info.run_name: r.data.metrics["external_nrmse_pct_mean"] for r in runs}
-    angles, kinds = params["train"]["angles"], params["train"]["models"]
+    angles, kinds = params["train"]["angles"], params["train"]["kinds"]
     assert set(expected) == {f"{a:g}°-{k}" for a in angles for k in kinds}
     # when: `needlecue ui` serves the store and a browser opens the link it prints
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")

@@ -14,9 +14,9 @@ from pipeline.vocab import AXES
 from tests.metrics.fakes import ANGLES, CHANNELS, write_predictions, write_processed
 
 
-def params_file(tmp_path: Path, angles: str = "[0, 15, 30, 45]", models: str = "[ls, fnn, lstm]") -> Path:
+def params_file(tmp_path: Path, angles: str = "[0, 15, 30, 45]", kinds: str = "[ls, fnn, lstm]") -> Path:
     path = tmp_path / "params.yaml"
-    path.write_text(f"train:\n  angles: {angles}\n  models: {models}\nevaluate:\n  gaps_deg: [15, 30]\n")
+    path.write_text(f"train:\n  angles: {angles}\n  kinds: {kinds}\nevaluate:\n  gaps_deg: [15, 30]\n")
     return path
 
 
@@ -40,7 +40,7 @@ def test_run_summarises_angle_gaps_from_fake_predictors(tmp_path: Path):
     data = write_processed(tmp_path / "processed")
     pred = write_predictions(tmp_path / "predictions", data, ["ls", "fnn"])
     # when evaluated
-    m = run(data, pred, tmp_path / "reports", params_file(tmp_path, models="[ls, fnn]"))
+    m = run(data, pred, tmp_path / "reports", params_file(tmp_path, kinds="[ls, fnn]"))
     # then the gap rows and the matrix are exactly the hand-computed ones
     assert m["angle_gap"]["fnn"]["15"]["fx"] == pytest.approx(10.15)
     assert m["angle_gap"]["fnn"]["30"]["fy"] == pytest.approx(2 * 20.15)
@@ -103,7 +103,7 @@ def test_main_on_a_fake_folder_skips_missing_models_with_a_warning(
     (pred / "lstm" / "30.parquet").unlink()  # as the predict stage leaves a model without checkpoint
     params = tmp_path / "params.yaml"
     params.write_text(
-        "train:\n  angles: [0, 15, 30]\n  models: [ls, fnn, lstm]\nevaluate:\n  gaps_deg: [15, 30]\n"
+        "train:\n  angles: [0, 15, 30]\n  kinds: [ls, fnn, lstm]\nevaluate:\n  gaps_deg: [15, 30]\n"
     )
     # when the stage entry points run
     run(data, pred, tmp_path / "reports", params)
