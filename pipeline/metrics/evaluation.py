@@ -81,13 +81,13 @@ class Scored:
 def gather(
     eval_sets: Mapping[str, EvalSet],
     predictions: Predictions,
-    models: Sequence[str],
+    kinds: Sequence[str],
     angles: Sequence[str],
     log: Log,
 ) -> Scored:
     """The stored predictions of each (model, angle) on every angle's scored set and its own test split."""
     out = Scored()
-    for model in models:
+    for model in kinds:
         for angle in angles:
             if not predictions.has(model, angle):
                 log(f"warning: {model} at {angle}° skipped: no predictions (no trained model)")

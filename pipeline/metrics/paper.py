@@ -107,7 +107,7 @@ def _mean_nrmse(metrics: ForceScores, model: str) -> float | None:
     return mean_over_axes({} if mean is None else mean.within_angle)
 
 
-def models_in(metrics: Evaluation) -> list[str]:
+def kinds_in(metrics: Evaluation) -> list[str]:
     """The model kinds evaluation.json has results for: ls, fnn, lstm first, then any other."""
     present = set(metrics.within_angle) | set(metrics.angle_gap_matrix)
     known = [m for m in KINDS if m in present]
@@ -311,7 +311,7 @@ def gap_curve_statement(metrics: Evaluation) -> list[str]:
     """Per model: does the mean NRMSE rise with every step of the full gap curve (0° … max)?"""
     lines = []
     curves = metrics.gap_curve
-    for model in [m for m in models_in(metrics) if m in curves]:
+    for model in [m for m in kinds_in(metrics) if m in curves]:
         curve = curves[model]
         steps = sorted(((float(g), v.mean) for g, v in curve.items()), key=lambda s: s[0])
         vals = [v for _, v in steps]

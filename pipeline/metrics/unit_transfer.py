@@ -32,7 +32,7 @@ def unit_rows(es: EvalSet) -> dict[str, np.ndarray]:
 def by_unit(
     eval_sets: Mapping[str, EvalSet],
     predictions: Predictions,
-    models: Sequence[str],
+    kinds: Sequence[str],
     roles: Mapping[str, str],
     calibrated: Mapping[str, bool],
     *,
@@ -50,7 +50,7 @@ def by_unit(
             if uncalibrated and not cal:
                 continue
             entry = out.setdefault(unit, {"role": roles.get(unit, "new"), "calibrated": cal})
-            for kind in models:
+            for kind in kinds:
                 split = UNCALIBRATED if uncalibrated else "external"
                 p = predictions.get(kind, angle, angle, split)
                 if p is None and uncalibrated:  # this model had no calibration for the unit
@@ -102,14 +102,14 @@ def group_scores(
 def unit_transfer(
     eval_sets: Mapping[str, EvalSet],
     predictions: Predictions,
-    models: Sequence[str],
+    kinds: Sequence[str],
     roles: Mapping[str, str],
     calibrated: Mapping[str, bool],
     champions: Mapping[str, str],
 ) -> dict[str, Any]:
     """kind | "champion" -> {group: mean NRMSE % over angles, "ratio": new_calibrated / same_unit};
     the champion row takes, per angle, the kind in `champions` ({angle: kind})."""
-    groups = {k: group_scores(eval_sets, predictions, k, roles, calibrated) for k in models}
+    groups = {k: group_scores(eval_sets, predictions, k, roles, calibrated) for k in kinds}
     rows: dict[str, Any] = {}
     for kind, g in groups.items():
         rows[kind] = {name: _mean_nrmse(g[name]) for name in GROUPS}

@@ -25,12 +25,12 @@ if TYPE_CHECKING:
 FIGURES = ("fig7_profiles.png", "fig8_gaps.png", "gap_matrix.png")
 
 
-def gap_rows(metrics: Evaluation, models: Sequence[str]) -> list[dict[str, str]]:
+def gap_rows(metrics: Evaluation, kinds: Sequence[str]) -> list[dict[str, str]]:
     """plots/gap.csv: one row per gap present, mean NRMSE over axes and pairs per model."""
     curve = metrics.gap_curve
     gaps = sorted({float(g) for m in curve.values() for g in m})
     return [
-        {"gap_deg": f"{g:g}", **{m: fmt(_gap_mean(curve.get(m, {}), f"{g:g}")) for m in models}} for g in gaps
+        {"gap_deg": f"{g:g}", **{m: fmt(_gap_mean(curve.get(m, {}), f"{g:g}")) for m in kinds}} for g in gaps
     ]
 
 
@@ -49,7 +49,7 @@ def first_trial(frame: pd.DataFrame) -> np.ndarray:
 
 
 def profile_rows(
-    eval_sets: Mapping[str, EvalSet], preds: Scored, models: Sequence[str]
+    eval_sets: Mapping[str, EvalSet], preds: Scored, kinds: Sequence[str]
 ) -> list[dict[str, str]]:
     """plots/profile.csv: Fz of one held-out trial at the reference angle, reference and each model."""
     angle = reference_angle(list(eval_sets))
@@ -58,7 +58,7 @@ def profile_rows(
     es = eval_sets[angle]
     rows = first_trial(es.frame)
     k = AXES.index("fz")
-    cols = {m: preds.on_eval.get((m, angle, angle)) for m in models}
+    cols = {m: preds.on_eval.get((m, angle, angle)) for m in kinds}
     return [
         {
             "t_s": fmt(float(es.frame["t_s"].iloc[i]), ".6g"),
@@ -102,11 +102,11 @@ def _profile_panels(
         ax.grid(alpha=0.3)
 
 
-def plot_profiles(eval_sets: Mapping[str, EvalSet], preds: Scored, models: Sequence[str], path: Path) -> None:
+def plot_profiles(eval_sets: Mapping[str, EvalSet], preds: Scored, kinds: Sequence[str], path: Path) -> None:
     """Fig. 7: reference against each model on one external trial per angle (rows) and axis (cols)."""
     from matplotlib.figure import Figure
 
-    angles = [a for a in eval_sets if any((m, a, a) in preds.on_eval for m in models)]
+    angles = [a for a in eval_sets if any((m, a, a) in preds.on_eval for m in kinds)]
     if not angles:
         placeholder_png(path, "no trained model to plot")
         return
@@ -115,7 +115,7 @@ def plot_profiles(eval_sets: Mapping[str, EvalSet], preds: Scored, models: Seque
     for r, angle in enumerate(angles):
         es = eval_sets[angle]
         rows = first_trial(es.frame)
-        lines = {m: preds.on_eval[(m, angle, angle)] for m in models if (m, angle, angle) in preds.on_eval}
+        lines = {m: preds.on_eval[(m, angle, angle)] for m in kinds if (m, angle, angle) in preds.on_eval}
         _profile_panels(grid[r], es, lines, rows)
         trial = es.frame["trial_id"].iloc[rows[0]]
         for k, ax in enumerate(grid[r]):
@@ -145,7 +145,7 @@ def gap_examples(
 def plot_gaps(
     eval_sets: Mapping[str, EvalSet],
     preds: Scored,
-    models: Sequence[str],
+    kinds: Sequence[str],
     gaps: Sequence[float],
     path: Path,
 ) -> None:
@@ -156,7 +156,7 @@ def plot_gaps(
     examples = [
         (t, d)
         for t, d in gap_examples(trained, eval_sets, gaps)
-        if any((m, t, d) in preds.on_eval for m in models)
+        if any((m, t, d) in preds.on_eval for m in kinds)
     ]
     if not examples:
         placeholder_png(path, "no (model, data) pair with the configured angle gaps")
@@ -168,7 +168,7 @@ def plot_gaps(
         rows = first_trial(es.frame)
         lines = {
             m: preds.on_eval[(m, train_angle, data_angle)]
-            for m in models
+            for m in kinds
             if (m, train_angle, data_angle) in preds.on_eval
         }
         _profile_panels(grid[r], es, lines, rows)
@@ -181,12 +181,12 @@ def plot_gaps(
     _finish_profiles(fig, grid, path)
 
 
-def plot_gap_matrix(metrics: Evaluation, models: Sequence[str], path: Path) -> None:
+def plot_gap_matrix(metrics: Evaluation, kinds: Sequence[str], path: Path) -> None:
     """Heatmaps of mean NRMSE over axes, train angle (rows) against data angle (cols), per model."""
     from matplotlib.figure import Figure
 
     matrix = metrics.angle_gap_matrix
-    shown = [m for m in models if m in matrix]
+    shown = [m for m in kinds if m in matrix]
     if not shown:
         placeholder_png(path, "no trained model to plot")
         return

@@ -23,7 +23,7 @@ from pipeline.metrics.paper import (
     findings,
     gap_curve_statement,
     gap_key,
-    models_in,
+    kinds_in,
     pct,
     reference_angle,
 )
@@ -133,13 +133,13 @@ def datasets(metrics: Evaluation, flagged: Sequence[Mapping[str, Any]] = ()) -> 
     return out
 
 
-def table1(metrics: Evaluation, models: list[str], angles: list[str]) -> list[str]:
+def table1(metrics: Evaluation, kinds: list[str], angles: list[str]) -> list[str]:
     """## Table I: within-angle NRMSE on the external set, with the average RMSE."""
     out: list[str] = []
     out += ["", "## Table I: within-angle NRMSE on the external set", ""]
     rows = []
     for angle in angles:
-        for m in models:
+        for m in kinds:
             ours = _within_nrmse(metrics.within_angle, m, angle)
             paper = PAPER_TABLE1.get(m, {}).get(angle) or (
                 PAPER_TABLE3[("lstm", "30")] if (m, angle) == ("lstm", "30") else None
@@ -147,7 +147,7 @@ def table1(metrics: Evaluation, models: list[str], angles: list[str]) -> list[st
             if ours is None and paper is None:
                 continue
             rows.append([f"{kind_label(m)} ({angle}°)", *_axis_cells(ours), *_paper_cells(paper)])
-    for m in models:
+    for m in kinds:
         mean = metrics.mean.get(m)
         n = 0 if mean is None else mean.n_angles
         rows.append(
@@ -173,7 +173,7 @@ def table1(metrics: Evaluation, models: list[str], angles: list[str]) -> list[st
         "",
     ]
     rmse_rows = []
-    for m in models:
+    for m in kinds:
         mean = metrics.mean.get(m)
         r = {} if mean is None else mean.within_angle_rmse
         paper_r = PAPER_MEAN_RMSE.get(m)
@@ -188,21 +188,21 @@ def table1(metrics: Evaluation, models: list[str], angles: list[str]) -> list[st
     return out
 
 
-def test_split(metrics: Evaluation, models: list[str], angles: list[str]) -> list[str]:
+def test_split(metrics: Evaluation, kinds: list[str], angles: list[str]) -> list[str]:
     """### Within-angle NRMSE on the test split."""
     out: list[str] = []
     out += ["", "### Within-angle NRMSE on the test split (ours only)", ""]
     rows = [
         [f"{kind_label(m)} ({a}°)", *_axis_cells(_within_nrmse(metrics.within_angle_test, m, a))]
         for a in angles
-        for m in models
+        for m in kinds
         if _within_nrmse(metrics.within_angle_test, m, a) is not None
     ]
     out += table(["method", "Fx", "Fy", "Fz"], rows) if rows else ["No test-split results."]
     return out
 
 
-def table2(metrics: Evaluation, models: list[str]) -> list[str]:
+def table2(metrics: Evaluation, kinds: list[str]) -> list[str]:
     """## Table II: angle gaps, and the train-by-data angle matrix per model."""
     out: list[str] = []
     out += [
@@ -213,7 +213,7 @@ def table2(metrics: Evaluation, models: list[str]) -> list[str]:
     rows = []
     pairs = metrics.angle_gap_pairs
     for g in metrics.gaps_deg:
-        for m in models:
+        for m in kinds:
             ours = metrics.angle_gap.get(m, {}).get(g)
             if ours is None:
                 continue
@@ -227,7 +227,7 @@ def table2(metrics: Evaluation, models: list[str]) -> list[str]:
             )
     out += table(["model", "pairs", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
     out += ["", "Mean NRMSE over axes, train angle (rows) against data angle (columns):", ""]
-    for m in models:
+    for m in kinds:
         mat = metrics.angle_gap_matrix.get(m)
         if not mat:
             continue
@@ -271,12 +271,12 @@ def table3(metrics: Evaluation, angles: list[str]) -> list[str]:
     return out
 
 
-def accuracy(metrics: Evaluation, models: list[str]) -> list[str]:
+def accuracy(metrics: Evaluation, kinds: list[str]) -> list[str]:
     """## Accuracy: 100 − mean NRMSE, own angle and per gap."""
     out: list[str] = []
     out += ["", "## Accuracy (100 − mean NRMSE over axes)", ""]
     rows = []
-    for m in models:
+    for m in kinds:
         mean = metrics.mean.get(m)
         gap_acc = {} if mean is None else mean.angle_gap_accuracy_pct
         rows.append(
@@ -314,7 +314,7 @@ def figures_section(figures: Sequence[str]) -> list[str]:
     return out
 
 
-def agreement(metrics: Evaluation, models: list[str]) -> list[str]:
+def agreement(metrics: Evaluation, kinds: list[str]) -> list[str]:
     """## Where we agree with the paper and where we do not; why a simulator differs."""
     out: list[str] = []
     out += ["", "## Where we agree with the paper and where we do not", ""]
@@ -325,7 +325,7 @@ def agreement(metrics: Evaluation, models: list[str]) -> list[str]:
             f"  Paper: {fd.paper.text}.",
             f"  Ours: {fd.ours.text}.",
         ]
-    growth = [check_gap_growth(metrics, m) for m in models if m in metrics.angle_gap]
+    growth = [check_gap_growth(metrics, m) for m in kinds if m in metrics.angle_gap]
     if growth:
         gaps = ", ".join(f"{g}°" for g in metrics.gaps_deg)
         out += ["", f"Error grows with the angle gap for each model (own angle, then {gaps}):", ""]
@@ -348,12 +348,12 @@ def render(
     """report.md: the sections in order; `cue_sections` (the angle cues' Markdown), then
     `unit_section` (the estimator units') come last; `flagged`: the ledger's entries used with a
     flag."""
-    models = models_in(metrics)
+    kinds = kinds_in(metrics)
     angles = sorted_angles(list(metrics.datasets) + [a for m in metrics.within_angle.values() for a in m])
     out = title(metrics) + datasets(metrics, flagged)
-    out += table1(metrics, models, angles) + test_split(metrics, models, angles)
-    out += table2(metrics, models) + table3(metrics, angles) + accuracy(metrics, models)
-    out += figures_section(figures) + agreement(metrics, models)
+    out += table1(metrics, kinds, angles) + test_split(metrics, kinds, angles)
+    out += table2(metrics, kinds) + table3(metrics, angles) + accuracy(metrics, kinds)
+    out += figures_section(figures) + agreement(metrics, kinds)
     report = "\n".join(out)
     for section in [*cue_sections, unit_section]:
         if section.strip():

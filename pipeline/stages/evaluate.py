@@ -68,13 +68,13 @@ def main(
         _log(f"warning: no trained model found (no predictions under {pred_dir})")
     metrics = compute_metrics(eval_sets, scored, p.gaps_deg)
     calibrated = calibrated_units(units)
-    models = list(train.kinds)
-    metrics["by_unit"] = by_unit(eval_sets, predictions, models, roles, calibrated)
+    kinds = list(train.kinds)
+    metrics["by_unit"] = by_unit(eval_sets, predictions, kinds, roles, calibrated)
     metrics["by_unit_uncalibrated"] = by_unit(
-        eval_sets, predictions, models, roles, calibrated, uncalibrated=True
+        eval_sets, predictions, kinds, roles, calibrated, uncalibrated=True
     )
-    champions = champions_by_angle(metrics["within_angle"], models)
-    metrics["unit_transfer"] = unit_transfer(eval_sets, predictions, models, roles, calibrated, champions)
+    champions = champions_by_angle(metrics["within_angle"], kinds)
+    metrics["unit_transfer"] = unit_transfer(eval_sets, predictions, kinds, roles, calibrated, champions)
     metrics["calibration"] = calibration_summary(units)
     metrics["cues"] = cue_headline(cues)
     if cues is None:

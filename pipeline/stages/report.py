@@ -39,11 +39,11 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     setup("report")
     train = load_section(TrainParams, "train", params)
     gaps = [float(g) for g in load_section(EvaluateParams, "evaluate", params).gaps_deg]
-    angles, models = [angle_name(a) for a in train.angles], list(train.kinds)
+    angles, kinds = [angle_name(a) for a in train.angles], list(train.kinds)
     try:
         metrics = read_evaluation(reports_dir / EVALUATION_FILE)
         eval_sets = load_eval_sets(data_dir, angles, lambda _m: None)  # evaluate has warned already
-        scored = gather(eval_sets, Predictions(pred_dir), models, angles, lambda _m: None)
+        scored = gather(eval_sets, Predictions(pred_dir), kinds, angles, lambda _m: None)
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e} (run the stages before report)")
         raise typer.Exit(1) from e
@@ -61,13 +61,13 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
         _log(f"warning: no {cues_dir / 'evaluation.json'} (run the cues stage): no angle-cue section")
 
     plots = reports_dir / "plots"
-    figures.write_csv(plots / "gap.csv", figures.gap_rows(metrics, models), ["gap_deg", *models])
-    profile = figures.profile_rows(eval_sets, scored, models)
-    figures.write_csv(plots / "profile.csv", profile, ["t_s", "reference", *models])
+    figures.write_csv(plots / "gap.csv", figures.gap_rows(metrics, kinds), ["gap_deg", *kinds])
+    profile = figures.profile_rows(eval_sets, scored, kinds)
+    figures.write_csv(plots / "profile.csv", profile, ["t_s", "reference", *kinds])
     fig_dir = reports_dir / "figures"
-    figures.plot_profiles(eval_sets, scored, models, fig_dir / figures.FIGURES[0])
-    figures.plot_gaps(eval_sets, scored, models, gaps, fig_dir / figures.FIGURES[1])
-    figures.plot_gap_matrix(metrics, models, fig_dir / figures.FIGURES[2])
+    figures.plot_profiles(eval_sets, scored, kinds, fig_dir / figures.FIGURES[0])
+    figures.plot_gaps(eval_sets, scored, kinds, gaps, fig_dir / figures.FIGURES[1])
+    figures.plot_gap_matrix(metrics, kinds, fig_dir / figures.FIGURES[2])
     unit_section = inputs_section(read_inputs(pred_dir)) + unit_transfer.estimator_units(metrics, evaluation)
     needs_file = reports_dir / "needs" / "needs.json"
     if needs_file.is_file():  # the needs stage drew its figure; the report links it

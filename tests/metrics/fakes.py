@@ -88,7 +88,7 @@ def write_processed(root: Path, angles: list[str] = ANGLES, no_external: tuple[s
 def write_predictions(
     pred_dir: Path,
     data_dir: Path,
-    models: Sequence[str],
+    kinds: Sequence[str],
     angles: Sequence[str] = ANGLES,
     error: ErrorFn = gap_error,
     channels: Callable[[str, str], list[str]] = lambda _m, _a: CHANNELS,
@@ -101,20 +101,20 @@ def write_predictions(
         for d in sorted(data_dir.iterdir())
         for f in sorted(d.glob("*.parquet"))
     }
-    for m in models:
+    for m in kinds:
         for a in angles:
             blocks = predict_model(FakePredictor(m, a, error, channels(m, a)), frames, f"{m}/{a}", log)
             prediction_store.write_predictions(blocks, pred_dir / m / f"{a}.parquet")
     return pred_dir
 
 
-def in_memory_metrics(error: ErrorFn, models: tuple[str, ...] = ("ls", "fnn", "lstm")) -> Evaluation:
+def in_memory_metrics(error: ErrorFn, kinds: tuple[str, ...] = ("ls", "fnn", "lstm")) -> Evaluation:
     """The evaluation of all angles x models without touching disk (for the report tests): the force
     sections, the per-unit and cue sections empty."""
     angles = ["0", "15", "30", "45", "60", "75"]
     sets = {a: EvalSet(a, "external", angle_frame(a, "h"), angle_frame(a, "t", 1)) for a in angles}
     preds = Scored()
-    for m in models:
+    for m in kinds:
         for t in angles:
             p = FakePredictor(m, t, error)
             preds.loaded.append((m, t))

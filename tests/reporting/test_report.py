@@ -56,7 +56,7 @@ def test_report_says_no_when_error_does_not_grow_with_the_gap():
     def error(model: str, train: float, data: float) -> float:
         return 0.5 if train == data else 0.05
 
-    m = in_memory_metrics(error, models=("fnn",))
+    m = in_memory_metrics(error, kinds=("fnn",))
     report = render(m)
     assert finding(m, "FNN error grows").verdict == "disagree"
     assert "- no: FNN: 100.00% (0°) → 10.00% (15°) → 10.00% (30°): does not grow with the gap." in report
