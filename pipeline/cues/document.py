@@ -9,21 +9,15 @@ renamed on one side fails where the file is written or read, naming it, not as a
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
+from pydantic import TypeAdapter
 
-from pipeline.vocab import dump_json
+from pipeline.documents import Document, DocumentFile, Number
 
 FORMAT = "needlecue-cues-eval/1"
 DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages
-Number = float | None  # None: cannot be computed (no trial of that kind)
-
-
-class Document(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 class Confusion(Document):
@@ -118,34 +112,19 @@ class ScoredCues(_Common):
 
 
 CueEvaluation = ScoredCues | SkippedCues
-_ADAPTER: TypeAdapter[CueEvaluation] = TypeAdapter(CueEvaluation)
 
 
-def cue_evaluation_json(doc: dict[str, Any]) -> str:
-    """Deterministic text of the cue evaluation."""
-    return dump_json(doc, DIGITS, indent=1)
+CUE_EVALUATION_DOC: DocumentFile[CueEvaluation] = DocumentFile(
+    TypeAdapter(CueEvaluation), "a cue evaluation", "cues", DIGITS, indent=1
+)
 
 
 def write_cue_evaluation(path: Path, doc: dict[str, Any]) -> CueEvaluation:
     """Write the cue evaluation after checking it is a whole `ScoredCues` or `SkippedCues`
     (ValueError naming the fields otherwise)."""
-    evaluation = _parse(doc, f"{path} (being written)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(cue_evaluation_json(doc))
-    return evaluation
+    return CUE_EVALUATION_DOC.write(path, doc)
 
 
 def read_cue_evaluation(path: Path) -> CueEvaluation:
     """The cue evaluation at `path`; FileNotFoundError, or ValueError naming the file and fields."""
-    try:
-        doc = json.loads(path.read_text())
-    except ValueError as e:
-        raise ValueError(f"{path}: not JSON ({e}); rerun the cues stage") from e
-    return _parse(doc, str(path))
-
-
-def _parse(doc: Any, where: str) -> CueEvaluation:
-    try:
-        return _ADAPTER.validate_python(doc)
-    except ValidationError as e:
-        raise ValueError(f"{where}: not a cue evaluation this needlecue reads (rerun cues): {e}") from e
+    return CUE_EVALUATION_DOC.read(path)

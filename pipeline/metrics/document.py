@@ -8,23 +8,17 @@ data (model kind, angle, gap, unit) stay maps; a kind or angle with no results i
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import ConfigDict, TypeAdapter
 
-from pipeline.vocab import dump_json
+from pipeline.documents import Document, DocumentFile, Number
 
 EVALUATION_FILE = "evaluation.json"  # the full evaluation, in the reports folder (metrics.json: its headline)
 DIGITS = 4  # precision of evaluation.json and metrics.json: 0.1 mN for RMSE, 0.0001 % for NRMSE
 
 Axis = Literal["fx", "fy", "fz"]
-Number = float | None  # None: cannot be computed (NaN is not JSON)
-
-
-class Document(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 class AxisScore(Document):
@@ -154,32 +148,23 @@ class Evaluation(ForceScores):
     cues: dict[str, dict[str, CueFigures]]  # kind -> unit group -> figures
 
 
+EVALUATION_DOC: DocumentFile[Evaluation] = DocumentFile(
+    TypeAdapter(Evaluation), "an evaluation", "evaluate", DIGITS
+)
+
+
 def metrics_json(doc: dict[str, Any]) -> str:
     """Deterministic text of evaluation.json or metrics.json: rounded to DIGITS, sorted keys, no NaN."""
-    return dump_json(doc, DIGITS)
+    return EVALUATION_DOC.text(doc)
 
 
 def write_evaluation(path: Path, doc: dict[str, Any]) -> Evaluation:
     """Write evaluation.json, rounded to DIGITS, after checking `doc` is a whole `Evaluation`
     (ValueError naming the fields otherwise); returns it unrounded, as computed (the headline
     figures are computed from it, then rounded once)."""
-    evaluation = _parse(doc, f"{path} (being written)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(metrics_json(doc))
-    return evaluation
+    return EVALUATION_DOC.write(path, doc)
 
 
 def read_evaluation(path: Path) -> Evaluation:
     """The evaluation.json at `path`; FileNotFoundError, or ValueError naming the file and fields."""
-    try:
-        doc = json.loads(path.read_text())
-    except ValueError as e:
-        raise ValueError(f"{path}: not JSON ({e}); rerun evaluate") from e
-    return _parse(doc, str(path))
-
-
-def _parse(doc: Any, where: str) -> Evaluation:
-    try:
-        return Evaluation.model_validate(doc)
-    except ValidationError as e:
-        raise ValueError(f"{where}: not an evaluation this needlecue reads (rerun evaluate): {e}") from e
+    return EVALUATION_DOC.read(path)

@@ -41,7 +41,7 @@ class Predictor:
         self.targets: tuple[str, ...] = tuple(checkpoint["targets"])
         self.rate_hz: float = float(checkpoint["rate_hz"])
         self.angle_deg: float = float(checkpoint["angle_deg"])
-        self.window: int = self.config.window
+        self.window: int = self.model_kind.window(self.config)
         self.sequence: bool = self.model_kind.sequence  # reads a window of samples per row
         self._model = self.model_kind.load(self.config, checkpoint["state_dict"], checkpoint["preprocessing"])
 

@@ -58,7 +58,75 @@ class NetworkKind(ModelKind):
         channels: list[str],
         log: Log,
     ) -> Fitted:
-        return train_network(self, cfg, params, spec, train, val, channels, log)
+        """Adam on standardised data, seeded shuffling, early stopping on val MSE keeping the best weights."""
+        import torch
+
+        window = self.sequence_window(cfg)
+        x_mean, x_std = column_stats(features_of(train, channels, spec))
+        y = train[list(AXES)].to_numpy(np.float64)
+        y_mean, y_std = column_stats(y)
+        x_tr = torch.from_numpy(inputs_of(train, channels, x_mean, x_std, spec, window))
+        y_tr = torch.from_numpy(((y - y_mean) / y_std).astype(np.float32))
+        has_val = not val.empty
+        if has_val:
+            x_va = torch.from_numpy(inputs_of(val, channels, x_mean, x_std, spec, window))
+            y_val = val[list(AXES)].to_numpy(np.float64)
+            y_va = torch.from_numpy(((y_val - y_mean) / y_std).astype(np.float32))
+        else:
+            log(f"no validation rows: no early stopping, training all {params.max_epochs} epochs")
+
+        n, bs = len(x_tr), params.batch_size
+        every = max(1, params.max_epochs // 10)
+        history: list[dict[str, float]] = []
+        with deterministic_torch(params.seed):
+            net = self.module(cfg)  # initialised from the seeded (forked) global RNG
+            gen = torch.Generator().manual_seed(params.seed)
+            opt = Adam(net.parameters(), lr=params.lr, weight_decay=params.weight_decay)
+            loss_fn = torch.nn.MSELoss()
+            # The averaged copy is what gets validated and saved: it smooths the step-to-step noise of
+            # the SGD iterate, so the early-stopping choice depends less on where one epoch happened to end.
+            avg = self.module(cfg) if params.ema > 0 else net
+            if params.ema > 0:
+                avg.load_state_dict(net.state_dict())
+                avg_flat = flatten(list(avg.parameters()))  # in the order of opt.flat (same config)
+            best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
+            best_val, best_epoch, epoch = math.inf, 0, 0
+            for epoch in range(1, params.max_epochs + 1):
+                net.train()
+                perm = torch.randperm(n, generator=gen)
+                total = torch.zeros(())
+                for i in range(0, n, bs):
+                    idx = perm[i : i + bs]
+                    opt.zero_grad()
+                    loss = loss_fn(net(x_tr[idx]), y_tr[idx])
+                    loss.backward()
+                    opt.step()
+                    if params.ema > 0:
+                        with torch.no_grad():
+                            avg_flat.lerp_(opt.flat, 1 - params.ema)
+                    total += loss.detach() * len(idx)
+                train_loss = float(total) / n
+                val_loss = math.nan
+                if has_val:
+                    avg.eval()
+                    with torch.no_grad():
+                        val_loss = float(loss_fn(avg(x_va), y_va))
+                history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss})
+                if not has_val or val_loss < best_val:
+                    best_val, best_epoch = val_loss, epoch
+                    best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
+                if epoch % every == 0:
+                    log(f"epoch {epoch:4d}  train loss {train_loss:.5f}  val loss {val_loss:.5f}")
+                if has_val and epoch - best_epoch >= params.patience:
+                    break
+
+        summary = {
+            "epochs_run": epoch,
+            "best_epoch": best_epoch,
+            "best_val_loss": best_val if has_val else None,
+            "early_stopping": has_val,
+        }
+        return Fitted(best_state, preprocessing(x_mean, x_std, y_mean, y_std), history, summary)
 
     def load(self, cfg: ModelConfig, state: dict[str, Any], preprocessing: dict[str, Any]) -> NetworkModel:
         return NetworkModel(self, cfg, state, preprocessing)
@@ -100,7 +168,7 @@ class NetworkModel:
     ) -> None:
         import torch
 
-        self.kind, self.cfg, self.state, self.pre = kind, cfg, state, pre
+        self.pre = pre
         self.window = kind.sequence_window(cfg)
         self.x_mean, self.x_std, self.y_mean, self.y_std = (
             pre[k].double().numpy() for k in ("x_mean", "x_std", "y_mean", "y_std")
@@ -130,88 +198,4 @@ class NetworkModel:
         return lambda x: net((x - x_mean) / x_std) * y_std + y_mean
 
     def graph(self) -> torch.nn.Module:
-        import torch
-
-        with torch.random.fork_rng(devices=[]):
-            net = self.kind.module(self.cfg)
-        net.load_state_dict(self.state)
-        return standardised(net, self.pre)
-
-
-def train_network(
-    kind: NetworkKind,
-    cfg: ModelConfig,
-    params: Any,
-    spec: ModelInputs,
-    train: pd.DataFrame,
-    val: pd.DataFrame,
-    channels: list[str],
-    log: Log,
-) -> Fitted:
-    """Adam on standardised data, seeded shuffling, early stopping on val MSE keeping the best weights."""
-    import torch
-
-    window = kind.sequence_window(cfg)
-    x_mean, x_std = column_stats(features_of(train, channels, spec))
-    y_mean, y_std = column_stats(train[list(AXES)].to_numpy(np.float64))
-    x_tr = torch.from_numpy(inputs_of(train, channels, x_mean, x_std, spec, window))
-    y_tr = torch.from_numpy(((train[list(AXES)].to_numpy(np.float64) - y_mean) / y_std).astype(np.float32))
-    has_val = not val.empty
-    if has_val:
-        x_va = torch.from_numpy(inputs_of(val, channels, x_mean, x_std, spec, window))
-        y_va = torch.from_numpy(((val[list(AXES)].to_numpy(np.float64) - y_mean) / y_std).astype(np.float32))
-    else:
-        log(f"no validation rows: no early stopping, training all {params.max_epochs} epochs")
-
-    n, bs = len(x_tr), params.batch_size
-    every = max(1, params.max_epochs // 10)
-    history: list[dict[str, float]] = []
-    with deterministic_torch(params.seed):
-        net = kind.module(cfg)  # initialised from the seeded (forked) global RNG
-        gen = torch.Generator().manual_seed(params.seed)
-        opt = Adam(net.parameters(), lr=params.lr, weight_decay=params.weight_decay)
-        loss_fn = torch.nn.MSELoss()
-        # The averaged copy is what gets validated and saved: it smooths the step-to-step noise of
-        # the SGD iterate, so the early-stopping choice depends less on where one epoch happened to end.
-        avg = kind.module(cfg) if params.ema > 0 else net
-        if params.ema > 0:
-            avg.load_state_dict(net.state_dict())
-            avg_flat = flatten(list(avg.parameters()))  # in the order of opt.flat (same config)
-        best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
-        best_val, best_epoch, epoch = math.inf, 0, 0
-        for epoch in range(1, params.max_epochs + 1):
-            net.train()
-            perm = torch.randperm(n, generator=gen)
-            total = torch.zeros(())
-            for i in range(0, n, bs):
-                idx = perm[i : i + bs]
-                opt.zero_grad()
-                loss = loss_fn(net(x_tr[idx]), y_tr[idx])
-                loss.backward()
-                opt.step()
-                if params.ema > 0:
-                    with torch.no_grad():
-                        avg_flat.lerp_(opt.flat, 1 - params.ema)
-                total += loss.detach() * len(idx)
-            train_loss = float(total) / n
-            val_loss = math.nan
-            if has_val:
-                avg.eval()
-                with torch.no_grad():
-                    val_loss = float(loss_fn(avg(x_va), y_va))
-            history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss})
-            if not has_val or val_loss < best_val:
-                best_val, best_epoch = val_loss, epoch
-                best_state = {k: v.detach().clone() for k, v in avg.state_dict().items()}
-            if epoch % every == 0:
-                log(f"epoch {epoch:4d}  train loss {train_loss:.5f}  val loss {val_loss:.5f}")
-            if has_val and epoch - best_epoch >= params.patience:
-                break
-
-    summary = {
-        "epochs_run": epoch,
-        "best_epoch": best_epoch,
-        "best_val_loss": best_val if has_val else None,
-        "early_stopping": has_val,
-    }
-    return Fitted(best_state, preprocessing(x_mean, x_std, y_mean, y_std), history, summary)
+        return standardised(copy.deepcopy(self.net), self.pre)  # a copy: standardised casts it in place
