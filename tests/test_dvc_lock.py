@@ -53,3 +53,13 @@ def test_the_committed_dvc_lock_matches_the_code_and_params_of_every_stage() -> 
         f"dvc.lock is older than these stages' code or params: {stale}. Run `make verify` (the pipeline, "
         "then the check) and commit the dvc.lock and reports/metrics.json it writes"
     )
+
+
+def test_dvc_parses_its_yaml_with_the_c_parser() -> None:
+    # given: the loader DVC builds to read dvc.yaml, dvc.lock and params.yaml (dvc.utils.serialize:
+    # ruamel's YAML of the "safe" type)
+    from ruamel.yaml import YAML
+
+    # then: it is ruamel's C parser (pyproject: ruamel.yaml.clib), not the pure-Python one that made a
+    # `dvc repro` with nothing to do a third slower
+    assert YAML(typ="safe").Parser.__name__ == "CParser"

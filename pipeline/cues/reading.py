@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -35,7 +36,7 @@ class UnitReading:
     extra_var: np.ndarray
     departs: bool = False  # its cells sit unlike any shift of the training units' means (`departs`)
 
-    @property
+    @cached_property  # the tracker asks on every frame
     def known(self) -> bool:
         """Whether anything bounds where this unit's classes lie."""
         return bool(np.isfinite(self.extra_var).all())

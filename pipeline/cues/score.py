@@ -203,17 +203,25 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
     estimates: list[tuple[float, float]] = []
     n_updates, seconds = 0, 0.0
     kinds = job.pack["thresholds"]["profile"]
+    # one tracker per unit, reset for each of its trials as the live client resets it for each
+    # insertion: reading a unit (its class means, the departure test) is done once, not per trial
+    trackers: dict[str | None, CueTracker] = {}
     for a, trials, forces in job.on:
         for tr, f in zip(trials, forces, strict=True):
-            calibration = job.units.get(tr.unit or "")
-            tracker = CueTracker(
-                job.pack,
-                job.preset,
-                model_kind=job.kind if job.kind in kinds else None,
-                unit_evidence=unit_evidence(job.pack, tr.unit, calibration),
-                front_end=tr.front_end,
-                reading=reading_of(job.pack, tr.unit, calibration),
-            )
+            tracker = trackers.get(tr.unit)
+            if tracker is None:
+                calibration = job.units.get(tr.unit or "")
+                tracker = trackers[tr.unit] = CueTracker(
+                    job.pack,
+                    job.preset,
+                    model_kind=job.kind if job.kind in kinds else None,
+                    unit_evidence=unit_evidence(job.pack, tr.unit, calibration),
+                    front_end=tr.front_end,
+                    reading=reading_of(job.pack, tr.unit, calibration),
+                )
+            else:
+                tracker.use_front_end(tr.front_end)
+                tracker.reset()
             n = tr.ins_end + 1
             codes = {m: np.zeros(n, dtype=np.int64) for m in METHODS}
             alarm = False

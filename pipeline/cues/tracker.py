@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.config import CuesParams
 from pipeline.cues.reading import Cell, UnitReading, distances, log_scores, outside, read_unit
-from pipeline.rig.frontend import Circuit, conductance_us, declared, legacy_divider
+from pipeline.rig.frontend import Circuit, conductance_us, conductance_us_of_frame, declared, legacy_divider
 from pipeline.vocab import format_problem
 
 FORMAT = "needlecue-cues/5"  # 5: a unit's class means with their uncertainty (4: levels in the signal read)
@@ -247,8 +247,11 @@ class Evidence:
     def signal(self, volts: Sequence[float]) -> np.ndarray:
         """What the evidence reads of `volts`: the FSRs' conductance through the declared circuit (the
         same for every design of front end), else the volts themselves."""
-        v = np.asarray(volts, dtype=np.float64)
-        return v if self.front_end is None else conductance_us(v, self.front_end)
+        if self.front_end is None:
+            return np.asarray(volts, dtype=np.float64)
+        if isinstance(volts, list):  # one frame (every frame after contact): the fast path
+            return np.array(conductance_us_of_frame(volts, self.front_end))
+        return conductance_us(np.asarray(volts, dtype=np.float64), self.front_end)
 
     def rest_signal(self) -> np.ndarray:
         """The signal of the rest mean (frozen at contact)."""

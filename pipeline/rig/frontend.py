@@ -133,4 +133,20 @@ def conductance_us(volts: np.ndarray, fe: Circuit) -> np.ndarray:
     return 1e3 / resistance_of(volts, fe)
 
 
+def conductance_us_of_frame(volts: list[float], fe: Circuit) -> list[float]:
+    """`conductance_us` of one frame's few readings, the same values: `resistance_of`'s arithmetic
+    step for step on Python floats (IEEE, as numpy's). The cue tracker calls it on every frame, where
+    numpy's cost per call on three values was 13 % of the cue scoring's time."""
+    if isinstance(fe, Divider):
+        supply, fixed = fe.supply_v, fe.fixed_kohm
+        eps = 1e-6 * supply
+        ratios = [supply / min(max(v, eps), supply - eps) - 1.0 for v in volts]
+        rs = [fixed * q for q in ratios] if fe.fsr_at == "supply" else [fixed / q for q in ratios]
+    else:
+        gain, floor = fe.drive_v * fe.feedback_kohm, 1e-9 * fe.drive_v
+        rs = [gain / max(v - fe.offset_v, floor) for v in volts]
+    series = fe.series_kohm
+    return [1e3 / min(max(r - series, MIN_KOHM), MAX_KOHM) for r in rs]
+
+
 _ADAPTER: TypeAdapter[Divider | Transimpedance | Undeclared] = TypeAdapter(FrontEnd)

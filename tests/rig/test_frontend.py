@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from pipeline.rig.format import SensorMeta
-from pipeline.rig.frontend import Divider, Transimpedance, Undeclared, conductance_us, is_declared, volts_of
+from pipeline.rig.frontend import (
+    Divider,
+    Transimpedance,
+    Undeclared,
+    conductance_us,
+    conductance_us_of_frame,
+    is_declared,
+    volts_of,
+)
 from tests.rig.batches import A, replace_in, run
 
 CIRCUITS = [
@@ -34,6 +42,18 @@ def test_the_output_rises_or_falls_with_the_load_as_the_fsr_sits():
     assert np.diff(volts_of(r, CIRCUITS[0]))[0] > 0  # FSR at the supply: rises with force
     assert np.diff(volts_of(r, CIRCUITS[1]))[0] < 0  # FSR at ground: falls
     assert np.diff(volts_of(r, CIRCUITS[2]))[0] > 0  # transimpedance: linear in conductance
+
+
+@pytest.mark.parametrize("fe", CIRCUITS, ids=lambda fe: f"{fe.circuit}-{getattr(fe, 'fsr_at', '')}")
+def test_one_frame_inverts_to_the_same_bits_as_the_array_path(fe):
+    # Given readings across the whole range, the rails and beyond them included
+    rng = np.random.default_rng(3)
+    top = getattr(fe, "supply_v", 1.2)
+    volts = np.concatenate([[0.0, 1e-9, top, top + 1.0], rng.uniform(0.0, top, 401)])
+    # When each frame of three is inverted as the cue tracker does it, and the whole as an array
+    frames = [conductance_us_of_frame(row.tolist(), fe) for row in volts.reshape(-1, 3)]
+    # Then the values are the same to the last bit
+    assert np.array_equal(np.array(frames).ravel(), conductance_us(volts, fe))
 
 
 def test_a_reading_at_the_rail_inverts_to_a_finite_resistance():
