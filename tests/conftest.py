@@ -18,6 +18,15 @@ from tests.projects import build_tiny_project
 LAB_BENCH_A = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The long tests first: the groups that run on one worker (the team stack, the emulated board
+    and live pages) and the end-to-end runs marked slow, then the rest in their order. The two
+    workers then end on short tests together instead of one idling while the other finishes a long
+    one (`make test` ended with one worker idle for 68 s before this)."""
+    long = ("slow", "xdist_group")
+    items.sort(key=lambda item: not any(item.get_closest_marker(m) for m in long))  # stable
+
+
 @pytest.fixture
 def lab_bench_a() -> Path:
     """The committed fixture folder (read it, never write it)."""
