@@ -4,6 +4,7 @@ web server that answers everything alike (`not_mlflow`)."""
 from __future__ import annotations
 
 import http.server
+import os
 import shutil
 import sys
 import threading
@@ -25,6 +26,18 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     one (`make test` ended with one worker idle for 68 s before this)."""
     long = ("slow", "xdist_group")
     items.sort(key=lambda item: not any(item.get_closest_marker(m) for m in long))  # stable
+
+
+@pytest.fixture(autouse=True)
+def mlflow_http_settings_restored() -> Iterator[None]:
+    """MLflow reads its HTTP timeout and retries from the process's environment at every request, so
+    a test must leave them as it found them: a poll still running in a thread after its test ends
+    changes them under the tests that follow."""
+    keys = ("MLFLOW_HTTP_REQUEST_TIMEOUT", "MLFLOW_HTTP_REQUEST_MAX_RETRIES")
+    before = {k: os.environ.get(k) for k in keys}
+    yield
+    after = {k: os.environ.get(k) for k in keys}
+    assert after == before, f"MLflow's HTTP settings changed by this test: {before} -> {after}"
 
 
 @pytest.fixture

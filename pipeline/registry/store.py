@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import sqlite3
+import threading
 from collections.abc import Iterator
 from contextlib import closing, contextmanager
 from pathlib import Path
@@ -225,28 +226,53 @@ def patience(write: bool = False) -> Iterator[None]:
     for a writer), each unless the environment sets it. MLflow reads them from the environment at
     every request; there is no per-client setting."""
     wanted = {**HTTP_SETTINGS, **({"MLFLOW_HTTP_REQUEST_TIMEOUT": WRITE_TIMEOUT_S} if write else {})}
-    with environment({k: os.environ.get(k, v) for k, v in wanted.items()}):
+    with environment({k: _outer_value(k) or v for k, v in wanted.items()}):
         yield
+
+
+# The blocks of `environment` now open, per variable: [(None, its value before the first), (block, its
+# value), ...]. The environment is the process's, shared by every thread (clients polling on threads).
+_ENV_LOCK = threading.Lock()
+_ENV_BLOCKS: dict[str, list[tuple[object, str | None]]] = {}
+
+
+def _outer_value(key: str) -> str | None:
+    """The variable's value outside every open `environment` block: what the user's environment sets."""
+    with _ENV_LOCK:
+        blocks = _ENV_BLOCKS.get(key)
+        return blocks[0][1] if blocks else os.environ.get(key)
+
+
+def _set_env(key: str, value: str | None) -> None:
+    if value:
+        os.environ[key] = value
+    else:
+        os.environ.pop(key, None)
 
 
 @contextmanager
 def environment(values: dict[str, str]) -> Iterator[None]:
     """Set environment variables for the block; each restored (or removed) after it. An empty value
-    is a variable that is not set."""
-    before = {key: os.environ.get(key) for key in values}
-    try:
+    is a variable that is not set. Blocks may overlap on several threads and end in any order: when
+    one ends, a variable takes the value of the latest block still open, or, when none is, its value
+    from before the first (two polls on two threads, each restoring what it saw, once left the other's
+    2 s timeout in the process for good)."""
+    block = object()
+    with _ENV_LOCK:
         for key, value in values.items():
-            if value:
-                os.environ[key] = value
-            else:
-                os.environ.pop(key, None)
+            _ENV_BLOCKS.setdefault(key, [(None, os.environ.get(key))]).append((block, value or None))
+            _set_env(key, value)
+    try:
         yield
     finally:
-        for key, value in before.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        with _ENV_LOCK:
+            for key in values:
+                blocks = [b for b in _ENV_BLOCKS[key] if b[0] is not block]
+                _set_env(key, blocks[-1][1])
+                if len(blocks) > 1:
+                    _ENV_BLOCKS[key] = blocks
+                else:
+                    del _ENV_BLOCKS[key]
 
 
 @contextmanager

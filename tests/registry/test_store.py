@@ -3,6 +3,7 @@ told apart from a working store, and from each other."""
 
 from __future__ import annotations
 
+import os
 import re
 import sqlite3
 from contextlib import closing
@@ -193,3 +194,39 @@ def test_the_experiments_open_on_model_training_in_the_ui(mlflow_store: str) -> 
     assert client.get_experiment(exp_id).tags[store.KIND_TAG] == "custom_model_development"
     new = store.experiment_id(client, store.UNIT_EXPERIMENT, store.UNIT_ABOUT)
     assert client.get_experiment(new).tags[store.KIND_TAG] == "custom_model_development"
+
+
+def test_environment_blocks_that_end_out_of_order_restore_the_environment(monkeypatch) -> None:
+    # given: a timeout the user set, and two polls on two threads, each in its own block
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "30")
+    first, second = (
+        store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}),
+        store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}),
+    )
+    # when: the second starts before the first ends, and ends after it
+    first.__enter__()
+    second.__enter__()
+    first.__exit__(None, None, None)
+    during = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
+    second.__exit__(None, None, None)
+    # then: the open block keeps its value, and the user's comes back when none is open
+    assert during == "2"
+    assert os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == "30"
+
+
+def test_nested_environment_blocks_restore_each_level_and_patience_reads_the_users_value(monkeypatch) -> None:
+    # given: no timeout set by the user
+    monkeypatch.delenv("MLFLOW_HTTP_REQUEST_TIMEOUT", raising=False)
+    # when: a writer's patience opens while a poll's block is open (another thread's), and inside it
+    # one more block
+    with store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}):
+        with store.patience(write=True):
+            writer = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
+            with store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "5"}):
+                inner = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
+            after_inner = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
+        after_writer = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
+    # then: the writer gets its own 60 s, not the poll's 2 s; each level comes back as it ends
+    assert (writer, inner, after_inner) == (store.WRITE_TIMEOUT_S, "5", store.WRITE_TIMEOUT_S)
+    assert after_writer == "2"
+    assert "MLFLOW_HTTP_REQUEST_TIMEOUT" not in os.environ
