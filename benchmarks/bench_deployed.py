@@ -32,6 +32,7 @@ def main() -> int:
 
     from pipeline.calibration.document import transform_for
     from pipeline.client import ForceClient
+    from pipeline.modelling.checkpoint import ModelConfig
     from pipeline.modelling.export import graph_feed
     from pipeline.modelling.features import unit_inputs
     from pipeline.rig.frontend import declared
@@ -67,9 +68,12 @@ def main() -> int:
                 quantized = zip(counts * PER_COUNT, t, strict=True)
                 ours_q = np.array([client.step(v, float(s)).force_n for v, s in quantized])
                 transform = transform_for(doc, client.kind, str(angle), client.metadata["checkpoint_sha256"])
+                # what graph_feed reads of a checkpoint: the kind, its window (from a full config) and
+                # the inputs; the client's metadata has them (n_in is not read)
+                config = ModelConfig(kind=client.kind, n_in=len(client.channels), window=client.window)
                 checkpoint = {
                     "kind": client.kind,
-                    "config": {"window": client.window},
+                    "config": config.to_dict(),
                     "inputs": client.metadata["inputs"],
                 }
             fe = declared(doc.get("front_end"))
