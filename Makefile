@@ -49,8 +49,8 @@ team-stop: setup
 team-status: setup
 	$(BIN)/needlecue team status
 
-repro: setup          ## install, then run the whole pipeline on the built-in simulated rig
-	$(BIN)/dvc repro
+repro: setup          ## install, then run the whole pipeline on the built-in simulated rig (dvc repro's stages, on every core)
+	$(BIN)/needlecue repro
 
 verify: repro         ## the pipeline, then: nothing out of date; dvc.lock and metrics.json byte for byte the committed ones
 	$(BIN)/dvc status --quiet || { $(BIN)/dvc status; echo "verify: dvc status: stages out of date"; exit 1; }

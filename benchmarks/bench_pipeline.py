@@ -1,5 +1,6 @@
 """The pipeline's wall times: a cold `dvc repro` on the defaults stage by stage, its total per stage
-kind and per model kind, a no-op `dvc repro`, and the scheduled retrain after one new tissue cast.
+kind and per model kind, a no-op `dvc repro`, the scheduled retrain after one new tissue cast, and a
+cold `needlecue repro` (the same stages side by side on every core, `pipeline/repro.py`).
 
 Run with `make bench` (or `.venv/bin/python benchmarks/bench_pipeline.py [--fresh]`). Everything runs
 in a throw-away copy of the project (code, dvc.yaml, params.yaml), with its own MLflow store. A
@@ -11,6 +12,7 @@ stage included). `--fresh` also runs the cold pipeline with every stage in a fre
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import re
@@ -23,7 +25,10 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+from pipeline import repro
+
 REPO = Path(__file__).resolve().parents[1]
+
 REPEATS = 3
 STAGE_LINE = re.compile(r"^Running stage '([^']+)'")
 
@@ -117,8 +122,13 @@ def retrain_after_new_batch(root: Path) -> tuple[float, dict[str, float], dict]:
 
 
 def print_cold(label: str, total: float, stages: dict[str, float]) -> None:
-    groups = by_group(stages)
     print(f"cold dvc repro ({label}): {total:.1f} s, {len(stages)} stages")
+    print_groups(stages)
+
+
+def print_groups(stages: dict[str, float]) -> None:
+    """Each stage kind's time, longest first, then the training's per model kind."""
+    groups = by_group(stages)
     for name, seconds in sorted(groups.items(), key=lambda kv: -kv[1]):
         if not name.startswith("train "):
             n = sum(1 for s in stages if s.partition("@")[0] == name)
@@ -147,6 +157,20 @@ def main(argv: list[str] | None = None) -> None:
         print(f"  before its first stage {t_retrain - in_stages:.1f} s; its stages (the last to its exit):")
         for name, seconds in sorted(retrain_stages.items(), key=lambda kv: -kv[1]):
             print(f"  {name:<16} {seconds:7.1f} s")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = make_copy(Path(tmp) / "project")
+        jobs = repro.default_jobs()
+        t0 = time.perf_counter()
+        outcome = repro.reproduce(root, repro.dvc_plan(root), jobs, out=io.StringIO(), env=env_of(root, {}))
+        parallel = time.perf_counter() - t0
+        if outcome.code:
+            raise RuntimeError(f"needlecue repro failed at {outcome.failed}:\n" + "\n".join(outcome.tail))
+        spans = {name: end - start for name, (start, end) in outcome.spans.items()}
+        print(
+            f"cold needlecue repro ({jobs} jobs): {parallel:.1f} s = {parallel / total:.2f}x the cold "
+            f"dvc repro; {sum(spans.values()):.1f} s of stages side by side"
+        )
+        print_groups(spans)
     if args.fresh:
         with tempfile.TemporaryDirectory() as tmp:
             root = make_copy(Path(tmp) / "project")

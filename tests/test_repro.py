@@ -1,0 +1,136 @@
+"""`needlecue repro`: what it plans, and that independent stages really run side by side."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipeline import repro
+from tests.projects import run
+
+# a diamond: a -> (b, c) -> d, and e on its own
+ORDER = ("a", "b", "c", "d", "e")
+DEPENDS = {"b": {"a"}, "c": {"a"}, "d": {"b", "c"}}
+
+
+def test_a_changed_stage_plans_itself_and_everything_downstream() -> None:
+    # when: b is out of date
+    plan = repro.plan_of(ORDER, DEPENDS, {"b"})
+    # then: b and d run, d after b only (a and c are up to date: nothing to wait for)
+    assert plan.order == ("b", "d")
+    assert plan.waits_for == {"b": frozenset(), "d": frozenset({"b"})}
+
+
+def test_stages_start_as_soon_as_what_they_depend_on_has_succeeded() -> None:
+    # given: everything out of date
+    plan = repro.plan_of(ORDER, DEPENDS, set(ORDER))
+    # then: a and e first; once a succeeded, b and c; d only after both
+    assert plan.ready(set(), set()) == ["a", "e"]
+    assert plan.ready({"a"}, {"a", "e"}) == ["b", "c"]
+    assert plan.ready({"a", "e", "b"}, {"a", "e", "b", "c"}) == []
+    assert plan.ready({"a", "e", "b", "c"}, {"a", "e", "b", "c"}) == ["d"]
+
+
+def test_targets_limit_the_plan_to_them_and_their_upstream() -> None:
+    # when: only c is asked for, with everything out of date
+    plan = repro.plan_of(ORDER, DEPENDS, set(ORDER), targets=["c"])
+    # then: c and what it depends on, nothing downstream or beside it
+    assert plan.order == ("a", "c")
+    # and an unknown target is refused with the stages there are
+    with pytest.raises(ValueError, match=r"no stage named x in dvc.yaml; stages: a, b, c, d, e"):
+        repro.plan_of(ORDER, DEPENDS, set(), targets=["x"])
+
+
+def test_nothing_out_of_date_plans_nothing() -> None:
+    assert repro.plan_of(ORDER, DEPENDS, set()).order == ()
+
+
+# Stage b waits for a file c writes and c for one b writes: they pass only when run side by side
+# (each gives up after PATIENCE s: run one at a time, the first fails).
+MEET = """import pathlib, sys, time
+me, other = sys.argv[1:]
+pathlib.Path(me + ".here").touch()
+t = time.time()
+while not pathlib.Path(other + ".here").exists():
+    assert time.time() - t < PATIENCE, "never met " + other
+    time.sleep(0.05)
+pathlib.Path(me).write_text(open("a").read() + me)
+"""
+
+
+def toy_project(root: Path, failing: str | None = None, patience: float = 60) -> Path:
+    """A DVC project of the diamond above: a writes a file, b and c must meet (within `patience`
+    seconds), d joins them, e is on its own; `failing` names a stage whose command fails."""
+    stages = {
+        "a": {"cmd": "python -c \"open('a', 'w').write('a')\"", "outs": ["a"]},
+        "b": {"cmd": "python meet.py b c", "deps": ["a", "meet.py"], "outs": ["b"]},
+        "c": {"cmd": "python meet.py c b", "deps": ["a", "meet.py"], "outs": ["c"]},
+        "d": {
+            "cmd": "python -c \"open('d', 'w').write(open('b').read() + open('c').read())\"",
+            "deps": ["b", "c"],
+            "outs": ["d"],
+        },
+        "e": {"cmd": "python -c \"open('e', 'w').write('e')\"", "outs": ["e"]},
+    }
+    if failing:
+        stages[failing]["cmd"] = "python -c \"raise SystemExit('this stage fails')\""
+    root.mkdir(parents=True)
+    run(root, "git", "init", "-q")
+    run(root, "dvc", "init", "-q")
+    (root / "meet.py").write_text(MEET.replace("PATIENCE", str(patience)))
+    (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
+    return root
+
+
+def test_independent_stages_run_side_by_side_and_write_what_dvc_repro_writes(tmp_path: Path) -> None:
+    # given: the diamond project
+    root = toy_project(tmp_path / "toy")
+    # when: needlecue repro runs it on two jobs
+    out = io.StringIO()
+    plan = repro.dvc_plan(root)
+    outcome = repro.reproduce(root, plan, jobs=2, out=out)
+    # then: every stage ran (b and c met: they ran at the same time), d saw both
+    assert outcome.code == 0, out.getvalue()
+    assert sorted(outcome.ran) == ["a", "b", "c", "d", "e"]
+    assert (root / "d").read_text() == "abac"
+    # and each stage's lines carry its name
+    assert "b | Running stage 'b':" in out.getvalue()
+    # and DVC recorded every stage: nothing is out of date, a second run plans nothing
+    assert run(root, "dvc", "status").strip() == "Data and pipelines are up to date."
+    assert repro.dvc_plan(root).order == ()
+    # and dvc.lock holds what a plain `dvc repro` of the same project writes
+    plain = toy_project(tmp_path / "plain", patience=3)
+    with pytest.raises(AssertionError, match="never met"):
+        run(plain, "dvc", "repro")  # one stage at a time: b waits for c in vain
+    outs = lambda r: {n: s["outs"] for n, s in yaml.safe_load((r / "dvc.lock").read_text())["stages"].items()}  # noqa: E731
+    assert outs(root)["a"] == outs(plain)["a"]
+
+
+def test_a_failed_stage_stops_what_depends_on_it_and_names_itself(tmp_path: Path) -> None:
+    # given: the diamond, with a failing
+    root = toy_project(tmp_path / "toy", failing="a")
+    # when: it runs on two jobs
+    out = io.StringIO()
+    outcome = repro.reproduce(root, repro.dvc_plan(root), jobs=2, out=out)
+    # then: a failed, e (independent) ran, nothing downstream of a started
+    assert outcome.code == 1 and outcome.failed == ["a"]
+    assert "this stage fails" in "\n".join(outcome.tail)
+    assert set(outcome.spans) <= {"a", "e"}
+    assert not (root / "b").exists() and not (root / "d").exists()
+
+
+def test_the_command_says_when_there_is_nothing_to_do(tmp_path: Path) -> None:
+    # given: the diamond, reproduced
+    root = toy_project(tmp_path / "toy")
+    assert repro.reproduce(root, repro.dvc_plan(root), jobs=2, out=io.StringIO()).code == 0
+    # when: needlecue repro runs again
+    cli = [sys.executable, "-m", "pipeline.cli", "repro", "--project", str(root)]
+    done = subprocess.run(cli, capture_output=True, text=True, timeout=120)
+    # then: nothing runs
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "Data and pipelines are up to date."
