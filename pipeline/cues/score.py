@@ -60,6 +60,7 @@ class Run:
     ins_end: int
     angle_est: float | None = None
     alarm: bool = False
+    unit: str | None = None  # the estimator unit that recorded the trial
 
 
 def _pct(values: Sequence[float], q: float) -> float | None:
@@ -251,11 +252,25 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
                         tr.ins_end,
                         est if combined else None,
                         alarm and combined,
+                        tr.unit,
                     )
                 )
             if job.count_estimates and job.with_estimator:
                 estimates.append((a, est if est is not None else math.nan))
     return runs, estimates, n_updates, seconds
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """The tracker runs of a cue evaluation, before they are summarised (`cue_document`). A group of
+    its trials (the trials of some units) is summarised from them without replaying it: a run
+    depends on its trial alone (each unit's tracker is reset for each trial)."""
+
+    runs: tuple[Run, ...]
+    trials: Mapping[float, Sequence[Trial]]  # {true angle: its scored trials}
+    angle_conf: Mapping[tuple[float, float], int]  # {(true, estimated angle): trials}
+    with_estimator: bool
+    skipped: str | None = None  # why nothing was scored (then nothing else is set)
 
 
 def evaluate_cues(
@@ -269,22 +284,40 @@ def evaluate_cues(
     circuits: Mapping[str, Circuit | None] | None = None,
     paper_bound: bool = True,
 ) -> dict[str, Any]:
-    """Cue quality on the external trials of every angle, for every preset angle with a pack; each
-    trial read through its unit's declared circuit in `circuits` (else the pack's).
+    """Cue quality on the external trials of every angle (`track_external`, then `cue_document`)."""
+    tracked = track_external(
+        external, params, packs, forces_of, log=log, units=units, circuits=circuits, paper_bound=paper_bound
+    )
+    return cue_document(tracked, params, packs)
+
+
+def track_external(
+    external: Mapping[float, pd.DataFrame],
+    params: CuesParams,
+    packs: Mapping[float, Mapping[str, Any]],
+    forces_of: ForcesOf,
+    *,
+    log: Log,
+    units: Mapping[str, UnitEvidence] | None = None,
+    circuits: Mapping[str, Circuit | None] | None = None,
+    paper_bound: bool = True,
+) -> Tracked:
+    """The trackers' runs on the external trials of every angle, for every preset angle with a pack;
+    each trial read through its unit's declared circuit in `circuits` (else the pack's).
 
     `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
     angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
     the calibrated units' evidence (`pipeline.cues.unit_evidence`); a trial of a unit neither there nor
     among the pack's training units is read as the average unit's. `paper_bound`: also score the
     paper's method on the measured force (its upper bound; the angle-estimate matrix comes with it).
-    Without external trials with an insertion phase there is nothing to score: the result is
-    `skipped_evaluation(reason)`. The combined method is scored only with an angle estimator."""
+    Without external trials with an insertion phase there is nothing to score: `skipped` says why.
+    The combined method is scored only with an angle estimator."""
     external = {float(a): f for a, f in external.items() if len(f)}
     units = dict(units or {})
     if not external:
-        return skipped_evaluation("no external trials (no <angle>/external.parquet with rows)", packs, params)
+        return _skipped("no external trials (no <angle>/external.parquet with rows)")
     if not packs:
-        return skipped_evaluation("no cue pack", packs, params)
+        return _skipped("no cue pack")
     first = next(iter(packs.values()))
     channels = list(first["channels"])
     trials: dict[float, list[Trial]] = {}
@@ -297,9 +330,7 @@ def evaluate_cues(
             log(f"warning: {angle_name(a)}°: trials without an insertion phase skipped")
         trials[a] = keep
     if not any(trials.values()):
-        return skipped_evaluation(
-            "no external trial has frames labelled 'insertion' (nothing to score)", packs, params
-        )
+        return _skipped("no external trial has frames labelled 'insertion' (nothing to score)")
     with_estimator = all(p.get("angle_estimator") for p in packs.values())
     # The tracker is pure Python, one frame at a time: scoring ~1M frames is this stage's work,
     # so the (kind, preset) jobs run on every core.
@@ -341,8 +372,28 @@ def evaluate_cues(
             f"{n_updates} tracker updates, {1e6 * seconds / n_updates:.1f} µs each on average "
             f"(including the evaluation loop; {workers} worker process(es))"
         )
+    return Tracked(tuple(runs), trials, angle_conf, with_estimator)
+
+
+def _skipped(reason: str) -> Tracked:
+    return Tracked((), {}, {}, False, reason)
+
+
+def cue_document(
+    tracked: Tracked, params: CuesParams, packs: Mapping[float, Mapping[str, Any]]
+) -> dict[str, Any]:
+    """The cue evaluation of tracker runs: confusion matrices, accuracy, time to cue and what a
+    trainee sees, per kind and method (or `skipped_evaluation`, saying why nothing was scored)."""
+    if tracked.skipped is not None:
+        return skipped_evaluation(tracked.skipped, packs, params)
+    runs, trials, angle_conf, with_estimator = (
+        tracked.runs,
+        tracked.trials,
+        tracked.angle_conf,
+        tracked.with_estimator,
+    )
     summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg, params.cue_within_s)
-    classes = sorted(external)
+    classes = sorted(trials)
     out = {
         "format": "needlecue-cues-eval/1",
         "kinds": [k for k in params.kinds if k in summary],
@@ -451,18 +502,27 @@ def evaluate_unit_groups(
     roles: Mapping[str, str],
     calibrated: Mapping[str, bool],
     circuits: Mapping[str, Circuit | None] | None = None,
+    tracked: Tracked | None = None,
 ) -> dict[str, Any]:
     """The cues scored per unit group: the training units' external trials (`same_unit`), and the
     external trials of new units that have a calibration, without it (`new_uncalibrated`: the angle
     estimator reads them as the average unit's, forces from `uncalibrated_split`) and with it
     (`new_calibrated`: `units` holds their calibrations' evidence). Per group, kind and method:
-    balanced accuracy within `cue_within_s`, per-cue recall, final confusion matrix."""
+    balanced accuracy within `cue_within_s`, per-cue recall, final confusion matrix.
+
+    `tracked`: the runs of `evaluate_cues` on all of `external` (the external forces, `units`,
+    `circuits`), whose trials of the same-unit and calibrated groups are then summarised, not
+    replayed: the same figures, for a third of the tracker's work."""
     out: dict[str, Any] = {}
     source = {float(a): f for a, f in external.items()}
     for group in UNIT_GROUPS:
         masks = {a: _group_mask(f, group, roles, calibrated) for a, f in source.items()}
         frames = {a: source[a][m].reset_index(drop=True) for a, m in masks.items() if m.any()}
         if not frames:
+            continue
+        members = sorted({str(u) for f in frames.values() for u in f["unit_id"].unique()})
+        if tracked is not None and tracked.skipped is None and group != "new_uncalibrated":
+            out[group] = _group_of(tracked, set(members), sorted(frames), params)
             continue
         split = uncalibrated_split if group == "new_uncalibrated" else "external"
 
@@ -476,10 +536,33 @@ def evaluate_unit_groups(
 
         known = {} if group == "new_uncalibrated" else units
         ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None, units=known, circuits=circuits)
-        members = sorted({str(u) for f in frames.values() for u in f["unit_id"].unique()})
-        results = {
-            kind: {m: {k: r.get(k) for k in GROUP_KEYS} for m, r in methods.items()}
-            for kind, methods in (ev.get("results") or {}).items()
+        out[group] = {
+            "units": members,
+            "external_trials": ev.get("external_trials"),
+            "results": _group_results(ev.get("results") or {}),
         }
-        out[group] = {"units": members, "external_trials": ev.get("external_trials"), "results": results}
     return out
+
+
+def _group_of(
+    tracked: Tracked, members: set[str], angles: Sequence[float], params: CuesParams
+) -> dict[str, Any]:
+    """A unit group's figures from the runs of its `members`' trials at `angles`, as `evaluate_cues`
+    on those trials alone gives them."""
+    trials = {a: [tr for tr in tracked.trials.get(a, ()) if tr.unit in members] for a in angles}
+    if not any(trials.values()):  # nothing with an insertion to score: a skipped evaluation's fields
+        return {"units": sorted(members), "external_trials": None, "results": {}}
+    runs = [r for r in tracked.runs if r.unit in members and r.true_angle in trials]
+    summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg, params.cue_within_s)
+    return {
+        "units": sorted(members),
+        "external_trials": {angle_name(a): len(trials[a]) for a in angles},
+        "results": _group_results(summary),
+    }
+
+
+def _group_results(results: Mapping[str, Mapping[str, Mapping[str, Any]]]) -> dict[str, Any]:
+    return {
+        kind: {m: {k: r.get(k) for k in GROUP_KEYS} for m, r in methods.items()}
+        for kind, methods in results.items()
+    }

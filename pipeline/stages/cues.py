@@ -24,7 +24,7 @@ from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.document import write_cue_evaluation
 from pipeline.cues.fit import Predicted, build_packs, pack_json
-from pipeline.cues.score import evaluate_cues, evaluate_unit_groups, skipped_evaluation
+from pipeline.cues.score import cue_document, evaluate_unit_groups, skipped_evaluation, track_external
 from pipeline.cues.tracker import calibration_evidence, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
@@ -88,7 +88,7 @@ def main(
                         "no angle cue there, 'outside what training covered' (docs/units.md)"
                     )
             external = files.by_angle("external")
-            evaluation = evaluate_cues(
+            tracked = track_external(
                 external,
                 scored,
                 packs,
@@ -97,7 +97,9 @@ def main(
                 units=units,
                 circuits=circuits,
             )
+            evaluation = cue_document(tracked, scored, packs)
             calibrated = calibrated_units(docs)
+            _log("unit groups: the same unit and calibrated new units from these runs, uncalibrated replayed")
             evaluation["by_unit_group"] = evaluate_unit_groups(
                 external,
                 units,
@@ -110,6 +112,7 @@ def main(
                 unit_roles(data_dir),
                 calibrated,
                 circuits,
+                tracked,
             )
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")

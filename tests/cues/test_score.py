@@ -5,17 +5,27 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.document import write_cue_evaluation
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.score import Run, evaluate_cues, summarise_runs, time_to_cue
+from pipeline.cues.score import (
+    Run,
+    evaluate_cues,
+    evaluate_unit_groups,
+    summarise_runs,
+    time_to_cue,
+    track_external,
+)
 from pipeline.reporting import cues as cue_report
+from pipeline.vocab import angle_name
 from tests.cues.synthetic import (
     ANGLES,
     external_split,
     make_split,
+    make_unit_split,
     zero_forces,
 )
 
@@ -126,3 +136,33 @@ def test_evaluation_without_an_estimator_scores_the_paper_method_only(
     assert "**No angle estimator** (a reason)" in summary and "| LS | profile comparison (paper) |" in summary
     cue_report.plot_confusion(written, tmp_path / "c.png")
     cue_report.plot_time_to_cue(written, tmp_path / "t.png")
+
+
+def test_unit_groups_from_the_evaluations_runs_equal_the_groups_scored_again(
+    params: CuesParams, pack30: dict
+) -> None:
+    # given: external trials at every angle by a training unit and by a calibrated new unit
+    external = {
+        float(a): pd.concat(
+            [
+                make_unit_split(a, "est-1", ["heldout"], 2, seed=9),
+                make_unit_split(a, "est-9", ["heldout-new"], 2, seed=11),
+            ],
+            ignore_index=True,
+        )
+        for a in ANGLES
+    }
+    roles, calibrated = {"est-1": "training", "est-9": "new"}, {"est-9": True}
+    forces = lambda _k, _p, a, _split="external": np.zeros((len(external[a]), 3))  # noqa: E731
+    packs = {30: pack30}
+    # when: the groups are scored again from their frames, and summarised from the whole evaluation's runs
+    tracked = track_external(external, params, packs, forces, log=lambda _m: None)
+    groups = (external, {}, params, packs, forces, "external", roles, calibrated)
+    replayed = evaluate_unit_groups(*groups)
+    reused = evaluate_unit_groups(*groups, tracked=tracked)
+    # then: the same figures, for groups that hold trials
+    assert reused == replayed
+    assert reused["same_unit"]["units"] == ["est-1"] and reused["new_calibrated"]["units"] == ["est-9"]
+    assert reused["same_unit"]["external_trials"] == {angle_name(a): 2 for a in ANGLES}
+    counts = reused["new_calibrated"]["results"]["ls"]["combined"]["confusion_final"]["counts"]
+    assert np.sum(counts) == 2 * len(ANGLES)
