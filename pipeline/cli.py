@@ -82,8 +82,11 @@ def repro(
     """`dvc repro` on every core: stages that do not depend on each other run side by side, each
     through `dvc repro --single-item`. The same outputs, byte for byte, as `dvc repro`.
 
-    Exit 0 done (or nothing to do), 1 a stage failed (the stages already running finish first).
+    Exit 0 done (or nothing to do), 1 a stage failed (the stages already running finish first) or no
+    such stage, 2 no DVC project there.
     """
+    from dvc.exceptions import DvcException
+
     from pipeline import repro as parallel
 
     root = project.resolve()
@@ -91,6 +94,8 @@ def repro(
         plan = parallel.dvc_plan(root, targets or ())
     except ValueError as e:
         raise fail(str(e)) from e
+    except DvcException as e:  # not a DVC project, a dvc.yaml DVC cannot read, ...
+        raise fail(f"{root}: {e}", 2) from e
     if not plan.order:
         typer.echo("Data and pipelines are up to date.")
         return

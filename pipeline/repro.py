@@ -130,6 +130,7 @@ class _Running:
     proc: subprocess.Popen[str]
     started: float
     ran: bool = False
+    restored: bool = False  # DVC's run cache had its outputs: checked out, not run
     tail: list[str] = field(default_factory=list)
 
 
@@ -170,6 +171,8 @@ def reproduce(
             run.tail = [*run.tail[-(TAIL_LINES - 1) :], line]
             if line.startswith(f"Running stage '{run.stage}'"):
                 run.ran = True
+            elif line.startswith(f"Stage '{run.stage}' is cached"):
+                run.restored = True
             if line.strip() and not line.startswith(HINTS):
                 show(run.stage, line)
         run.proc.wait()
@@ -196,7 +199,7 @@ def reproduce(
                 succeeded.add(run.stage)
                 if run.ran:
                     outcome.ran.append(run.stage)
-                note = "" if run.ran else " (unchanged)"
+                note = "" if run.ran else " (from the run cache)" if run.restored else " (unchanged)"
                 show(run.stage, f"done in {end - start:.1f} s{note} (from {start:.1f} to {end:.1f} s)")
             else:
                 outcome.code = 1

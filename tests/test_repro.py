@@ -134,3 +134,13 @@ def test_the_command_says_when_there_is_nothing_to_do(tmp_path: Path) -> None:
     # then: nothing runs
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "Data and pipelines are up to date."
+
+
+def test_outside_a_dvc_project_the_command_says_where_it_looked(tmp_path: Path) -> None:
+    # when: needlecue repro runs in a folder that is no DVC project
+    cli = [sys.executable, "-m", "pipeline.cli", "repro", "--project", str(tmp_path)]
+    done = subprocess.run(cli, capture_output=True, text=True, timeout=120)
+    # then: exit 2, naming the folder, without a traceback
+    assert done.returncode == 2
+    assert done.stderr.startswith(f"error: {tmp_path}: ") and "not inside of a DVC repository" in done.stderr
+    assert "Traceback" not in done.stderr
