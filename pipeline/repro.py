@@ -19,6 +19,7 @@ changes: the 18 training stages of the defaults run one thread each.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import signal
@@ -166,17 +167,20 @@ def reproduce(
 
     def follow(run: _Running) -> None:
         assert run.proc.stdout is not None
-        for raw in run.proc.stdout:
-            line = raw.rstrip("\n")
-            run.tail = [*run.tail[-(TAIL_LINES - 1) :], line]
-            if line.startswith(f"Running stage '{run.stage}'"):
-                run.ran = True
-            elif line.startswith(f"Stage '{run.stage}' is cached"):
-                run.restored = True
-            if line.strip() and not line.startswith(HINTS):
-                show(run.stage, line)
-        run.proc.wait()
-        finished.put(run)
+        try:
+            for raw in run.proc.stdout:
+                line = raw.rstrip("\n")
+                run.tail = [*run.tail[-(TAIL_LINES - 1) :], line]
+                if line.startswith(f"Running stage '{run.stage}'"):
+                    run.ran = True
+                elif line.startswith(f"Stage '{run.stage}' is cached"):
+                    run.restored = True
+                if line.strip() and not line.startswith(HINTS):
+                    with contextlib.suppress(OSError, ValueError):  # our stdout gone: the stage goes on
+                        show(run.stage, line)
+        finally:  # whatever happened to the output, the loop hears of the stage's end
+            run.proc.wait()
+            finished.put(run)
 
     outcome = Outcome(code=0)
     t0 = time.perf_counter()
@@ -219,7 +223,14 @@ def reproduce(
 def _start(root: Path, stage: str, env: Mapping[str, str], follow: Callable[[_Running], None]) -> _Running:
     cmd = [sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "--single-item", stage]
     proc = subprocess.Popen(
-        cmd, cwd=root, env=dict(env), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1
+        cmd,
+        cwd=root,
+        env=dict(env),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        errors="replace",  # a stage's bytes that are not UTF-8 are still shown
+        bufsize=1,
     )
     run = _Running(stage, proc, time.perf_counter())
     threading.Thread(target=follow, args=(run,), daemon=True).start()

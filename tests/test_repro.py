@@ -79,10 +79,17 @@ def toy_project(root: Path, failing: str | None = None, patience: float = 60) ->
     }
     if failing:
         stages[failing]["cmd"] = "python -c \"raise SystemExit('this stage fails')\""
+    dvc_project(root, stages)
+    (root / "meet.py").write_text(MEET.replace("PATIENCE", str(patience)))
+    return root
+
+
+def dvc_project(root: Path, stages: dict) -> Path:
+    """A git + DVC project at `root` with `stages` in its dvc.yaml."""
     root.mkdir(parents=True)
     run(root, "git", "init", "-q")
     run(root, "dvc", "init", "-q")
-    (root / "meet.py").write_text(MEET.replace("PATIENCE", str(patience)))
+    run(root, "dvc", "config", "core.analytics", "false")
     (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
     return root
 
@@ -100,11 +107,12 @@ def test_independent_stages_run_side_by_side_and_write_what_dvc_repro_writes(tmp
     assert (root / "d").read_text() == "abac"
     # and each stage's lines carry its name
     assert "b | Running stage 'b':" in out.getvalue()
-    # and DVC recorded every stage: nothing is out of date, a second run plans nothing
+    # and DVC recorded every stage: nothing is out of date, and the command says so
     assert run(root, "dvc", "status").strip() == "Data and pipelines are up to date."
-    assert repro.dvc_plan(root).order == ()
+    again = run(root, sys.executable, "-m", "pipeline.cli", "repro")
+    assert again.strip() == "Data and pipelines are up to date."
     # and dvc.lock holds what a plain `dvc repro` of the same project writes
-    plain = toy_project(tmp_path / "plain", patience=3)
+    plain = toy_project(tmp_path / "plain", patience=2)
     with pytest.raises(AssertionError, match="never met"):
         run(plain, "dvc", "repro")  # one stage at a time: b waits for c in vain
     outs = lambda r: {n: s["outs"] for n, s in yaml.safe_load((r / "dvc.lock").read_text())["stages"].items()}  # noqa: E731
@@ -124,18 +132,6 @@ def test_a_failed_stage_stops_what_depends_on_it_and_names_itself(tmp_path: Path
     assert not (root / "b").exists() and not (root / "d").exists()
 
 
-def test_the_command_says_when_there_is_nothing_to_do(tmp_path: Path) -> None:
-    # given: the diamond, reproduced
-    root = toy_project(tmp_path / "toy")
-    assert repro.reproduce(root, repro.dvc_plan(root), jobs=2, out=io.StringIO()).code == 0
-    # when: needlecue repro runs again
-    cli = [sys.executable, "-m", "pipeline.cli", "repro", "--project", str(root)]
-    done = subprocess.run(cli, capture_output=True, text=True, timeout=120)
-    # then: nothing runs
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "Data and pipelines are up to date."
-
-
 def test_outside_a_dvc_project_the_command_says_where_it_looked(tmp_path: Path) -> None:
     # when: needlecue repro runs in a folder that is no DVC project
     cli = [sys.executable, "-m", "pipeline.cli", "repro", "--project", str(tmp_path)]
@@ -144,3 +140,15 @@ def test_outside_a_dvc_project_the_command_says_where_it_looked(tmp_path: Path) 
     assert done.returncode == 2
     assert done.stderr.startswith(f"error: {tmp_path}: ") and "not inside of a DVC repository" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_a_stage_whose_output_is_not_utf8_still_runs_to_the_end(tmp_path: Path) -> None:
+    # given: a project whose one stage writes bytes that are not UTF-8 to its output
+    cmd = "python -c \"import sys; sys.stdout.buffer.write(b'caf\\xe9\\n'); open('x', 'w').write('x')\""
+    root = dvc_project(tmp_path / "bytes", {"x": {"cmd": cmd, "outs": ["x"]}})
+    # when: it runs
+    out = io.StringIO()
+    outcome = repro.reproduce(root, repro.dvc_plan(root), jobs=2, out=out)
+    # then: it ran, its line shown with a replacement character
+    assert outcome.code == 0 and outcome.ran == ["x"], out.getvalue()
+    assert "x | caf\ufffd" in out.getvalue()
