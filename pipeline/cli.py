@@ -75,7 +75,8 @@ def repro(
         list[str] | None, typer.Argument(help="stages to reproduce, with what they depend on (default: all)")
     ] = None,
     jobs: Annotated[
-        int | None, typer.Option("--jobs", "-j", help="stages at a time (default: the CPUs this process has)")
+        int | None,
+        typer.Option("--jobs", "-j", min=1, help="stages at a time (default: the CPUs this process has)"),
     ] = None,
     project: Annotated[Path, typer.Option(help="the project folder (holds dvc.yaml)")] = Path("."),
 ) -> None:
@@ -111,7 +112,8 @@ def repro(
     busy = sum(end - start for start, end in outcome.spans.values())
     typer.echo(
         f"ran {len(outcome.ran)} of {len(plan.order)} stage(s) in {seconds:.1f} s "
-        f"({busy:.1f} s of stages side by side). To track the changes with git, run: git add dvc.lock"
+        f"({busy:.1f} s of stages side by side)"
+        + (". To track the changes with git, run: git add dvc.lock" if outcome.ran else "")
     )
 
 

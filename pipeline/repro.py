@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 TAIL_LINES = 40  # of a failed stage's output, kept for the error
+STOP_GRACE_S = 30.0  # for a stage to stop after each signal of `_stop`
 # DVC's advice after each `dvc repro`: said once at the end instead of after every stage
 HINTS = (
     "To track the changes with git",
@@ -107,11 +108,15 @@ def dvc_plan(root: Path, targets: Sequence[str] = ()) -> Plan:
 
 
 def _name(stage: Any, root: Path) -> str:
-    """A stage's name as `dvc repro` in `root` takes it: `name` in root's dvc.yaml, else `file:name`."""
+    """A stage's name as `dvc repro` in `root` takes it: `name` in root's dvc.yaml, `file:name` in
+    another dvc.yaml, and a `.dvc` file's path for the data it tracks (`dvc add`: DVC verifies it)."""
     dvcfile = Path(stage.dvcfile.path).resolve()
+    name = getattr(stage, "name", None)  # only dvc.yaml's stages have one
+    if name is None:
+        return os.path.relpath(dvcfile, root)
     if dvcfile == root.resolve() / "dvc.yaml":
-        return stage.name
-    return f"{os.path.relpath(dvcfile, root)}:{stage.name}"
+        return name
+    return f"{os.path.relpath(dvcfile, root)}:{name}"
 
 
 @dataclass
@@ -131,7 +136,7 @@ class _Running:
     proc: subprocess.Popen[str]
     started: float
     ran: bool = False
-    restored: bool = False  # DVC's run cache had its outputs: checked out, not run
+    note: str = " (unchanged)"  # what DVC did instead of running it
     tail: list[str] = field(default_factory=list)
 
 
@@ -149,7 +154,8 @@ def reproduce(
 ) -> Outcome:
     """Run `plan` in `root`, at most `jobs` stages at a time; each stage's output lines go to `out`
     (stdout by default) prefixed with its name. After a failure no new stage starts, the running
-    ones finish, and the outcome names the failure."""
+    ones finish, and the outcome names the failure. Ctrl-C or SIGTERM stops the running stages
+    (`_stop`), then goes on as it would have."""
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     out = out or sys.stdout
@@ -172,9 +178,11 @@ def reproduce(
                 line = raw.rstrip("\n")
                 run.tail = [*run.tail[-(TAIL_LINES - 1) :], line]
                 if line.startswith(f"Running stage '{run.stage}'"):
-                    run.ran = True
+                    run.ran, run.note = True, ""
                 elif line.startswith(f"Stage '{run.stage}' is cached"):
-                    run.restored = True
+                    run.note = " (from the run cache)"
+                elif line.startswith("Verifying data sources in stage"):
+                    run.note = " (data verified)"
                 if line.strip() and not line.startswith(HINTS):
                     with contextlib.suppress(OSError, ValueError):  # our stdout gone: the stage goes on
                         show(run.stage, line)
@@ -184,6 +192,9 @@ def reproduce(
 
     outcome = Outcome(code=0)
     t0 = time.perf_counter()
+    # SIGTERM (a scheduler's stop, `timeout`) stops the stages as Ctrl-C does; only the main thread may
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main else None
     running: dict[str, _Running] = {}
     started: set[str] = set()
     succeeded: set[str] = set()
@@ -203,21 +214,39 @@ def reproduce(
                 succeeded.add(run.stage)
                 if run.ran:
                     outcome.ran.append(run.stage)
-                note = "" if run.ran else " (from the run cache)" if run.restored else " (unchanged)"
-                show(run.stage, f"done in {end - start:.1f} s{note} (from {start:.1f} to {end:.1f} s)")
+                show(run.stage, f"done in {end - start:.1f} s{run.note} (from {start:.1f} to {end:.1f} s)")
             else:
                 outcome.code = 1
                 if not outcome.failed:
                     outcome.tail = run.tail
                 outcome.failed.append(run.stage)
                 show(run.stage, f"FAILED (exit {run.proc.returncode}); no new stage starts")
-    except BaseException:  # Ctrl-C or a crash here: the stages running stop too, none is left behind
-        for run in running.values():
-            run.proc.send_signal(signal.SIGINT)
-        for run in running.values():
-            run.proc.wait()
+    except BaseException:  # Ctrl-C, SIGTERM or a crash here: the stages running stop too
+        _stop(list(running.values()))
         raise
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     return outcome
+
+
+def _stop(runs: list[_Running]) -> None:
+    """Stop each running stage as Ctrl-C in a terminal would (SIGINT to its process group: DVC
+    ignores it while the stage's command runs and reports the command's end); SIGTERM, then SIGKILL,
+    to a group still there after STOP_GRACE_S."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        alive = [run for run in runs if run.proc.poll() is None]
+        for run in alive:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(run.proc.pid, sig)
+        deadline = time.monotonic() + STOP_GRACE_S
+        for run in alive:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                run.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+
+
+def _terminated(signum: int, _frame: Any) -> None:
+    raise SystemExit(128 + signum)  # through reproduce's clean-up, as Ctrl-C goes
 
 
 def _start(root: Path, stage: str, env: Mapping[str, str], follow: Callable[[_Running], None]) -> _Running:
@@ -231,6 +260,7 @@ def _start(root: Path, stage: str, env: Mapping[str, str], follow: Callable[[_Ru
         text=True,
         errors="replace",  # a stage's bytes that are not UTF-8 are still shown
         bufsize=1,
+        start_new_session=True,  # its own process group: stopped by `_stop`, not by a terminal's Ctrl-C twice
     )
     run = _Running(stage, proc, time.perf_counter())
     threading.Thread(target=follow, args=(run,), daemon=True).start()

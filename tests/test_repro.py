@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -111,7 +112,8 @@ def test_independent_stages_run_side_by_side_and_write_what_dvc_repro_writes(tmp
     assert run(root, "dvc", "status").strip() == "Data and pipelines are up to date."
     again = run(root, sys.executable, "-m", "pipeline.cli", "repro")
     assert again.strip() == "Data and pipelines are up to date."
-    # and dvc.lock holds what a plain `dvc repro` of the same project writes
+    # and the meeting test holds: one stage at a time, as a plain `dvc repro` runs them, b waits for
+    # c in vain (what it wrote before is the same: stage a's outputs)
     plain = toy_project(tmp_path / "plain", patience=2)
     with pytest.raises(AssertionError, match="never met"):
         run(plain, "dvc", "repro")  # one stage at a time: b waits for c in vain
@@ -152,3 +154,51 @@ def test_a_stage_whose_output_is_not_utf8_still_runs_to_the_end(tmp_path: Path) 
     # then: it ran, its line shown with a replacement character
     assert outcome.code == 0 and outcome.ran == ["x"], out.getvalue()
     assert "x | caf\ufffd" in out.getvalue()
+
+
+def test_data_tracked_by_a_dvc_file_is_verified_and_what_reads_it_reruns(tmp_path: Path) -> None:
+    # given: a file tracked with `dvc add` (as docs/retraining.md versions raw batches) and a stage
+    # reading it, reproduced; then the file changes
+    root = dvc_project(tmp_path / "added", {})
+    (root / "raw.txt").write_text("hello")
+    run(root, "dvc", "add", "-q", "raw.txt")
+    upper = "python -c \"open('up.txt', 'w').write(open('raw.txt').read().upper())\""
+    (root / "dvc.yaml").write_text(
+        yaml.safe_dump({"stages": {"up": {"cmd": upper, "deps": ["raw.txt"], "outs": ["up.txt"]}}})
+    )
+    assert repro.reproduce(root, repro.dvc_plan(root), jobs=2, out=io.StringIO()).code == 0
+    (root / "raw.txt").write_text("changed")
+    # when: needlecue repro runs
+    plan = repro.dvc_plan(root)
+    out = io.StringIO()
+    outcome = repro.reproduce(root, plan, jobs=2, out=out)
+    # then: as `dvc repro` does, DVC verifies the tracked file (its .dvc file takes the new hash)
+    # and the stage reading it runs after that
+    assert set(plan.order) == {"raw.txt.dvc", "up"} and plan.waits_for["up"] == {"raw.txt.dvc"}
+    assert outcome.code == 0 and outcome.ran == ["up"], out.getvalue()
+    assert "raw.txt.dvc | done in" in out.getvalue() and "(data verified)" in out.getvalue()
+    assert (root / "up.txt").read_text() == "CHANGED"
+    assert run(root, "dvc", "status").strip() == "Data and pipelines are up to date."
+
+
+def test_sigterm_stops_the_running_stages_and_leaves_no_lock(tmp_path: Path) -> None:
+    # given: two independent stages that would run for a minute, started by needlecue repro
+    sleep = "python -c \"import time; time.sleep(60); open('{0}', 'w').write('{0}')\""
+    stages = {s: {"cmd": sleep.format(s), "outs": [s]} for s in ("s1", "s2")}
+    root = dvc_project(tmp_path / "slow", stages)
+    cli = [sys.executable, "-m", "pipeline.cli", "repro"]
+    proc = subprocess.Popen(cli, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert proc.stdout is not None
+    started = 0
+    for line in proc.stdout:  # both commands are running once DVC has shown both
+        started += line.startswith(("s1 | > python", "s2 | > python"))
+        if started == 2:
+            break
+    # when: the launcher alone gets SIGTERM (as from a scheduler or `timeout`), not its stages
+    proc.send_signal(signal.SIGTERM)
+    rest, _ = proc.communicate(timeout=60)
+    # then: it exits 143 soon, its stages stopped with it, and DVC's locks are free again
+    assert proc.returncode == 128 + signal.SIGTERM, rest
+    assert not (root / "s1").exists() and not (root / "s2").exists()
+    status = run(root, "dvc", "status")
+    assert "s1" in status and "s2" in status  # still to do, and DVC can say so: no lock is held

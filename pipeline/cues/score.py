@@ -515,6 +515,14 @@ def evaluate_unit_groups(
     replayed: the same figures, for a third of the tracker's work."""
     out: dict[str, Any] = {}
     source = {float(a): f for a, f in external.items()}
+    if (
+        tracked is not None
+        and tracked.skipped is None
+        and set(tracked.trials) != {a for a, f in source.items() if len(f)}
+    ):
+        raise ValueError(
+            f"the tracked runs are of angles {sorted(tracked.trials)}, not of these external trials"
+        )
     for group in UNIT_GROUPS:
         masks = {a: _group_mask(f, group, roles, calibrated) for a, f in source.items()}
         frames = {a: source[a][m].reset_index(drop=True) for a, m in masks.items() if m.any()}

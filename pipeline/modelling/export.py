@@ -350,13 +350,17 @@ def libyaml_mlmodels() -> Iterator[None]:
 
     global _YAML_USERS
     loader = getattr(yaml, "CSafeLoader", None)
-    if loader is None or getattr(mlflow_model, "yaml", None) is not yaml:
-        yield  # no libyaml, or MLflow reads its MLmodel otherwise now: its own way
-        return
     with _YAML_LOCK:
-        if _YAML_USERS == 0:
-            mlflow_model.yaml = _LibyamlSafe(yaml, loader)
-        _YAML_USERS += 1
+        current = getattr(mlflow_model, "yaml", None)
+        # ours already there: another block (an outer one, another thread's) put it; counted too
+        counted = loader is not None and (current is yaml or isinstance(current, _LibyamlSafe))
+        if counted:
+            if current is yaml:
+                mlflow_model.yaml = _LibyamlSafe(yaml, loader)
+            _YAML_USERS += 1
+    if not counted:  # no libyaml, or MLflow reads its MLmodel otherwise now: its own way
+        yield
+        return
     try:
         yield
     finally:

@@ -275,31 +275,41 @@ def test_mlflow_reads_mlmodel_files_through_libyaml_while_a_model_is_logged(
     from mlflow.models import Model
     from mlflow.models import model as mlflow_model
 
-    # given: a logged model with a cue pack of the size the pipeline's are (thousands of numbers)
+    # given: a logged model with a cue pack of the size the pipeline's are (thousands of numbers),
+    # and libyaml's loader counting the documents it reads
+    class Counting(yaml.CSafeLoader):
+        documents = 0
+
+        def __init__(self, stream: object) -> None:
+            type(self).documents += 1
+            super().__init__(stream)
+
+    monkeypatch.setattr(yaml, "CSafeLoader", Counting)
     pack = {"format": "test-pack", "templates": [[i / 7, i / 11, i / 13] for i in range(4000)]}
     experiment = mlflow.create_experiment("yaml-test", artifact_location=(tmp_path / "artifacts").as_uri())
-    parses: list[str] = []
-    original = export._LibyamlSafe.safe_load
-    monkeypatch.setattr(
-        export._LibyamlSafe, "safe_load", lambda self, s: parses.append("libyaml") or original(self, s)
-    )
     # when: logging it (MLflow loads what it logged to check the input example)
     with mlflow.start_run(experiment_id=experiment):
         trial = make_frame(1, seed=3)
-        info = export.log_onnx_model(
-            checkpoints["ls"], pack, trial=(trial[CHANNELS].to_numpy(), trial["t_s"].to_numpy())
-        )
+        recording = (trial[CHANNELS].to_numpy(), trial["t_s"].to_numpy())
+        info = export.log_onnx_model(checkpoints["ls"], pack, trial=recording)
     # then: MLflow's own loads went through libyaml, and MLflow's module is as it was afterwards
-    assert parses, "Model.load no longer reads through mlflow.models.model.yaml: the speed-up is gone"
+    assert Counting.documents, "Model.load no longer reads through mlflow.models.model.yaml: no speed-up"
     assert mlflow_model.yaml is yaml
     # and libyaml gives the same model as pure-Python PyYAML
-    folder = Path(
-        mlflow.artifacts.download_artifacts(artifact_uri=info.model_uri, dst_path=str(tmp_path / "dl"))
-    )
+    dst = str(tmp_path / "dl")
+    folder = Path(mlflow.artifacts.download_artifacts(artifact_uri=info.model_uri, dst_path=dst))
     with export.libyaml_mlmodels():
         fast = Model.load(folder / "MLmodel").to_dict()
     assert fast == Model.load(folder / "MLmodel").to_dict()
     assert fast["metadata"]["needlecue"]["cues"] == pack
+    # and blocks inside blocks (or on other threads) keep it until the last one ends
+    with export.libyaml_mlmodels():
+        with export.libyaml_mlmodels():
+            pass
+        counted = Counting.documents
+        Model.load(folder / "MLmodel")
+        assert Counting.documents == counted + 1
+    assert mlflow_model.yaml is yaml
 
 
 def test_a_graph_that_computes_something_else_is_refused_before_logging(checkpoints) -> None:
