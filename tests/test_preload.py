@@ -96,6 +96,13 @@ def wait_ready(env: dict[str, str], seconds: float = 120) -> Path:
     return socket
 
 
+def server_log(env: dict[str, str]) -> str:
+    """What the server for `env` logged (why it refused a caller, say)."""
+    socket = preload.socket_path(env)
+    log = None if socket is None else socket.with_suffix(".log")
+    return log.read_text() if log is not None and log.is_file() else "no log"
+
+
 @pytest.fixture
 def warm(tmp_path: Path, sockets: str) -> dict[str, str]:
     """An environment with its own preload folder, and a server for it (light: json only) running."""
@@ -120,7 +127,7 @@ def test_a_stage_gets_the_callers_arguments_folder_environment_and_output_and_it
     # stages read as they run (not part of the server's key), runs the probe
     client = _client(tmp_path, {**warm, "NEEDLECUE_PROBE": "mine"}, "3", "b")
     out, err = client.communicate(timeout=60)
-    assert client.returncode != 99, "no server took the stage"
+    assert client.returncode != 99, f"no server took the stage; its log:\n{server_log(warm)}\n{err}"
     # then: the probe ran in a process of the server's, saw what the caller has, wrote to the
     # caller's stdout and stderr, and its exit status is the caller's
     seen = json.loads(out)
