@@ -26,6 +26,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from pipeline import repro
+from pipeline.workers import usable_cpus
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"  {name:<16} {seconds:7.1f} s")
     with tempfile.TemporaryDirectory() as tmp:
         root = make_copy(Path(tmp) / "project")
-        jobs = repro.default_jobs()
+        jobs = usable_cpus()
         t0 = time.perf_counter()
         outcome = repro.reproduce(root, repro.dvc_plan(root), jobs, out=io.StringIO(), env=env_of(root, {}))
         parallel = time.perf_counter() - t0

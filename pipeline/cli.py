@@ -89,6 +89,7 @@ def repro(
     from dvc.exceptions import DvcException
 
     from pipeline import repro as parallel
+    from pipeline.workers import usable_cpus
 
     root = project.resolve()
     try:
@@ -100,7 +101,7 @@ def repro(
     if not plan.order:
         typer.echo("Data and pipelines are up to date.")
         return
-    n = jobs or parallel.default_jobs()
+    n = jobs or usable_cpus()
     typer.echo(f"{len(plan.order)} stage(s) to consider, up to {n} at a time")
     t0 = time.perf_counter()
     outcome = parallel.reproduce(root, plan, n)

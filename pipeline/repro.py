@@ -140,11 +140,6 @@ class _Running:
     tail: list[str] = field(default_factory=list)
 
 
-def default_jobs() -> int:
-    """The CPUs this process may use."""
-    return len(os.sched_getaffinity(0))
-
-
 def reproduce(
     root: Path,
     plan: Plan,

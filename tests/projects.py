@@ -122,3 +122,16 @@ def first_external_trial(root: Path, angle: str, unit: str) -> pd.DataFrame:
     trial = external[external.unit_id == unit]
     first = trial[["batch_id", "trial_id"]].drop_duplicates().iloc[0]
     return trial[(trial.batch_id == first.batch_id) & (trial.trial_id == first.trial_id)].sort_values("t_s")
+
+
+def make_repo(root: Path) -> None:
+    """An empty git + DVC project at `root` (new), DVC's analytics off and its config committed."""
+    root.mkdir()
+    run(root, "git", "init", "-q")
+    for key, value in (("user.name", "needlecue test"), ("user.email", "test@example.invalid")):
+        run(root, "git", "config", key, value)
+    run(root, "git", "config", "commit.gpgsign", "false")
+    run(root, "dvc", "init", "-q")
+    run(root, "dvc", "config", "core.analytics", "false")
+    run(root, "git", "add", "-A")
+    run(root, "git", "commit", "-q", "-m", "dvc init")

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from pipeline import repro
-from tests.projects import run
+from tests.projects import make_repo, run
 
 # a diamond: a -> (b, c) -> d, and e on its own
 ORDER = ("a", "b", "c", "d", "e")
@@ -87,10 +87,7 @@ def toy_project(root: Path, failing: str | None = None, patience: float = 60) ->
 
 def dvc_project(root: Path, stages: dict) -> Path:
     """A git + DVC project at `root` with `stages` in its dvc.yaml."""
-    root.mkdir(parents=True)
-    run(root, "git", "init", "-q")
-    run(root, "dvc", "init", "-q")
-    run(root, "dvc", "config", "core.analytics", "false")
+    make_repo(root)
     (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
     return root
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import yaml
 
 from tests.helpers import tree_hash
+from tests.projects import make_repo
 
 REPO = Path(__file__).resolve().parents[1]
 LAB_BATCH = REPO / "tests" / "fixtures" / "rig-log" / "lab-bench-a"
@@ -39,19 +40,6 @@ def dir_md5(root: Path) -> str:
 def in_remote(remote: Path, md5: str) -> Path:
     """Where DVC 3 stores an object in a remote: files/md5/<first 2 hex>/<rest>."""
     return remote / "files" / "md5" / md5[:2] / md5[2:]
-
-
-def make_repo(root: Path) -> None:
-    """An empty git + DVC project (DVC's config, incl. the remote added later, is committed)."""
-    root.mkdir()
-    run(root, "git", "init", "-q")
-    for key, value in (("user.name", "needlecue test"), ("user.email", "test@example.invalid")):
-        run(root, "git", "config", key, value)
-    run(root, "git", "config", "commit.gpgsign", "false")
-    run(root, "dvc", "init", "-q")
-    run(root, "dvc", "config", "core.analytics", "false")
-    run(root, "git", "add", "-A")
-    run(root, "git", "commit", "-q", "-m", "dvc init")
 
 
 def test_a_raw_batch_is_versioned_pushed_restored_and_rolled_back(tmp_path):

@@ -386,13 +386,10 @@ def cue_document(
     trainee sees, per kind and method (or `skipped_evaluation`, saying why nothing was scored)."""
     if tracked.skipped is not None:
         return skipped_evaluation(tracked.skipped, packs, params)
-    runs, trials, angle_conf, with_estimator = (
-        tracked.runs,
-        tracked.trials,
-        tracked.angle_conf,
-        tracked.with_estimator,
+    trials = tracked.trials
+    summary = summarise_runs(
+        tracked.runs, params.continue_below_deg, params.stop_from_deg, params.cue_within_s
     )
-    summary = summarise_runs(runs, params.continue_below_deg, params.stop_from_deg, params.cue_within_s)
     classes = sorted(trials)
     out = {
         "format": "needlecue-cues-eval/1",
@@ -404,8 +401,8 @@ def cue_document(
         "external_trials": {angle_name(a): len(trials[a]) for a in classes},
         "truth": f"|true - preset| < {params.continue_below_deg:g}° continue, < {params.stop_from_deg:g}° "
         "correct, else stop; scored from the first to the last frame labelled 'insertion'",
-        "angle_estimate_at_insertion_end": _angle_matrix(classes, packs, angle_conf)
-        if with_estimator
+        "angle_estimate_at_insertion_end": _angle_matrix(classes, packs, tracked.angle_conf)
+        if tracked.with_estimator
         else None,
         "results": summary,
     }
