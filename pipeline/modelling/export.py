@@ -338,7 +338,8 @@ _YAML_USERS = 0  # blocks open in this process
 @contextmanager
 def libyaml_mlmodels() -> Iterator[None]:
     """While open, MLflow's `Model.load` parses MLmodel files with libyaml (PyYAML's CSafeLoader,
-    the same safe constructors: the same mapping) instead of pure-Python PyYAML.
+    the same safe constructors: the same mapping) instead of pure-Python PyYAML, and `Model.save`
+    writes them with it (CSafeDumper: the same text).
 
     Why: `Model.log` loads the model it has just logged twice, to check its input example, and a
     force model's MLmodel is about 210 kB (the cue pack): 0.2 to 0.3 s a parse in pure Python, about
@@ -371,13 +372,17 @@ def libyaml_mlmodels() -> Iterator[None]:
 
 
 class _LibyamlSafe:
-    """PyYAML as `mlflow.models.model` uses it, but for `safe_load` through libyaml."""
+    """PyYAML as `mlflow.models.model` uses it, but for `safe_load` and `safe_dump` through libyaml
+    (the same safe representers and the same text: a test compares them)."""
 
     def __init__(self, yaml: Any, loader: Any) -> None:
         self._yaml, self._loader = yaml, loader
 
     def safe_load(self, stream: Any) -> Any:
         return self._yaml.load(stream, Loader=self._loader)
+
+    def safe_dump(self, data: Any, stream: Any = None, **kwds: Any) -> Any:
+        return self._yaml.dump_all([data], stream, Dumper=self._yaml.CSafeDumper, **kwds)
 
     def __getattr__(self, name: str) -> Any:  # safe_dump and the rest: PyYAML's own
         return getattr(self._yaml, name)

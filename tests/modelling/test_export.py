@@ -284,7 +284,15 @@ def test_mlflow_reads_mlmodel_files_through_libyaml_while_a_model_is_logged(
             type(self).documents += 1
             super().__init__(stream)
 
+    class CountingDumper(yaml.CSafeDumper):
+        documents = 0
+
+        def __init__(self, stream: object, **kwargs: object) -> None:
+            type(self).documents += 1
+            super().__init__(stream, **kwargs)
+
     monkeypatch.setattr(yaml, "CSafeLoader", Counting)
+    monkeypatch.setattr(yaml, "CSafeDumper", CountingDumper)
     pack = {"format": "test-pack", "templates": [[i / 7, i / 11, i / 13] for i in range(4000)]}
     experiment = mlflow.create_experiment("yaml-test", artifact_location=(tmp_path / "artifacts").as_uri())
     # when: logging it (MLflow loads what it logged to check the input example)
@@ -294,6 +302,7 @@ def test_mlflow_reads_mlmodel_files_through_libyaml_while_a_model_is_logged(
         info = export.log_onnx_model(checkpoints["ls"], pack, trial=recording)
     # then: MLflow's own loads went through libyaml, and MLflow's module is as it was afterwards
     assert Counting.documents, "Model.load no longer reads through mlflow.models.model.yaml: no speed-up"
+    assert CountingDumper.documents, "Model.save no longer writes through mlflow.models.model.yaml"
     assert mlflow_model.yaml is yaml
     # and libyaml gives the same model as pure-Python PyYAML
     dst = str(tmp_path / "dl")
@@ -302,6 +311,9 @@ def test_mlflow_reads_mlmodel_files_through_libyaml_while_a_model_is_logged(
         fast = Model.load(folder / "MLmodel").to_dict()
     assert fast == Model.load(folder / "MLmodel").to_dict()
     assert fast["metadata"]["needlecue"]["cues"] == pack
+    # and the MLmodel written is the text pure-Python PyYAML writes
+    text = (folder / "MLmodel").read_text()
+    assert text == yaml.dump(yaml.safe_load(text), Dumper=yaml.SafeDumper, default_flow_style=False)
     # and blocks inside blocks (or on other threads) keep it until the last one ends
     with export.libyaml_mlmodels():
         with export.libyaml_mlmodels():
