@@ -108,9 +108,9 @@ def git_commit(root: Path) -> str:
 
 
 class Datasets:
-    """The MLflow datasets of the split files, each described once: the kinds of one angle log the
-    same four sets, and describing one (MLflow infers its schema value by value) is the slowest
-    step of tracking. The same object logged again gives the same record."""
+    """The MLflow datasets of the split files, each described once (the kinds of one angle log the
+    same four sets), with the schema `frame_schema` computes. The same object logged again gives the
+    same record."""
 
     def __init__(self, files: SplitFiles) -> None:
         self.files = files
@@ -131,8 +131,10 @@ class Datasets:
                     dataset = mlflow.data.from_pandas(
                         frame, source=str(self.files.path(angle, split)), name=f"{angle}°-{split}"
                     )
-                # MLflow computes the schema when the dataset is logged (a cached property): ours first
-                dataset.__dict__["schema"] = frame_schema(frame)
+                # MLflow computes the schema when the dataset is logged (a cached property): ours
+                # first; a frame it cannot take is left to MLflow, which then says None (no schema)
+                with contextlib.suppress(Exception):
+                    dataset.__dict__["schema"] = frame_schema(frame)
             self._made[(angle, split)] = dataset
         return self._made[(angle, split)]
 
