@@ -81,9 +81,16 @@ def run_stage(
     )
 
 
-def test_first_registration_tracks_every_model_and_crowns_the_best(project: Path) -> None:
-    # given: an ls and an fnn for 30°, and an empty registry
+def test_first_registration_tracks_every_model_and_crowns_the_best(
+    project: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: an ls and an fnn for 30°, an empty registry, and the metric history requests counted
     models = train_models(project, "models", GOOD, kinds=("ls", "fnn"))
+    histories: list[str] = []
+    history = MlflowClient.get_metric_history
+    monkeypatch.setattr(
+        MlflowClient, "get_metric_history", lambda c, run, key: histories.append(key) or history(c, run, key)
+    )
     # when
     record = run_stage(project, models, RegisterParams())
     # then: both are runs of one experiment with per-split, per-axis metrics and the tags the UI filters on
@@ -95,6 +102,16 @@ def test_first_registration_tracks_every_model_and_crowns_the_best(project: Path
         assert {"val_nrmse_pct_fx", "test_rmse_fy", "external_nrmse_pct_mean"} <= set(r.data.metrics)
         assert r.data.tags["angle_deg"] == "30" and r.data.tags["git_commit"]
         assert r.data.tags["data_sha256"]
+        # and its logged model has the run's metrics but the loss curves (logged by epoch), as the
+        # UI's model page shows them ...
+        (model,) = client.search_logged_models(experiment_ids=[exp.experiment_id], filter_string=
+                                                f"source_run_id = '{r.info.run_id}'")  # fmt: skip
+        by_epoch = {"train_loss", "val_loss"}
+        assert {m.key: m.value for m in model.metrics} == {
+            k: v for k, v in r.data.metrics.items() if k not in by_epoch
+        }
+    # ... with no request per metric for its history (one each on a tracking server: a minute for 18)
+    assert histories == []
     # and: the better of the two on the external set is version 1 and champion
     entry = record["angles"]["30"]
     scores = {r.data.tags["model_type"]: r.data.metrics["external_nrmse_pct_mean"] for r in runs}
