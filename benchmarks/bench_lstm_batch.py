@@ -1,0 +1,123 @@
+"""What a larger LSTM batch would buy: training time against validation loss and test error.
+
+The LSTM is most of a cold `dvc repro` (issue 43). Each setting below retrains the six angles'
+LSTMs exactly as the train stage does (`python -m pipeline.run train lstm ...`, the pinned
+environment included), two at a time, from `make repro`'s data/processed and data/choices, with
+params.yaml's `lstm` section but for the setting's overrides. Prints, per setting and angle: the
+epochs run, the stage's wall time, the best validation loss (what early stopping and any choice of
+settings may look at), and the NRMSE (mean over axes, %) on the test split and on the external
+set's rows from the training units; then the totals, all measured in this one run.
+
+Usage: `python benchmarks/bench_lstm_batch.py [--settings '{"batch_size": 256}' ...]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from pipeline.metrics.scores import nrmse_pct
+from pipeline.modelling.predictor import load_predictor
+from pipeline.vocab import AXES
+
+DATA = Path("data/processed")
+CHOICE = Path("data/choices/lstm.json")
+SETTINGS = [
+    "{}",
+    '{"batch_size": 256}',
+    '{"batch_size": 256, "lr": 0.007}',
+    '{"batch_size": 512, "lr": 0.01}',
+]
+
+
+def train(angle: str, params: Path, out: Path) -> float:
+    """One angle's LSTM through the train stage's command; its wall time in s."""
+    start = time.perf_counter()
+    cmd = [sys.executable, "-m", "pipeline.run", "train", "lstm", str(DATA / angle), str(out / angle)]
+    subprocess.run([*cmd, "--choice", str(CHOICE), "--params", str(params)], check=True, capture_output=True)
+    return time.perf_counter() - start
+
+
+def nrmse(model_dir: Path, frame: pd.DataFrame) -> float:
+    return float(np.mean(nrmse_pct(load_predictor(model_dir).predict(frame), frame[list(AXES)].to_numpy())))
+
+
+def scores(angle: str, model_dir: Path) -> tuple[float, float]:
+    """The test split's NRMSE and the external set's, on the rows of the units it was trained on."""
+    test = pd.read_parquet(DATA / angle / "test.parquet")
+    external = pd.read_parquet(DATA / angle / "external.parquet")
+    units = set(pd.read_parquet(DATA / angle / "train.parquet", columns=["unit_id"])["unit_id"])
+    return nrmse(model_dir, test), nrmse(model_dir, external[external["unit_id"].isin(units)])
+
+
+def run_setting(overrides: dict, angles: list[str], work: Path) -> dict[str, float]:
+    params = yaml.safe_load(Path("params.yaml").read_text())
+    params["lstm"].update(overrides)
+    work.mkdir(parents=True)
+    (work / "params.yaml").write_text(yaml.safe_dump(params))
+    started = time.perf_counter()
+    with ThreadPoolExecutor(2) as pool:  # the machine's two cores, as `needlecue repro` trains
+        walls = dict(
+            zip(angles, pool.map(lambda a: train(a, work / "params.yaml", work), angles), strict=True)
+        )
+    wall = time.perf_counter() - started
+    print(f"\nlstm {overrides or '(params.yaml)'}")
+    print("angle  epochs  wall s  s/epoch  best val loss  test NRMSE %  external NRMSE %")
+    totals = {"val": 0.0, "test": 0.0, "external": 0.0, "train_s": 0.0, "epochs": 0.0}
+    for angle in sorted(angles, key=float):
+        m = json.loads((work / angle / "train_metrics.json").read_text())
+        test, ext = scores(angle, work / angle)
+        print(
+            f"{angle:>5}  {m['epochs_run']:6d}  {walls[angle]:6.1f}  {walls[angle] / m['epochs_run']:7.2f}"
+            f"  {m['best_val_loss']:13.5f}  {test:12.3f}  {ext:16.3f}"
+        )
+        for key, value in zip(
+            totals, (m["best_val_loss"], test, ext, walls[angle], m["epochs_run"]), strict=True
+        ):
+            totals[key] += value
+    n, per_epoch = len(angles), totals["train_s"] / totals["epochs"]
+    print(
+        f"  all  {totals['epochs']:6.0f}  {totals['train_s']:6.1f}  {per_epoch:7.2f}"
+        f"  {totals['val']:13.5f}  {totals['test'] / n:12.3f}  {totals['external'] / n:16.3f}"
+        f"   (sum of val losses, mean NRMSE; {wall:.1f} s wall two at a time)"
+    )
+    return totals
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--settings", nargs="+", default=SETTINGS, help="JSON overrides of params.yaml's lstm"
+    )
+    parser.add_argument(
+        "--angles", nargs="+", default=None, help="angles (default: every folder in data/processed)"
+    )
+    args = parser.parse_args()
+    angles = args.angles or sorted(
+        (p.name for p in DATA.iterdir() if (p / "train.parquet").is_file()), key=float
+    )
+    with tempfile.TemporaryDirectory(prefix="bench_lstm_") as tmp:
+        results = [
+            (s, run_setting(json.loads(s), angles, Path(tmp) / str(i))) for i, s in enumerate(args.settings)
+        ]
+    base = results[0][1]
+    print(
+        "\nagainst the first setting: training time, epochs, sum of val losses, mean test and external NRMSE"
+    )
+    for setting, r in results[1:]:
+        ratios = [r[k] / base[k] for k in ("train_s", "epochs", "val", "test", "external")]
+        print(f"{setting}: " + ", ".join(f"{x:.2f}x" for x in ratios))
+
+
+if __name__ == "__main__":
+    main()
