@@ -7,6 +7,7 @@ stage starts, instead of silently falling back to a default.
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -269,9 +270,10 @@ class CuesParams(Section):
             raise ValueError("lda_shrinkage is 'auto' or a float in [0, 1]")
         if isinstance(self.min_confidence, float) and not 0 <= self.min_confidence <= 1:
             raise ValueError("min_confidence is 'auto' or a float in [0, 1]")
-        if isinstance(self.unit_template_weight, float) and self.unit_template_weight <= 0:
-            # 0 would be a unit's departure at an angle of unbounded variance (1/k): not a reading
-            raise ValueError("unit_template_weight is 'auto' or a float > 0")
+        k = self.unit_template_weight
+        if isinstance(k, float) and not (math.isfinite(k) and k > 0):
+            # the reading divides by it (a unit's departure variance is 1/k) and weighs means by it
+            raise ValueError("unit_template_weight is 'auto' or a finite float > 0")
         if self.min_stage > len(lv):
             raise ValueError(f"min_stage {self.min_stage} exceeds the {len(lv)} evidence levels")
         return self

@@ -96,9 +96,9 @@ def test_a_package_folder_in_dvc_yaml_is_hashed_without_its_bytecode() -> None:
 
 
 def test_no_file_dvc_yaml_lists_as_a_dependency_is_empty() -> None:
-    # given: every file dvc.yaml lists as a stage dependency (folders are hashed as a whole)
+    # given: every code file dvc.yaml lists as a stage dependency (folders are hashed as a whole)
     stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
-    files = {REPO / d for s in stages.values() for d in s.get("deps", []) if (REPO / d).is_file()}
+    files = {REPO / d for s in stages.values() for d in listed_code_deps(s) if (REPO / d).is_file()}
     # when: looking for empty ones
     empty = sorted(str(f.relative_to(REPO)) for f in files if f.stat().st_size == 0)
     # then: there are none: DVC warns "'<file>' is empty" for each, in every stage of every run

@@ -20,8 +20,9 @@ def test_bad_params_fail_loudly(tmp_path: Path) -> None:
         CuesParams(evidence_levels=(0.2, 0.1))
     with pytest.raises(ValidationError, match="stop_from_deg"):
         CuesParams(continue_below_deg=20, stop_from_deg=10)
-    with pytest.raises(ValidationError, match="unit_template_weight"):  # it divides: 1/k
-        CuesParams(unit_template_weight=0.0)
+    for k in (0.0, float("inf"), float("nan")):  # the reading divides by it and weighs means by it
+        with pytest.raises(ValidationError, match="unit_template_weight"):
+            CuesParams(unit_template_weight=k)
     # and through params.yaml: an unknown key in the section fails, a missing section is the defaults
     path = tmp_path / "params.yaml"
     path.write_text("cues:\n  min_confidense: 0.8\n")
