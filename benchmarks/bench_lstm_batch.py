@@ -58,16 +58,17 @@ def train(angle: str, params: Path, out: Path) -> float:
     return float(found.group(1))
 
 
-def nrmse(model_dir: Path, frame: pd.DataFrame) -> float:
-    return float(np.mean(nrmse_pct(load_predictor(model_dir).predict(frame), frame[list(AXES)].to_numpy())))
-
-
 def scores(angle: str, model_dir: Path) -> tuple[float, float]:
     """The test split's NRMSE and the external set's, on the rows of the units it was trained on."""
+    model = load_predictor(model_dir)
     test = pd.read_parquet(DATA / angle / "test.parquet")
     external = pd.read_parquet(DATA / angle / "external.parquet")
     units = set(pd.read_parquet(DATA / angle / "train.parquet", columns=["unit_id"])["unit_id"])
-    return nrmse(model_dir, test), nrmse(model_dir, external[external["unit_id"].isin(units)])
+
+    def nrmse(frame: pd.DataFrame) -> float:
+        return float(np.mean(nrmse_pct(model.predict(frame), frame[list(AXES)].to_numpy())))
+
+    return nrmse(test), nrmse(external[external["unit_id"].isin(units)])
 
 
 def run_setting(overrides: dict, angles: list[str], work: Path) -> dict[str, float]:
@@ -117,10 +118,7 @@ def main() -> None:
         (p.name for p in DATA.iterdir() if (p / "train.parquet").is_file()), key=float
     )
     with tempfile.TemporaryDirectory(prefix="bench_lstm_") as tmp:
-        warm = Path(tmp) / "warm-up"
-        warm.mkdir()
-        (warm / "params.yaml").write_text(Path("params.yaml").read_text())
-        train(min(angles, key=float), warm / "params.yaml", warm)
+        train(min(angles, key=float), Path("params.yaml"), Path(tmp) / "warm-up")
         results = [
             (s, run_setting(json.loads(s), angles, Path(tmp) / str(i))) for i, s in enumerate(args.settings)
         ]
