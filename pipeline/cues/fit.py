@@ -2,10 +2,10 @@
 evidence stage, read through each estimator unit's class means), the preset angle's standard force
 profile, the paper-method thresholds per model kind.
 
-A *cue pack* (format "needlecue-cues/3") is a small JSON-able dict shipped with the preset angle's
-model; `pipeline.cues.tracker.CueTracker` runs it. What cannot be built from the data (the angle
-estimator: one angle only, too few trials, no rest reading; the standard profile: no trial with a
-contact) is left null and `unavailable` says why; the tracker falls back to what the pack has.
+A *cue pack* (format `pipeline.cues.tracker.FORMAT`) is a small JSON-able dict shipped with the
+preset angle's model; `pipeline.cues.tracker.CueTracker` runs it. What cannot be built from the data
+(the angle estimator: one angle only, too few trials, no rest reading; the standard profile: no trial
+with a contact) is left null and `unavailable` says why; the tracker falls back to what the pack has.
 """
 
 from __future__ import annotations
@@ -118,7 +118,14 @@ def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, 
     resid = x.copy()
     for key, m in member.items():
         resid[m] -= cells[key]
-    precision = np.linalg.inv(_covariance(resid, params.lda_shrinkage))
+    try:
+        precision = np.linalg.inv(_covariance(resid, params.lda_shrinkage))
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            f"the trials' scatter has a singular covariance with cues.lda_shrinkage: {params.lda_shrinkage} "
+            "(a feature that never varies, such as a channel that reads nothing); 'auto' or a value "
+            "above 0 shrinks it"
+        ) from None
     k = params.unit_template_weight
     if k == "auto":
         k = _template_weight(cells, counts, mu, offset, precision)

@@ -7,10 +7,13 @@ import json
 import numpy as np
 import pytest
 
+from pipeline.config import CuesParams
+from pipeline.cues.fit import build_cue_pack
 from tests.cues.synthetic import (
     ANGLES,
     CHANNELS,
     RATE,
+    make_split,
 )
 
 
@@ -42,3 +45,19 @@ def test_two_angles_give_a_two_class_estimator(two_angle_pack: dict) -> None:
         assert np.asarray(stage["precision"]).shape == (width, width)
     assert "unavailable" not in two_angle_pack
     json.dumps(two_angle_pack, allow_nan=False)
+
+
+@pytest.mark.parametrize(("shrinkage", "estimator"), [(0.0, False), ("auto", True)])
+def test_a_channel_that_reads_nothing_with_no_shrinkage_says_why(shrinkage, estimator: bool) -> None:
+    # given: training trials whose third channel reads nothing, and the LDA's shrinkage
+    train = {float(a): make_split(a, ["b1", "b2"], 3, seed=int(a) + 1) for a in ANGLES}
+    for frame in train.values():
+        frame["fsr3"] = 0.0
+    params = CuesParams(kinds=("ls",), evidence_levels=(0.05, 0.1, 0.2), lda_shrinkage=shrinkage)
+    # when: the pack is built
+    pack = build_cue_pack(train, 30, params)
+    # then: unshrunk, the singular scatter leaves no angle estimator, and the pack says what to set;
+    # shrunk, the estimator is there
+    assert (pack["angle_estimator"] is not None) == estimator
+    if not estimator:
+        assert "cues.lda_shrinkage" in pack["unavailable"]["angle_estimator"]
