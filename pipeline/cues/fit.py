@@ -118,13 +118,19 @@ def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, 
     resid = x.copy()
     for key, m in member.items():
         resid[m] -= cells[key]
+    if len(x) <= len(keys):
+        raise ValueError(
+            "every unit has one trial per angle that reaches this evidence stage: nothing shows how "
+            "trials scatter around their means"
+        )
     try:
         precision = np.linalg.inv(_covariance(resid, params.lda_shrinkage))
     except np.linalg.LinAlgError:
+        unshrunk = params.lda_shrinkage != "auto" and float(params.lda_shrinkage) == 0.0
         raise ValueError(
-            f"the trials' scatter has a singular covariance with cues.lda_shrinkage: {params.lda_shrinkage} "
-            "(a feature that never varies, such as a channel that reads nothing); 'auto' or a value "
-            "above 0 shrinks it"
+            "the trials' scatter has a singular covariance (a feature that never varies, such as a "
+            "channel that reads nothing)"
+            + ("; cues.lda_shrinkage 'auto' or a value above 0 shrinks it" if unshrunk else "")
         ) from None
     k = params.unit_template_weight
     if k == "auto":

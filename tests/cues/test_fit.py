@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
@@ -14,6 +15,7 @@ from tests.cues.synthetic import (
     CHANNELS,
     RATE,
     make_split,
+    make_unit_split,
 )
 
 
@@ -61,3 +63,16 @@ def test_a_channel_that_reads_nothing_with_no_shrinkage_says_why(shrinkage, esti
     assert (pack["angle_estimator"] is not None) == estimator
     if not estimator:
         assert "cues.lda_shrinkage" in pack["unavailable"]["angle_estimator"]
+
+
+def test_one_trial_per_unit_and_angle_says_that_nothing_shows_the_scatter() -> None:
+    # given: two units with one training trial per angle each
+    train = {
+        float(a): pd.concat([make_unit_split(a, u, [f"{u}-b1"], 1, seed=k + 1) for k, u in enumerate("AB")])
+        for a in ANGLES
+    }
+    # when: the pack is built
+    pack = build_cue_pack(train, 30, CuesParams(kinds=("ls",), evidence_levels=(0.05, 0.1, 0.2)))
+    # then: no angle estimator, and the pack says why in words
+    assert pack["angle_estimator"] is None
+    assert "nothing shows how trials scatter" in pack["unavailable"]["angle_estimator"]
