@@ -118,18 +118,18 @@ def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, 
     resid = x.copy()
     for key, m in member.items():
         resid[m] -= cells[key]
-    if len(x) <= len(keys):
+    if all(n == 1 for n in counts.values()):  # every residual is 0: no shrinkage makes a covariance
         raise ValueError(
-            "every unit has one trial per angle that reaches this evidence stage: nothing shows how "
-            "trials scatter around their means"
+            "the trials fitted hold one per unit and angle: nothing shows how trials scatter around "
+            "their means"
         )
     try:
         precision = np.linalg.inv(_covariance(resid, params.lda_shrinkage))
     except np.linalg.LinAlgError:
         unshrunk = params.lda_shrinkage != "auto" and float(params.lda_shrinkage) == 0.0
         raise ValueError(
-            "the trials' scatter has a singular covariance (a feature that never varies, such as a "
-            "channel that reads nothing)"
+            "the trials' scatter has a singular covariance (fewer trials beyond one per unit and angle "
+            "than features, or a feature that never varies, such as a channel that reads nothing)"
             + ("; cues.lda_shrinkage 'auto' or a value above 0 shrinks it" if unshrunk else "")
         ) from None
     k = params.unit_template_weight
@@ -193,7 +193,10 @@ def _unit_out(
         rest = units != held
         if len(np.unique(y[rest])) < n_classes:
             continue
-        stage = _fit_stage(x[rest], y[rest], units[rest], n_classes, params)["stage"]
+        try:
+            stage = _fit_stage(x[rest], y[rest], units[rest], n_classes, params)["stage"]
+        except ValueError as e:
+            raise ValueError(f"unit {held} left out: {e}") from None
         mine = np.flatnonzero(~rest)
         by_class: dict[int, list[int]] = {}
         for i in mine.tolist():
@@ -275,7 +278,10 @@ def fit_angle_estimator(
             )
             break
         x = np.array([trials[i].at(j, n_ch) for i in sel])
-        fitted = _fit_stage(x, y, u, len(angles), params)
+        try:
+            fitted = _fit_stage(x, y, u, len(angles), params)
+        except ValueError as e:
+            raise ValueError(f"evidence stage {j}: {e}") from None
         temp, cv_acc = 1.0, None
         folds = np.unique(g) if len(np.unique(g)) >= 2 else None
         fold_of = g if folds is not None else (np.arange(len(sel)) % 5).astype(str)
@@ -284,7 +290,10 @@ def fit_angle_estimator(
             tr_m, te_m = fold_of != f, fold_of == f
             if len(np.unique(y[tr_m])) < len(angles):
                 continue
-            fold = _fit_stage(x[tr_m], y[tr_m], u[tr_m], len(angles), params)
+            try:
+                fold = _fit_stage(x[tr_m], y[tr_m], u[tr_m], len(angles), params)
+            except ValueError as e:
+                raise ValueError(f"evidence stage {j}, batch {f} left out: {e}") from None
             logits[te_m] = _logits(fold, x[te_m], u[te_m], len(angles))
         ok = np.isfinite(logits).all(axis=1)
         if ok.any():
@@ -294,7 +303,11 @@ def fit_angle_estimator(
             probs = _softmax(logits[ok] / temp)
             cv_probs["training"] += [(int(i), j, p) for i, p in zip(sel[ok], probs, strict=True)]
         temps = {}
-        for reading, (pos, z) in _unit_out(x, y, u, len(angles), params).items():
+        try:
+            left_out = _unit_out(x, y, u, len(angles), params)
+        except ValueError as e:
+            raise ValueError(f"evidence stage {j}, {e}") from None
+        for reading, (pos, z) in left_out.items():
             t_r = _fit_temperature(z, y[pos]) if params.calibrate_temperature else 1.0
             temps[reading] = _sig(t_r)
             probs = _softmax(z / t_r)

@@ -50,7 +50,7 @@ def test_two_angles_give_a_two_class_estimator(two_angle_pack: dict) -> None:
 
 
 @pytest.mark.parametrize(("shrinkage", "estimator"), [(0.0, False), ("auto", True)])
-def test_a_channel_that_reads_nothing_with_no_shrinkage_says_why(shrinkage, estimator: bool) -> None:
+def test_a_channel_that_reads_nothing_needs_shrinkage_or_says_why(shrinkage, estimator: bool) -> None:
     # given: training trials whose third channel reads nothing, and the LDA's shrinkage
     train = {float(a): make_split(a, ["b1", "b2"], 3, seed=int(a) + 1) for a in ANGLES}
     for frame in train.values():

@@ -106,10 +106,13 @@ def test_what_the_lab_has_is_one_number_or_a_range() -> None:
     assert have_text({"0": 23, "15": 27}) == "23 to 27 (by angle)"
 
 
+WHY = "evidence stage 0: the trials fitted hold one per unit and angle"
+
+
 def doc(loo: dict[str, Any] | None, units: list[str]) -> dict[str, Any]:
     """A needs document: three ladder steps (the first not scored), one new unit."""
     steps = [
-        {"per_angle": 3, "cues": {"unavailable": "no angle estimator could be fitted (Singular matrix)"}},
+        {"per_angle": 3, "cues": {"unavailable": f"no angle estimator could be fitted ({WHY})"}},
         {"per_angle": 6, "cues": {"balanced_within_s": 0.8}, "force": {"ls": {"mean_nrmse_pct": 8.0}}},
         {"per_angle": 12, "cues": {"balanced_within_s": 0.9}, "force": {"ls": {"mean_nrmse_pct": 7.9}}},
     ]
@@ -152,7 +155,7 @@ def test_the_advice_of_a_document_covers_cues_force_and_calibration_in_order() -
     assert "from 6 to 12 insertions per angle they rose from 80.0 to 90.0 %" in found[0]
     assert found[1] == (
         "With 3 insertions per angle the cues could not be scored: no angle estimator could be fitted "
-        "(Singular matrix)."
+        f"({WHY})."
     )
 
 

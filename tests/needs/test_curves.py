@@ -49,6 +49,7 @@ def test_more_training_insertions_do_not_make_the_cues_worse(needs: dict[str, An
     # then: with one insertion per unit and angle (3 per angle) the estimator has no scatter to fit, and
     # says so; from 6 on, balanced accuracy and the frames with a cue never drop as insertions are added
     assert steps[0]["cues"]["unavailable"].startswith("no angle estimator could be fitted")
+    assert "nothing shows how trials scatter" in steps[0]["cues"]["unavailable"]
     scored = [s["cues"] for s in steps[1:]]
     balanced = [c["balanced_within_s"] for c in scored]
     coverage = [c["seen"]["coverage_frames"] for c in scored]
