@@ -293,7 +293,8 @@ def fit_angle_estimator(
             try:
                 fold = _fit_stage(x[tr_m], y[tr_m], u[tr_m], len(angles), params)
             except ValueError as e:
-                raise ValueError(f"evidence stage {j}, batch {f} left out: {e}") from None
+                held = f"batch {f}" if folds is not None else f"fold {f} of 5"
+                raise ValueError(f"evidence stage {j}, {held} left out: {e}") from None
             logits[te_m] = _logits(fold, x[te_m], u[te_m], len(angles))
         ok = np.isfinite(logits).all(axis=1)
         if ok.any():
