@@ -4,17 +4,18 @@ issue 24's targets, one row per member, from one cold `dvc repro` each.
     python benchmarks/bench_family.py [--members default,transimpedance,...] [--no-declare] [--units N]
                                       [--new-rig MEMBER] [--calibration-trials N] [--small] [--keep DIR]
 
-Each member runs in a fresh copy of this checkout's code, dvc.yaml and params.yaml, with
-`simulate.rig` set to it (the default layout: three training units, a new unit with its calibration
-batch; `--small` for a quick look), every stage but register. `--no-declare` leaves the circuit out
-of every batch.yaml; `--new-rig` records the new unit's batches with another member (a lab whose
-replacement estimator is built differently); `--calibration-trials` sets the new unit's calibration
-insertions per angle (`simulate.calibration_trials_per_angle`, default one); `--units N` keeps the
-first N training units (`--units 1`: the paper's lab, one estimator unit). Printed per member: the
-champion's mean external NRMSE on the training units (same unit), on the new unit without and with
-its calibration and their ratios to the same-unit figure, the combined cue as a trainee sees it
-(balanced accuracy within 3 s, wrong cue at the insertion's end and per frame, coverage) on the same
-unit and on the new unit calibrated and not, the inputs the models chose, and the wall time.
+Each member runs in its own copy of this checkout's code, dvc.yaml and params.yaml as they were when
+the run started (`snapshot`), with `simulate.rig` set to it (the default layout: three training
+units, a new unit with its calibration batch; `--small` for a quick look), every stage but register.
+`--no-declare` leaves the circuit out of every batch.yaml; `--new-rig` records the new unit's
+batches with another member (a lab whose replacement estimator is built differently);
+`--calibration-trials` sets the new unit's calibration insertions per angle
+(`simulate.calibration_trials_per_angle`, default one); `--units N` keeps the first N training units
+(`--units 1`: the paper's lab, one estimator unit). Printed per member: the champion's mean external
+NRMSE on the training units (same unit), on the new unit without and with its calibration and their
+ratios to the same-unit figure, the combined cue as a trainee sees it (balanced accuracy within 3 s,
+wrong cue at the insertion's end and per frame, coverage) on the same unit and on the new unit
+calibrated and not, the inputs the models chose, and the wall time.
 """
 
 from __future__ import annotations
@@ -37,13 +38,30 @@ BIN = Path(sys.executable).parent
 SMALL = {"train_batches": 2, "trials_per_angle": 2, "heldout_trials_per_angle": 6, "angles_deg": [0, 30, 60]}
 
 
-def project(root: Path, simulate: dict[str, Any], angles: list[float] | None) -> Path:
-    """A copy of this checkout's pipeline with the simulate section updated, its own DVC repo."""
+CODE = ("dvc.yaml", ".dvcignore", "params.yaml", "pipeline")  # what a project is made of
+
+
+def snapshot(work: Path) -> Path:
+    """This checkout's pipeline, dvc.yaml and params.yaml as they are now, copied once into `work`:
+    every project of a run is made from it, so that editing the checkout while a run goes on (each
+    member's cold `dvc repro` takes minutes) changes none of its members."""
+    code = work / ".code"
+    code.mkdir(parents=True)
+    for name in CODE:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, code / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(REPO / name, code / name)
+    return code
+
+
+def project(root: Path, simulate: dict[str, Any], angles: list[float] | None, code: Path) -> Path:
+    """A copy of the `code` snapshot with the simulate section updated, its own DVC repo."""
     root.mkdir(parents=True)
     for name in ("dvc.yaml", ".dvcignore"):
-        shutil.copy(REPO / name, root / name)
-    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+        shutil.copy(code / name, root / name)
+    shutil.copytree(code / "pipeline", root / "pipeline")
+    params = yaml.safe_load((code / "params.yaml").read_text())
     params["simulate"].update(simulate)
     if angles is not None:
         params["train"]["angles"] = angles
@@ -80,6 +98,7 @@ def run_member(
     new_rig: str | None,
     small: bool,
     work: Path,
+    code: Path,
     calibration_trials: int | None,
     units: int | None = None,
 ) -> dict[str, Any]:
@@ -96,7 +115,7 @@ def run_member(
         angles = SMALL["angles_deg"]
     if new_rig:
         simulate["calibration_trials_per_angle"] = 0
-    root = project(work / member, simulate, angles)
+    root = project(work / member, simulate, angles, code)
     if new_rig:
         new_unit_of(root, new_rig, declare, 1 if calibration_trials is None else calibration_trials)
         params = yaml.safe_load((root / "params.yaml").read_text())
@@ -185,10 +204,18 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None, help="keep the projects in this folder")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="needlecue-family-"))
+    code = snapshot(work)
     rows = []
     for member in args.members.split(","):
         row = run_member(
-            member, not args.no_declare, args.new_rig, args.small, work, args.calibration_trials, args.units
+            member,
+            not args.no_declare,
+            args.new_rig,
+            args.small,
+            work,
+            code,
+            args.calibration_trials,
+            args.units,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)

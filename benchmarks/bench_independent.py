@@ -22,13 +22,15 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_family import _cue, _f, project, repro_figures
+from bench_family import _cue, _f, project, repro_figures, snapshot
 from independent_rig import write_lab
 
 
-def run_case(units: int, declare: bool, seed: int, work: Path) -> dict:
-    """One cold `dvc repro` of the independent lab (`units` training units), and its figures."""
-    root = project(work / f"u{units}-{'declared' if declare else 'undeclared'}", {"enabled": False}, None)
+def run_case(units: int, declare: bool, seed: int, work: Path, code: Path) -> dict:
+    """One cold `dvc repro` of the independent lab (`units` training units) made from the `code`
+    snapshot, and its figures."""
+    name = f"u{units}-{'declared' if declare else 'undeclared'}"
+    root = project(work / name, {"enabled": False}, None, code)
     write_lab(root / "data" / "raw", training_units=units, seed=seed, declare=declare)
     case = f"{units} unit(s), circuit {'declared' if declare else 'not declared'}"
     return {"case": case, **repro_figures(root)}
@@ -42,10 +44,11 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None)
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="needlecue-independent-"))
+    code = snapshot(work)
     rows = []
     for units in (int(u) for u in args.units.split(",")):
         for declare in (d == "yes" for d in args.declare.split(",")):
-            row = run_case(units, declare, args.seed, work)
+            row = run_case(units, declare, args.seed, work, code)
             rows.append(row)
             print(json.dumps(row), flush=True)
     print()
