@@ -38,7 +38,15 @@ BIN = Path(sys.executable).parent
 SMALL = {"train_batches": 2, "trials_per_angle": 2, "heldout_trials_per_angle": 6, "angles_deg": [0, 30, 60]}
 
 
-CODE = ("dvc.yaml", ".dvcignore", "params.yaml", "pipeline")  # what a project is made of
+CODE = ("dvc.yaml", ".dvcignore", "pipeline")  # what a project is made of, with its params.yaml
+
+
+def _copy(src: Path, dst: Path, names: tuple[str, ...]) -> None:
+    for name in names:
+        if (src / name).is_dir():
+            shutil.copytree(src / name, dst / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src / name, dst / name)
 
 
 def snapshot(work: Path) -> Path:
@@ -47,20 +55,14 @@ def snapshot(work: Path) -> Path:
     member's cold `dvc repro` takes minutes) changes none of its members."""
     code = work / ".code"
     code.mkdir(parents=True)
-    for name in CODE:
-        if (REPO / name).is_dir():
-            shutil.copytree(REPO / name, code / name, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(REPO / name, code / name)
+    _copy(REPO, code, (*CODE, "params.yaml"))
     return code
 
 
 def project(root: Path, simulate: dict[str, Any], angles: list[float] | None, code: Path) -> Path:
     """A copy of the `code` snapshot with the simulate section updated, its own DVC repo."""
     root.mkdir(parents=True)
-    for name in ("dvc.yaml", ".dvcignore"):
-        shutil.copy(code / name, root / name)
-    shutil.copytree(code / "pipeline", root / "pipeline")
+    _copy(code, root, CODE)
     params = yaml.safe_load((code / "params.yaml").read_text())
     params["simulate"].update(simulate)
     if angles is not None:

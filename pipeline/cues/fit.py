@@ -107,9 +107,12 @@ def _offset_spread(offset: Mapping[str, np.ndarray], precision: np.ndarray) -> f
     return total / (width * (len(offset) - 1))
 
 
-def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams) -> dict:
+def _fit_stage(
+    x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams, where: str
+) -> dict:
     """One evidence stage: the average unit's class means, the shared precision, the template weight,
-    the units' offset spread, and the cells {(unit, class): (n, mean)} of the trials given."""
+    the units' offset spread, and the cells {(unit, class): (n, mean)} of the trials given. `where`
+    names the fit in its errors (the evidence stage, and what cross-validation left out)."""
     keys = sorted(set(zip(units.tolist(), y.tolist(), strict=True)))
     member = {key: (units == key[0]) & (y == key[1]) for key in keys}
     cells = {key: x[m].mean(axis=0) for key, m in member.items()}
@@ -120,16 +123,16 @@ def _fit_stage(x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, 
         resid[m] -= cells[key]
     if all(n == 1 for n in counts.values()):  # every residual is 0: no shrinkage makes a covariance
         raise ValueError(
-            "the trials fitted hold one per unit and angle: nothing shows how trials scatter around "
-            "their means"
+            f"{where}: the trials fitted hold one per unit and angle: nothing shows how trials scatter "
+            "around their means"
         )
     try:
         precision = np.linalg.inv(_covariance(resid, params.lda_shrinkage))
     except np.linalg.LinAlgError:
         unshrunk = params.lda_shrinkage != "auto" and float(params.lda_shrinkage) == 0.0
         raise ValueError(
-            "the trials' scatter has a singular covariance (fewer trials beyond one per unit and angle "
-            "than features, or a feature that never varies, such as a channel that reads nothing)"
+            f"{where}: the trials' scatter has a singular covariance (fewer trials beyond one per unit "
+            "and angle than features, or a feature that never varies, such as a channel that reads nothing)"
             + ("; cues.lda_shrinkage 'auto' or a value above 0 shrinks it" if unshrunk else "")
         ) from None
     k = params.unit_template_weight
@@ -178,14 +181,14 @@ CALIBRATION_DEPTHS = (1, 2, 3)  # calibration insertions per angle the "calibrat
 
 
 def _unit_out(
-    x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams
+    x: np.ndarray, y: np.ndarray, units: np.ndarray, n_classes: int, params: CuesParams, where: str
 ) -> dict[str, tuple[list[int], np.ndarray]]:
     """Leave one training unit out, as a new unit meets the estimator: fitted on the other units, the
     unit left out is read calibrated from its first k trials at each angle (k in CALIBRATION_DEPTHS,
     as a lab records k calibration insertions per angle; scored on its other trials: reading
     "calibrated-<k>") and uncalibrated (no cells; scored on all its trials). {reading: (positions in
     `x` scored, their scores (positions, classes) before the temperature)}; empty with fewer than
-    two units."""
+    two units. `where` names the evidence stage in a fit's errors."""
     out: dict[str, tuple[list[int], list[np.ndarray]]] = {}
     if len(np.unique(units)) < 2:
         return {}
@@ -193,10 +196,8 @@ def _unit_out(
         rest = units != held
         if len(np.unique(y[rest])) < n_classes:
             continue
-        try:
-            stage = _fit_stage(x[rest], y[rest], units[rest], n_classes, params)["stage"]
-        except ValueError as e:
-            raise ValueError(f"unit {held} left out: {e}") from None
+        left_out = f"{where}, unit {held} left out"
+        stage = _fit_stage(x[rest], y[rest], units[rest], n_classes, params, left_out)["stage"]
         mine = np.flatnonzero(~rest)
         by_class: dict[int, list[int]] = {}
         for i in mine.tolist():
@@ -278,10 +279,7 @@ def fit_angle_estimator(
             )
             break
         x = np.array([trials[i].at(j, n_ch) for i in sel])
-        try:
-            fitted = _fit_stage(x, y, u, len(angles), params)
-        except ValueError as e:
-            raise ValueError(f"evidence stage {j}: {e}") from None
+        fitted = _fit_stage(x, y, u, len(angles), params, f"evidence stage {j}")
         temp, cv_acc = 1.0, None
         folds = np.unique(g) if len(np.unique(g)) >= 2 else None
         fold_of = g if folds is not None else (np.arange(len(sel)) % 5).astype(str)
@@ -290,11 +288,9 @@ def fit_angle_estimator(
             tr_m, te_m = fold_of != f, fold_of == f
             if len(np.unique(y[tr_m])) < len(angles):
                 continue
-            try:
-                fold = _fit_stage(x[tr_m], y[tr_m], u[tr_m], len(angles), params)
-            except ValueError as e:
-                held = f"batch {f}" if folds is not None else f"fold {f} of 5"
-                raise ValueError(f"evidence stage {j}, {held} left out: {e}") from None
+            held = f"batch {f}" if folds is not None else f"fold {f} of 5"
+            where = f"evidence stage {j}, {held} left out"
+            fold = _fit_stage(x[tr_m], y[tr_m], u[tr_m], len(angles), params, where)
             logits[te_m] = _logits(fold, x[te_m], u[te_m], len(angles))
         ok = np.isfinite(logits).all(axis=1)
         if ok.any():
@@ -304,11 +300,7 @@ def fit_angle_estimator(
             probs = _softmax(logits[ok] / temp)
             cv_probs["training"] += [(int(i), j, p) for i, p in zip(sel[ok], probs, strict=True)]
         temps = {}
-        try:
-            left_out = _unit_out(x, y, u, len(angles), params)
-        except ValueError as e:
-            raise ValueError(f"evidence stage {j}, {e}") from None
-        for reading, (pos, z) in left_out.items():
+        for reading, (pos, z) in _unit_out(x, y, u, len(angles), params, f"evidence stage {j}").items():
             t_r = _fit_temperature(z, y[pos]) if params.calibrate_temperature else 1.0
             temps[reading] = _sig(t_r)
             probs = _softmax(z / t_r)
