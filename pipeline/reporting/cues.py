@@ -152,11 +152,11 @@ def _confidence(pack: Mapping[str, Any]) -> str:
     }
     parts = [
         f"{c['min_confidence']:g} for {how.get(reading, reading)} (cross-validated: a wrong cue in "
-        f"{_pct(c['cv_wrong_frames'], '.2f')} of insertion frames, a cue in {_pct(c['cv_coverage'])})"
+        f"{_pct(c['cv_wrong_frames'], '.2f')} of insertion frames, a cue in {_pct(c['cv_coverage'])}; "
+        f"chosen: {c['chosen_by']})"
         for reading, c in chosen.items()
     ]
-    first = next(iter(chosen.values()))
-    return "; ".join(parts) + f", {first['chosen_by']}"
+    return "; ".join(parts)
 
 
 def seen_table(res: Results, kinds: Sequence[str], within_s: float) -> list[str]:

@@ -4,12 +4,14 @@ sees "no angle cue", with why."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import CONFIDENCE_GRID, build_cue_pack
+from pipeline.cues.fit import CONFIDENCE_GRID, build_cue_pack, reading_confidence
 from pipeline.cues.tracker import (
     NO_CUE_REASONS,
     CueTracker,
@@ -79,6 +81,24 @@ def test_new_units_get_their_own_cross_validated_temperature_and_confidence(
     # an uncalibrated unit, not validated with three training units: no angle cue at all
     tracker.set_unit(None, "uncalibrated")
     assert not any(r.known for r in tracker._readings)
+
+
+def test_a_new_unit_whose_cross_validation_breaks_the_budget_at_the_training_value_gets_its_own() -> None:
+    # given: two angles 30 degrees apart (continue or stop), one cross-validated trial of each; the unit
+    # left out reads the 0-degree trial as 30 degrees with P 0.9, the other right with P 0.95
+    trials = [SimpleNamespace(angle=0.0, frames=[10]), SimpleNamespace(angle=30.0, frames=[10])]
+    wrong, right = (0, 0, np.array([0.1, 0.9])), (1, 0, np.array([0.05, 0.95]))
+    # when: the training units' value is 0.8, which shows that wrong cue
+    broken = reading_confidence([wrong, right], trials, [0.0, 30.0], 1, PARAMS, 0.8)
+    # then: the unit gets the least value that hides it, and says why
+    assert broken["min_confidence"] == 0.91 and broken["cv_wrong_frames"] == 0.0
+    assert broken["chosen_by"].startswith("its own")
+    # and where the training units' value holds the unit's budget, the unit keeps it
+    kept = reading_confidence([right], trials, [0.0, 30.0], 1, PARAMS, 0.8)
+    assert kept["min_confidence"] == 0.8 and kept["chosen_by"].startswith("the training units'")
+    # and a pinned confidence stays pinned, its wrong cues reported
+    pinned = PARAMS.model_copy(update={"min_confidence": 0.8})
+    assert reading_confidence([wrong, right], trials, [0.0, 30.0], 1, pinned, 0.8)["cv_wrong_frames"] == 0.5
 
 
 def test_a_pinned_confidence_is_kept_and_scored() -> None:
