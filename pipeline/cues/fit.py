@@ -437,8 +437,8 @@ def reading_confidence(
     calibrated or not: `cv_probs`), and what it gives in cross-validation: the training units' value
     `training`, its own temperature putting it on their footing. Where that footing does not hold,
     i.e. the unit left out shows more wrong frames than `max_wrong` at `training`, and the confidence is
-    "auto": the least value that holds its own budget, as `_min_confidence` chooses it (always above
-    `training`). Measured on `power-law` with three calibration insertions per angle, the training
+    "auto": the least value that holds its own budget, as `_min_confidence` chooses it, where that is
+    above `training`. Measured on `power-law` with three calibration insertions per angle, the training
     units' value let 3.7 % of a new unit's insertions end on a wrong cue (docs/units.md)."""
     at = params.model_copy(update={"min_confidence": training})
     c = {
@@ -448,6 +448,8 @@ def reading_confidence(
     if params.min_confidence != "auto" or c["cv_wrong_frames"] <= params.max_wrong:
         return c
     own = _min_confidence(cv_probs, trials, angles, n_stages, params)
+    if own["min_confidence"] <= training:  # the grid's top already, or a rounding at the budget's edge
+        return c
     return {**own, "chosen_by": f"its own, {own['chosen_by']} (the training units' let through more)"}
 
 

@@ -154,7 +154,7 @@ def _confidence(pack: Mapping[str, Any]) -> str:
         f"{c['min_confidence']:g} for {how.get(reading, reading)} (cross-validated: a wrong cue in "
         f"{_pct(c['cv_wrong_frames'], '.2f')} of insertion frames, a cue in {_pct(c['cv_coverage'])}; "
         f"chosen: {c['chosen_by']})"
-        for reading, c in chosen.items()
+        for reading, c in sorted(chosen.items(), key=lambda rc: rc[0] != "training")  # training first
     ]
     return "; ".join(parts)
 

@@ -78,6 +78,7 @@ def test_new_units_get_their_own_cross_validated_temperature_and_confidence(
     assert tracker.min_confidence == est3["confidence"]["training"]["min_confidence"]
     tracker.set_unit(None, "calibrated-2")
     assert tracker.reading == "calibrated-2"
+    assert tracker.min_confidence == est3["confidence"]["calibrated-2"]["min_confidence"]
     # an uncalibrated unit, not validated with three training units: no angle cue at all
     tracker.set_unit(None, "uncalibrated")
     assert not any(r.known for r in tracker._readings)
@@ -91,7 +92,7 @@ def test_a_new_unit_whose_cross_validation_breaks_the_budget_at_the_training_val
     # when: the training units' value is 0.8, which shows that wrong cue
     broken = reading_confidence([wrong, right], trials, [0.0, 30.0], 1, PARAMS, 0.8)
     # then: the unit gets the least value that hides it, and says why
-    assert broken["min_confidence"] == 0.91 and broken["cv_wrong_frames"] == 0.0
+    assert broken["min_confidence"] == 0.91 > 0.8 and broken["cv_wrong_frames"] == 0.0
     assert broken["chosen_by"].startswith("its own")
     # and where the training units' value holds the unit's budget, the unit keeps it
     kept = reading_confidence([right], trials, [0.0, 30.0], 1, PARAMS, 0.8)
