@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.vocab import KINDS
+from pipeline.vocab import AXES, KINDS
 
 DEFAULT_PARAMS = Path("params.yaml")
 ModelKind = Literal[KINDS]  # type: ignore[valid-type]  # one of vocab.KINDS: a typo fails loudly
@@ -81,6 +81,9 @@ class SimulateParams(Section):
     # which estimator design the units are (pipeline/sim/rigs.py: a family other labs could have built)
     rig: str = "default"
     declare_front_end: bool = Field(True, description="write the rig's circuit into batch.yaml")
+    # the force axes the simulated reference sensor records (batch.yaml reference.axes): [fz] is a
+    # one-axis load cell; the default, all three, writes the files as before
+    reference_axes: tuple[Literal["fx", "fy", "fz"], ...] = AXES
     effects: EffectScales = EffectScales()
 
     @model_validator(mode="after")
@@ -96,6 +99,11 @@ class SimulateParams(Section):
                 raise ValueError(f"{key}: {list(ids)} lists a unit twice")
         if both := sorted(set(self.units) & set(self.new_units)):
             raise ValueError(f"units and new_units must be disjoint; both list {both}")
+        if not self.reference_axes or len(set(self.reference_axes)) != len(self.reference_axes):
+            raise ValueError(
+                f"reference_axes: {list(self.reference_axes)} must name each of {', '.join(AXES)} at most "
+                "once, and at least one"
+            )
         return self
 
 

@@ -49,6 +49,8 @@ class Entry:
     unit_id: str | None = None  # calibration trials: the unit they calibrate
     note: str | None = None
     flag: str | None = None  # USED only: kept, but looked at (resample's flag: a low alignment quality)
+    unused_axes: tuple[str, ...] | None = None  # USED only: forces its reference records that its angle's
+    # models do not estimate (not every batch at the angle records them: pipeline.dataset.split)
     where: tuple[Where, ...] = field(default_factory=tuple)
 
 
@@ -65,6 +67,7 @@ class _Later:
     calibrating: dict[Key, str]  # unit
     calibrated: set[Key]  # in some unit's calibration document
     calibrate_aside: dict[Key, Mapping[str, Any]]
+    left_out: dict[tuple[str, str], list[str]] = field(default_factory=dict)  # (batch, angle): axes unused
 
 
 def _where(problem: Mapping[str, Any]) -> Where:
@@ -104,7 +107,13 @@ def build(
     for doc in calibrations:
         for s in doc.get("set_aside", []):
             calibrate_aside[(s["batch_id"], s["trial_id"])] = s
-    later = _Later(resampled, split_aside, placed, calibrating, calibrated, calibrate_aside)
+    left_out = {
+        (batch, angle): list(axes)
+        for part in ("angles", "calibration_axes_left_out")
+        for angle, entry in manifest.get(part, {}).items()
+        for batch, axes in (entry.get("axes_left_out", {}) if part == "angles" else entry).items()
+    }
+    later = _Later(resampled, split_aside, placed, calibrating, calibrated, calibrate_aside, left_out)
 
     out: list[Entry] = []
     attached: set[int] = set()  # the quarantine's problems some entry carries
@@ -169,7 +178,20 @@ def _after_ingest(key: Key, source: str, later: _Later, trained: set[str]) -> En
     if key in later.calibrating:
         unit = later.calibrating[key]
         if key in later.calibrated:
-            return Entry(batch_id, trial, source, USED, "calibrate", angle, "calibration", unit, flag=flag)
+            unused = later.left_out.get((batch_id, angle or ""))
+            return Entry(
+                batch_id,
+                trial,
+                source,
+                USED,
+                "calibrate",
+                angle,
+                "calibration",
+                unit,
+                note=_unused_note(unused, angle),
+                flag=flag,
+                unused_axes=tuple(unused) if unused else None,
+            )
         s = later.calibrate_aside.get(key)
         reason = str(s["reason"]) if s else "split gave it to calibration, but no unit calibration used it"
         file = str(s["file"]) if s else files
@@ -178,12 +200,39 @@ def _after_ingest(key: Key, source: str, later: _Later, trained: set[str]) -> En
         )
     if key in later.placed:
         at, split = later.placed[key]
-        note = None
+        notes = []
         if at not in trained:
-            note = f"no model is trained at {at}° (train.angles): only other angles' models are scored on it"
-        return Entry(batch_id, trial, source, USED, "split", at, split, note=note, flag=flag)
+            notes.append(
+                f"no model is trained at {at}° (train.angles): only other angles' models are scored on it"
+            )
+        unused = later.left_out.get((batch_id, at))
+        if unused:
+            notes.append(_unused_note(unused, at))
+        note = "; ".join(notes) or None
+        return Entry(
+            batch_id,
+            trial,
+            source,
+            USED,
+            "split",
+            at,
+            split,
+            note=note,
+            flag=flag,
+            unused_axes=tuple(unused) if unused else None,
+        )
     reason = "resampled, but split placed it nowhere"
     return Entry(batch_id, trial, source, SET_ASIDE, "split", angle, where=(Where(files, reason),))
+
+
+def _unused_note(axes: Sequence[str] | None, angle: str | None) -> str | None:
+    """The note on a used trial whose batch records force `axes` its angle's models do not estimate."""
+    if not axes:
+        return None
+    return (
+        f"its reference's {', '.join(axes)} not used: the models at {angle}° do not estimate them (not "
+        "every batch there records them)"
+    )
 
 
 def counts(entries: Sequence[Entry]) -> dict[str, Any]:

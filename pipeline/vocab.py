@@ -73,6 +73,13 @@ def sorted_angles(names: Iterable[str]) -> list[str]:
     return sorted(set(names), key=lambda a: (float(a), a))
 
 
+def axes_of(columns: Iterable[Any]) -> tuple[str, ...]:
+    """The force axes among `columns` (a frame's, a table's, a dict's keys), in AXES order: what
+    a reference recorded (docs/rig-log-format.md, `reference.axes`), what a model estimates."""
+    names = {str(c) for c in columns}
+    return tuple(a for a in AXES if a in names)
+
+
 def channels_of(frame: Any) -> list[str]:
     """The estimator channels of a processed frame (anything with `.columns`), in column order."""
     return [str(c) for c in frame.columns if c not in NON_CHANNELS]

@@ -188,3 +188,29 @@ def test_a_trial_kept_with_a_low_alignment_quality_is_used_and_flagged() -> None
     assert (t1["outcome"], t1["use"], t1["flag"]) == ("used", "train", flag)
     assert doc["counts"]["flagged"] == 1
     assert f"## Used, flagged (1)\n\n- `cast/t1`: {flag}" in markdown(doc)
+
+
+def test_a_used_trial_whose_force_axes_its_angle_leaves_out_says_which() -> None:
+    # given: split kept 15° on the axes every batch there records, leaving out cast's fx and fy, and
+    # calib's fy at the calibration of 15°
+    r = records()
+    r["manifest"]["angles"]["15"]["axes"] = ["fz"]
+    r["manifest"]["angles"]["15"]["axes_left_out"] = {"cast": ["fx", "fy"]}
+    r["manifest"]["calibration_axes_left_out"] = {"15": {"calib": ["fy"]}}
+    # when: the ledger is built
+    places = {(e.batch_id, e.trial_id): e for e in ledger.build(**r, trained=[15])}
+    # then: the used trials say which of their reference's axes the models at their angle do not use
+    assert places[("cast", "t1")].outcome == ledger.USED
+    assert places[("cast", "t1")].note == (
+        "its reference's fx, fy not used: the models at 15° do not estimate them (not every batch there "
+        "records them)"
+    )
+    assert places[("cast", "t1")].unused_axes == ("fx", "fy")
+    assert places[("calib", "c1")].note is not None and "fy not used" in places[("calib", "c1")].note
+    written = {
+        (e["batch_id"], e.get("trial_id")): e for e in ledger.document(list(places.values()))["entries"]
+    }
+    assert list(written[("cast", "t1")]["unused_axes"]) == ["fx", "fy"]
+    assert "unused_axes" not in written[("cast", "t5")]  # nothing left out at 60°: nothing written
+    # and: a trial at an angle that left nothing out carries no such note
+    assert places[("cast", "t5")].note is None or "not used" not in places[("cast", "t5")].note

@@ -14,6 +14,7 @@ import ort from "onnxruntime-node";
 export const PUBLISHED_FORMAT = "needlecue-published/1";
 export const DEPLOY_FORMAT = "needlecue-deploy/4";
 export const INPUT_NAMES = ["reading", "rest_reading", "volts_per_count", "unit_matrix", "unit_offset", "unit_circuit"];
+export const AXES = ["fx", "fy", "fz"]; // the force axes a model may give: its `targets` are some of them, in this order
 const ED25519_SPKI = Buffer.from("302a300506032b6570032100", "hex"); // DER prefix of a raw Ed25519 key
 
 /** JSON with sorted keys and no spaces: the bytes the lab's signature covers. */
@@ -82,12 +83,27 @@ function angleName(deg) {
   return String(Number((deg + 0).toPrecision(6)));
 }
 
+/** The description's `targets`, checked: the force axes the model gives, one graph column each, a
+ * non-empty subset of fx, fy, fz in that order (those its reference recorded: ["fz"] from a load cell). */
+export function targetsOf(meta, name = "the model") {
+  const t = meta.targets;
+  const ok = Array.isArray(t) && t.length > 0 && canonical(t) === canonical(AXES.filter((a) => t.includes(a)));
+  if (!ok) {
+    throw new Error(
+      `${name}: field needlecue.targets is ${JSON.stringify(t)}; expected a non-empty list of force axes among ${AXES.join(", ")}, in that order`,
+    );
+  }
+  return [...t];
+}
+
 /** One force model, run one estimator sample at a time (`step`); `reset()` between insertions.
- * `voltsPerCount`: 1 when `step` gets volts; vref / (2^bits - 1) when it gets the ADC's counts. */
+ * `voltsPerCount`: 1 when `step` gets volts; vref / (2^bits - 1) when it gets the ADC's counts.
+ * `targets`: the axes of `step`'s force, in its order (["fx", "fy", "fz"], or ["fz"] for a model of fz). */
 export class ForceModel {
   constructor(session, meta, voltsPerCount = 1) {
     this.session = session;
     this.meta = meta;
+    this.targets = targetsOf(meta);
     this.voltsPerCount = Float64Array.of(voltsPerCount);
     this.channels = meta.channels;
     this.window = meta.window;
@@ -106,6 +122,7 @@ export class ForceModel {
     if (meta.format !== DEPLOY_FORMAT) throw new Error(`${name}: a ${meta.format} model; this client runs ${DEPLOY_FORMAT}`);
     if (sha256(graph) !== meta.onnx_sha256) throw new Error(`${name}: model.onnx is not the graph its MLmodel names`);
     if (canonical(meta.graph_inputs) !== canonical(INPUT_NAMES)) throw new Error(`${name}: unexpected graph inputs`);
+    targetsOf(meta, name);
     const session = await ort.InferenceSession.create(graph, { intraOpNumThreads: 1, interOpNumThreads: 1 });
     return new ForceModel(session, meta, voltsPerCount);
   }
@@ -165,7 +182,8 @@ export class ForceModel {
     }
   }
 
-  /** One sample (readings in `channels` order) at time `t` (s) -> the force [fx, fy, fz] in N. */
+  /** One sample (readings in `channels` order) at time `t` (s) -> the force in N, one value per axis of
+   * `targets`, in that order ([fx, fy, fz], or [fz] for a model of fz alone). */
   async step(volts, t) {
     if (volts.length !== this.n) throw new Error(`step takes ${this.n} readings (${this.channels.join(", ")})`);
     if (!Number.isFinite(t) || !Array.from(volts).every(Number.isFinite)) {
@@ -192,6 +210,10 @@ export class ForceModel {
       unit_circuit: new ort.Tensor("float64", this.unit.circuit, [6]),
     };
     const out = await this.session.run(feed);
-    return Array.from(out[this.meta.output].data);
+    const force = Array.from(out[this.meta.output].data);
+    if (force.length !== this.targets.length) {
+      throw new Error(`the graph gave ${force.length} force values, its description names ${this.targets.join(", ")}`);
+    }
+    return force;
   }
 }

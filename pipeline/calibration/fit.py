@@ -29,7 +29,7 @@ from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, Input
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.predictor import Predictor
 from pipeline.rig.frontend import Circuit, conductance_us, volts_of_conductance
-from pipeline.vocab import AXES
+from pipeline.vocab import AXES, axes_of
 from pipeline.workers import ordered_map, workers_for
 
 WORTH_A_WORKER = 200_000  # rows through the models over all fits (fewer fit faster than a worker starts)
@@ -53,10 +53,17 @@ class AngleData:
 
     predictor: Predictor
     x: np.ndarray  # (n, c) the FSRs' conductance (µS; the unit declares its circuit), else the model's inputs
-    y: np.ndarray  # (n, 3) reference force, N
+    y: np.ndarray  # (n, len(axes)) reference force, N
     windows: np.ndarray | None  # (n, window) row positions of each row's LSTM window, or None
     front_end: Circuit | None = None  # the unit's circuit: the map acts on conductance
     rest: np.ndarray | None = None  # (n, c) per row, the conductance of its rest reading (raw volts)
+    axes: tuple[str, ...] = AXES  # the forces the calibration's reference recorded (of the model's targets)
+
+    @property
+    def columns(self) -> list[int] | None:
+        """The model's output columns the reference recorded; None: all of them, in order."""
+        targets = list(self.predictor.targets)
+        return None if list(self.axes) == targets else [targets.index(a) for a in self.axes]
 
     @property
     def domain(self) -> str:
@@ -68,17 +75,22 @@ class AngleData:
         through it, the map's domain."""
         codes, t = trial_codes(frame), times_of(frame)
         order, start = sequence_order(codes, t)
-        y = frame[list(AXES)].to_numpy(np.float64)[order]
+        axes = tuple(a for a in axes_of(frame.columns) if a in predictor.targets)
+        if not axes:
+            raise ValueError(
+                f"the calibration rows record none of the forces {list(predictor.targets)} it estimates"
+            )
+        y = frame[list(axes)].to_numpy(np.float64)[order]
         windows = window_index(start, predictor.window) if predictor.sequence else None
         if front_end is None:
             x = features_of(frame, list(predictor.channels), predictor.inputs)[order]
-            return cls(predictor, x, y, windows)
+            return cls(predictor, x, y, windows, axes=axes)
         volts = frame[list(predictor.channels)].to_numpy(np.float64)[order]
         rest = None
         if predictor.inputs.kind.startswith("rest_"):  # the raw rest reading, as `features` takes it
             resting = rest_reading(volts, codes[order], t[order], predictor.inputs.rest_s)
             rest = conductance_us(resting, front_end)
-        return cls(predictor, conductance_us(volts, front_end), y, windows, front_end, rest)
+        return cls(predictor, conductance_us(volts, front_end), y, windows, front_end, rest, axes)
 
     def inputs(self, transform: Any) -> Any:
         """The model's inputs (torch) with the unit's map `transform` (torch, on `x`): in the
@@ -111,7 +123,8 @@ def _losses(data: list[AngleData], forwards: list[Any], transform: Any) -> list[
         x = d.inputs(transform)
         if d.windows is not None:
             x = x[torch.from_numpy(d.windows)]
-        out.append((((forward(x) - torch.from_numpy(d.y)) / force_scale(d.y)) ** 2).mean())
+        force = forward(x) if d.columns is None else forward(x)[:, d.columns]
+        out.append((((force - torch.from_numpy(d.y)) / force_scale(d.y)) ** 2).mean())
     return out
 
 
@@ -178,14 +191,14 @@ class _Fold:
 
 
 def _fold_of(data: list[AngleData], p: CalibrateParams, seed: int, held_out: int | None) -> _Fold:
-    angles = tuple((d.predictor.checkpoint, d.x, d.y, d.windows, d.front_end, d.rest) for d in data)
+    angles = tuple((d.predictor.checkpoint, d.x, d.y, d.windows, d.front_end, d.rest, d.axes) for d in data)
     return _Fold(angles, p, seed, held_out)
 
 
 def _run_fold(fold: _Fold) -> tuple[np.ndarray, np.ndarray, float, float, float, float]:
     """(matrix, offset, loss before, loss after) of the fold's fit, then, for a leave-one-angle-out
     fold, the angle left out's loss through the identity and through the fitted transform."""
-    data = [AngleData(Predictor(c), x, y, w, fe, rest) for c, x, y, w, fe, rest in fold.angles]
+    data = [AngleData(Predictor(c), x, y, w, fe, rest, ax) for c, x, y, w, fe, rest, ax in fold.angles]
     forwards = [d.predictor.torch_forward() for d in data]
     i = fold.held_out
     with deterministic_torch(fold.seed):
@@ -212,7 +225,7 @@ def fit_transforms(
     }
     jobs = [_fold_of(data[kind], p, seed, i) for kind, held in folds.items() for i in held]
     # the work: rows through the model (an LSTM reads a window of them per row) in every fold
-    work = sum(len(x) * (1 if w is None else w.shape[1]) for fold in jobs for _, x, _, w, _, _ in fold.angles)
+    work = sum(len(x) * (1 if w is None else w.shape[1]) for fold in jobs for _, x, _, w, *_ in fold.angles)
     results = iter(ordered_map(_run_fold, jobs, workers=workers_for(work, WORTH_A_WORKER, workers)))
     return {kind: _decide(data[kind], [next(results) for _ in held]) for kind, held in folds.items()}
 

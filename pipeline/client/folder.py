@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.registry import store
-from pipeline.vocab import DEPLOY_FORMAT, DEPLOY_FORMATS, INPUT_NAMES, description_sha256
+from pipeline.vocab import AXES, DEPLOY_FORMAT, DEPLOY_FORMATS, INPUT_NAMES, description_sha256
 
 log = logging.getLogger("pipeline.client")
 
@@ -51,6 +51,11 @@ def _names(value: Any) -> bool:
     return isinstance(value, list) and bool(value) and all(isinstance(v, str) and v for v in value)
 
 
+def _targets(value: Any) -> bool:
+    """The axes a model gives, one graph column each: those its reference recorded, in AXES order."""
+    return _names(value) and value == [a for a in AXES if a in value]
+
+
 # field -> (does the value fit, what was expected); checked in this order
 FIELDS: dict[str, tuple[Any, str]] = {
     "kind": (lambda v: isinstance(v, str) and bool(v), "a model kind (ls, fnn, lstm)"),
@@ -59,7 +64,10 @@ FIELDS: dict[str, tuple[Any, str]] = {
         lambda v: _names(v) and len(set(v)) == len(v),
         "a list of distinct channel names, e.g. [fsr1, fsr2, fsr3]",
     ),
-    "targets": (_names, "a list of force axes, e.g. [fx, fy, fz]"),
+    "targets": (
+        _targets,
+        f"a non-empty list of force axes among {', '.join(AXES)}, in that order, e.g. [fx, fy, fz] or [fz]",
+    ),
     "rate_hz": (lambda v: v is None or (_number(v) and v > 0), "the sample rate in Hz (> 0) or null"),
     "window": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1, "an integer >= 1"),
     "graph_inputs": (lambda v: v == list(INPUT_NAMES), f"the graph's inputs {list(INPUT_NAMES)}"),

@@ -79,7 +79,9 @@ def _outside_stacklevel() -> int:
 
 @dataclass(frozen=True, slots=True)
 class Frame:
-    """One step's output: the sample's time, the force (fx, fy, fz) in N and the cue (None without cues)."""
+    """One step's output: the sample's time, the force in N, one value per axis of the client's `targets`
+    in that order ((fx, fy, fz), or (fz,) for a model of a load cell's fz alone), and the cue (None
+    without cues)."""
 
     t_s: float
     force_n: np.ndarray
@@ -90,8 +92,9 @@ class ForceClient:
     """One registered force model, run sample by sample on the live estimator stream.
 
     Attributes of the model (`pipeline.client.model.Model`): `angle_deg` (the preset angle it was
-    trained at), `kind`, `channels` (the order `step` takes volts in), `targets`, `rate_hz`, `window`
-    (samples of history, 1 for ls/fnn), `version` (version.json of a fetched folder: name, version,
+    trained at), `kind`, `channels` (the order `step` takes volts in), `targets` (the force axes `step`
+    gives, in its order: those the reference recorded, e.g. ("fx", "fy", "fz") or ("fz",)), `rate_hz`,
+    `window` (samples of history, 1 for ls/fnn), `version` (version.json of a fetched folder: name, version,
     alias, run_id, ...; None for a bare folder; it changes when `reset` or `refresh` swaps in a new
     version of the alias), `metadata` (the whole `needlecue` block), `model_dir`.
 
@@ -437,7 +440,8 @@ class ForceClient:
             self._tracker.reset()
 
     def step(self, volts: Sequence[float] | np.ndarray, t_s: float | None = None) -> Frame:
-        """One estimator sample (volts in `channels` order) -> the force now and the cue.
+        """One estimator sample (volts in `channels` order) -> the force now (one value per `targets`
+        axis) and the cue.
 
         `t_s` defaults to the previous sample's time plus 1 / rate_hz (0 for the first)."""
         if len(volts) != self._n:

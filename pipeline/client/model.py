@@ -50,6 +50,13 @@ class Model:
                 f"{model_dir / ONNX_FILE}: inputs {found} do not match its MLmodel metadata "
                 f"({names[:2]} of shape (batch, {', '.join(map(str, model.input_shape))}))"
             )
+        out = session.get_outputs()[0]
+        if out.name != metadata["output"] or tuple(out.shape[1:]) != (len(model.targets),):
+            raise ValueError(
+                f"{model_dir / ONNX_FILE}: output {out.name} of shape {out.shape} does not match its MLmodel "
+                f"metadata ({metadata['output']} of shape (batch, {len(model.targets)}): "
+                f"{', '.join(model.targets)})"
+            )
         return model
 
     @property
@@ -68,6 +75,8 @@ class Model:
 
     @property
     def targets(self) -> tuple[str, ...]:
+        """The force axes the model gives, in the order of `step`'s force: those its reference sensor
+        recorded, a non-empty subset of fx, fy, fz in that order (("fz",) for a load cell's model)."""
         return tuple(self.metadata["targets"])
 
     @property
@@ -118,6 +127,17 @@ class Model:
         problem = pack_format_problem(pack)
         if problem:
             log.warning("%s: no cues: %s", self.model_dir, problem)
+            return None
+        axes = (pack.get("standard_profile") or {}).get("axes")
+        if axes is not None and list(axes) != list(
+            self.targets
+        ):  # the profile is compared with `step`'s force
+            log.warning(
+                "%s: no cues: the cue pack's standard profile is of %s, the model gives %s",
+                self.model_dir,
+                list(axes),
+                list(self.targets),
+            )
             return None
         if list(pack.get("channels", self.channels)) != list(self.channels):
             raise ValueError(

@@ -2,9 +2,10 @@
 
 `replay` feeds one processed trial to `ForceClient.step` sample by sample and returns a table of the
 predicted force beside the reference and the cue per sample; `cue_changes` is its cue timeline,
-`rmse` its error per axis and `plot_replay` draws it. This is the `needlecue replay` command's
-module, not the simulator's: it needs pandas (and matplotlib for the plot), imported inside the
-functions, and `pipeline.client` does not import it.
+`rmse` its error per axis and `plot_replay` draws it. The axes are the model's `targets` (those its
+reference sensor recorded): a model of fz alone gives fz, and fz_ref where the recording has it. This
+is the `needlecue replay` command's module, not the simulator's: it needs pandas (and matplotlib for
+the plot), imported inside the functions, and `pipeline.client` does not import it.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ if TYPE_CHECKING:
 def replay(frame: pd.DataFrame, client: ForceClient) -> pd.DataFrame:
     """Run one recorded trial through `client.step`, sample by sample as if live (after a reset).
 
-    Returns one row per sample in t_s order: t_s, the predicted fx, fy, fz, the reference fx_ref,
-    fy_ref, fz_ref if the frame has them, cue, angle_est_deg and reason (None without cues).
+    Returns one row per sample in t_s order: t_s, the predicted force of each of the model's
+    `targets` (fx, fy, fz; or fz alone), the reference of each of them the frame has (fx_ref, ...),
+    cue, angle_est_deg and reason (None without cues). No column for an axis the model does not give.
     """
     import pandas as pd
 
@@ -53,7 +55,7 @@ def replay(frame: pd.DataFrame, client: ForceClient) -> pd.DataFrame:
         angles.append(None if out.cue is None else out.cue.angle_est_deg)
         reasons.append(None if out.cue is None else out.cue.reason)
     result = pd.DataFrame({"t_s": t, **{c: force[:, i] for i, c in enumerate(client.targets)}})
-    for c in AXES:
+    for c in client.targets:
         if c in rows.columns:
             result[f"{c}_ref"] = rows[c].to_numpy(np.float64)
     result["cue"] = pd.Series(cues, dtype=object)
@@ -74,9 +76,14 @@ def rmse(replayed: pd.DataFrame) -> dict[str, float]:
     """RMSE in N per axis of a `replay` result against its reference (empty if it has none)."""
     return {
         c: float(np.sqrt(np.mean((replayed[c] - replayed[f"{c}_ref"]) ** 2)))
-        for c in AXES
-        if f"{c}_ref" in replayed.columns and c in replayed.columns
+        for c in replayed_axes(replayed)
+        if f"{c}_ref" in replayed.columns
     }
+
+
+def replayed_axes(replayed: pd.DataFrame) -> list[str]:
+    """The force axes a `replay` result has (the model's targets), in fx, fy, fz order."""
+    return [c for c in AXES if c in replayed.columns]
 
 
 CUE_COLOURS = {
@@ -89,18 +96,22 @@ CUE_COLOURS = {
 
 
 def plot_replay(replayed: pd.DataFrame, out: Path, title: str) -> Path:
-    """A PNG of predicted vs reference fx, fy, fz over time, the cue intervals shaded (Agg, no pyplot)."""
+    """A PNG of predicted vs reference force over time, a panel per axis the model gives (fx, fy, fz;
+    fz alone for a model of fz), the cue intervals shaded (Agg, no pyplot)."""
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    fig = Figure(figsize=(10, 7), layout="constrained")
-    axes = fig.subplots(3, 1, sharex=True)
+    names = replayed_axes(replayed)
+    if not names:
+        raise ValueError(f"no force column to plot (columns: {list(replayed.columns)})")
+    fig = Figure(figsize=(10, 1 + 2 * len(names)), layout="constrained")
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
     t = replayed["t_s"].to_numpy()
     changes = cue_changes(replayed)
     starts = changes["t_s"].tolist()
     ends = [*starts[1:], float(t[-1])] if starts else []
     spans = list(zip(starts, ends, changes["cue"].tolist(), strict=True))
-    for ax, c in zip(axes, AXES, strict=True):
+    for ax, c in zip(axes, names, strict=True):
         for lo, hi, cue in spans:
             ax.axvspan(lo, hi, color=CUE_COLOURS.get(cue, "#dddddd"), alpha=0.25, linewidth=0)
         if f"{c}_ref" in replayed.columns:

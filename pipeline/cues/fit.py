@@ -478,6 +478,8 @@ def try_fit_angle_estimator(
 def _standard_profile(trials: Sequence[Trial], params: CuesParams) -> tuple[dict[str, Any], list[int]]:
     """Mean and spread of the reference force against time since the detected contact."""
     grid = np.arange(0.0, params.profile_horizon_s + 1e-9, params.profile_dt_s)
+    # the preset angle's axes (split gives an angle's trials one set): what its models estimate
+    axes = trials[0].axes if trials else AXES
     rows, contacts = [], []
     for tr in trials:
         ev = run_evidence(tr, params)
@@ -485,7 +487,7 @@ def _standard_profile(trials: Sequence[Trial], params: CuesParams) -> tuple[dict
         if ev.contact_t is None:
             continue
         tt = ev.contact_t + grid
-        prof = np.stack([np.interp(tt, tr.t, tr.force[:, k], right=np.nan) for k in range(3)], axis=1)
+        prof = np.stack([np.interp(tt, tr.t, tr.force[:, k], right=np.nan) for k in range(len(axes))], axis=1)
         rows.append(prof)
     if not rows:
         raise ValueError("no training trial of the preset angle has a detectable contact")
@@ -502,7 +504,7 @@ def _standard_profile(trials: Sequence[Trial], params: CuesParams) -> tuple[dict
     return (
         {
             "dt_s": float(params.profile_dt_s),
-            "axes": list(AXES),
+            "axes": list(axes),
             "mean_n": _siglist(mean, 5),
             "sd_n": _siglist(sd, 5),
             "floor_n": float(params.profile_floor_n),
@@ -532,7 +534,7 @@ def _profile_scores(
     z2 = np.sum(((force[contact_i:] - mean[gi]) / sde[gi]) ** 2, axis=1) * inside
     cum = np.cumsum(z2)
     cnt = np.cumsum(inside)
-    out[contact_i:] = np.sqrt(cum / (3 * np.maximum(cnt, 1)))
+    out[contact_i:] = np.sqrt(cum / (force.shape[1] * np.maximum(cnt, 1)))
     return out
 
 
@@ -631,7 +633,9 @@ def build_cue_pack(
             by_cue: dict[str, list[np.ndarray]] = {c: [] for c in VERDICTS}
             for a in angles:
                 if kind == REFERENCE:
-                    forces = [tr.force for tr in trials[a]]
+                    forces = [tr.force_on(profile["axes"]) for tr in trials[a]]
+                    if any(f is None for f in forces):  # another angle's reference records other axes
+                        continue
                 else:
                     pred = np.asarray(predicted[kind][a], dtype=float)
                     forces = [pred[tr.rows] for tr in trials[a]]

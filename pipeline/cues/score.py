@@ -32,7 +32,7 @@ from pipeline.cues.tracker import (
 from pipeline.cues.trials import Trial, trials_of
 from pipeline.logs import Log
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import TRIAL_KEY, angle_name
+from pipeline.vocab import AXES, TRIAL_KEY, angle_name
 from pipeline.workers import ordered_map, workers_for
 
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
@@ -339,7 +339,10 @@ def track_external(
         if not paper_bound:  # the paper's method on the measured force is not asked for
             break
         # the paper's comparison on the measured force: not deployable, its upper bound
-        on = [(a, trials[a], [tr.force for tr in trials[a]]) for a in external]
+        axes = (pack.get("standard_profile") or {}).get("axes") or AXES
+        measured = {a: [tr.force_on(axes) for tr in trials[a]] for a in external}
+        # an angle whose reference records other axes than the preset's has no measured profile
+        on = [(a, trials[a], f) for a, f in measured.items() if all(x is not None for x in f)]
         jobs.append(
             _Job(REFERENCE, preset, pack, ("paper",), on, with_estimator, preset == min(packs), units)
         )

@@ -577,8 +577,11 @@ class CueTracker:
         if g >= self._n_prof:
             g = self._n_prof - 1
         m, s = self._mean[g], self._isd[g]
-        a, b, c = (f[0] - m[0]) * s[0], (f[1] - m[1]) * s[1], (f[2] - m[2]) * s[2]
-        self._z2 += a * a + b * b + c * c
+        z2 = 0.0
+        for fk, mk, sk in zip(f, m, s, strict=True):  # the profile's axes, the model's targets
+            d = (fk - mk) * sk
+            z2 += d * d
+        self._z2 += z2
         self._nz += 1
 
     # -- one frame ---------------------------------------------------------------------------
@@ -621,7 +624,7 @@ class CueTracker:
             for tp, _, fp in post:
                 self._accumulate(tp, fp)
         if self._nz:
-            self._score = math.sqrt(self._z2 / (3 * self._nz))
+            self._score = math.sqrt(self._z2 / (len(self._mean[0]) * self._nz))
         if changed and ev.rest_n and self._readings:
             p, self._outside = self._judge()
             self._pdev = (p @ self._to_dev).tolist()  # type: ignore[operator]

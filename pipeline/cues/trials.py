@@ -12,7 +12,7 @@ import pandas as pd
 from pipeline.config import AUTO_EVIDENCE_LEVELS, CuesParams
 from pipeline.cues.tracker import MIN_VOLTS, Evidence
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import AXES, TRIAL_KEY, rate_hz
+from pipeline.vocab import AXES, TRIAL_KEY, axes_of, rate_hz
 
 AUTO_REACH = 0.9  # "auto" evidence levels end at the loading this share of training trials reach
 
@@ -23,12 +23,20 @@ class Trial:
     batch: str
     t: np.ndarray  # (n,)
     volts: np.ndarray  # (n, channels)
-    force: np.ndarray  # (n, 3) reference
+    force: np.ndarray  # (n, len(axes)) reference, N
     ins_start: int  # from the phase labels (-1 if none)
     ins_end: int
     rows: np.ndarray  # row positions in the source frame, time order
     unit: str | None = None  # the estimator unit that recorded it (None: the frame does not say)
     front_end: Circuit | None = None  # the circuit its unit declares (None: none declared)
+    axes: tuple[str, ...] = AXES  # the force axes its reference recorded (the columns of `force`)
+
+    def force_on(self, axes: Sequence[str]) -> np.ndarray | None:
+        """The reference force on `axes` (a pack's profile axes, in that order); None if its reference
+        did not record one of them."""
+        if not set(axes) <= set(self.axes):
+            return None
+        return self.force[:, [self.axes.index(a) for a in axes]]
 
 
 def trials_of(
@@ -46,7 +54,8 @@ def trials_of(
     groups = frame.groupby(keys, sort=True).indices if keys else {("",): np.arange(len(frame))}
     t_all = frame["t_s"].to_numpy(np.float64)
     v_all = frame[list(channels)].to_numpy(np.float64)
-    f_all = frame[list(AXES)].to_numpy(np.float64) if set(AXES) <= set(frame.columns) else None
+    axes = axes_of(frame.columns)
+    f_all = frame[list(axes)].to_numpy(np.float64) if axes else None
     ph_all = frame["phase"].to_numpy() if "phase" in frame.columns else None
     unit_all = frame["unit_id"].astype(str).to_numpy() if "unit_id" in frame.columns else None
     for key, idx in groups.items():
@@ -58,10 +67,11 @@ def trials_of(
         else:
             s = e = -1
         batch = str(key[0]) if isinstance(key, tuple) else str(key)
-        force = f_all[idx] if f_all is not None else np.full((len(idx), 3), np.nan)
+        force = f_all[idx] if f_all is not None else np.full((len(idx), len(AXES)), np.nan)
         unit = str(unit_all[idx[0]]) if unit_all is not None and len(idx) else None
         circuit = (circuits or {}).get(unit) if unit is not None else None
-        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit, circuit))
+        recorded = axes or AXES
+        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit, circuit, recorded))
     return out
 
 

@@ -27,7 +27,12 @@ Rules:
 - one angle, one channel list: trials whose channels differ from the majority's are set
   aside (a model per angle takes one fixed input vector); calibration trials must have the
   channels of their angle's other trials (the majority of calibration trials where there are
-  none).
+  none);
+- one angle, one set of force axes (docs/rig-log-format.md, `reference.axes`): an angle's models
+  are trained on the axes every one of its batches records; the axes some batches record beyond
+  those are left out of its files and named in the manifest (`axes_left_out`), the log and the
+  ledger. Trials that share no axis with the angle's majority are set aside. A calibration batch
+  keeps the axes both it and its angle's models have.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import Any
@@ -53,7 +58,7 @@ from pipeline.dataset.tables import columns_for, table_schema, write_table
 from pipeline.logs import Log
 from pipeline.rig.frontend import circuit_key, declared
 from pipeline.rig.repeats import SAMPLES_KEY, reason, repeats
-from pipeline.vocab import CALIBRATION, SPLITS, angle_name, sorted_angles
+from pipeline.vocab import AXES, CALIBRATION, SPLITS, angle_name, axes_of, sorted_angles
 
 MANIFEST = "manifest.json"
 
@@ -71,6 +76,7 @@ class Trial:
     angle: str  # folder name, vocab.angle_name(angle_deg)
     channels: tuple[str, ...]
     table: pa.Table
+    axes: tuple[str, ...] = AXES  # the force axes its reference recorded
     unit_id: str = ""  # the estimator unit that recorded the batch
     purpose: str = "training"  # the batch's purpose: training | calibration
     front_end: dict[str, Any] | None = None  # the batch's batch.yaml sensor.front_end, as declared
@@ -93,10 +99,13 @@ def load_trials(in_dir: Path) -> tuple[list[Trial], float | None]:
         channels = tuple(str(c) for c in meta["channels"])
         rates.add(float(meta["rate_hz"]))
         table = pq.read_table(data_path)
-        missing = [c for c in columns_for(channels) if c not in table.column_names]
+        axes = axes_of(table.column_names)
+        if not axes:
+            raise ValueError(f"{data_path}: no force column (one of {list(AXES)}) among {table.column_names}")
+        missing = [c for c in columns_for(channels, axes) if c not in table.column_names]
         if missing:
             raise ValueError(f"{data_path}: columns {missing} missing (channels from {meta_path.name})")
-        table = table.select(columns_for(channels))
+        table = table.select(columns_for(channels, axes))
         if not isinstance(meta.get(SAMPLES_KEY), dict):
             raise ValueError(f"{meta_path}: no {SAMPLES_KEY} (written by an older resample: run dvc repro)")
         purpose = str(meta.get("purpose") or "training")
@@ -124,7 +133,8 @@ def _split_by_trial(
         part = table.take(pa.array(rows))
         angle = angle_name(part.column("angle_deg")[0].as_py())
         unit = str(part.column("unit_id")[0].as_py())
-        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part, unit, purpose, front_end))
+        axes = axes_of(part.column_names)
+        out.append(Trial(batch_id, str(ids[rows[0]]), angle, channels, part, axes, unit, purpose, front_end))
     return out
 
 
@@ -186,6 +196,43 @@ def majority_channels(trials: list[Trial]) -> tuple[str, ...]:
     return min(counts, key=lambda ch: (-counts[ch], ch))
 
 
+def common_axes(trials: list[Trial]) -> tuple[str, ...]:
+    """The force axes every one of `trials` records, or, where they share none, the axes of most
+    trials (ties: the first in AXES order, for determinism)."""
+    shared = tuple(a for a in AXES if all(a in t.axes for t in trials))
+    if shared or not trials:
+        return shared
+    counts = Counter(t.axes for t in trials)
+    return min(counts, key=lambda axes: (-counts[axes], [AXES.index(a) for a in axes]))
+
+
+def _other_axes(t: Trial, axes: tuple[str, ...], whose: str) -> dict[str, str]:
+    return {
+        "angle": t.angle,
+        "batch_id": t.batch_id,
+        "trial_id": t.trial_id,
+        "reason": f"its reference records {list(t.axes)}, no force axis of the {list(axes)} of {whose}",
+    }
+
+
+def settle_axes(
+    group: list[Trial], whose: str, within: tuple[str, ...] = AXES
+) -> tuple[tuple[str, ...], list[Trial], list[dict[str, str]], dict[str, list[str]]]:
+    """(axes, kept, set aside, left out) for one angle's trials: `common_axes` of the trials, within
+    `within` (an angle's models' axes, for its calibration trials); each kept trial's table holds
+    just those forces, and `left out` names, per batch, the recorded axes the angle does not use."""
+    narrowed = [replace(t, axes=tuple(a for a in t.axes if a in within)) for t in group]
+    axes = common_axes([t for t in narrowed if t.axes])
+    kept = [t for t in narrowed if set(axes) <= set(t.axes)]
+    aside = [_other_axes(t, axes, whose) for t in narrowed if not set(axes) <= set(t.axes)]
+    left_out: dict[str, list[str]] = {}
+    for t in group:
+        if set(axes) <= set(t.axes) and (extra := [a for a in t.axes if a not in axes]):
+            left_out[t.batch_id] = extra
+    kept = [replace(t, axes=axes, table=t.table.select(columns_for(t.channels, axes))) for t in kept]
+    return axes, kept, aside, left_out
+
+
 @dataclass
 class AngleSplit:
     """Everything written for one angle."""
@@ -194,6 +241,8 @@ class AngleSplit:
     channels: tuple[str, ...]
     splits: dict[str, list[Trial]]
     set_aside: list[dict[str, str]]
+    axes: tuple[str, ...] = AXES  # the force axes its models estimate
+    axes_left_out: dict[str, list[str]] = field(default_factory=dict)  # {batch_id: axes it records beyond}
 
 
 def _other_channels(t: Trial, channels: tuple[str, ...], whose: str) -> dict[str, str]:
@@ -218,12 +267,14 @@ def plan(trials: list[Trial], p: SplitParams) -> list[AngleSplit]:
         kept = [t for t in group if t.channels == channels]
         whose = f"the majority of trials at angle {angle}"
         aside = [_other_channels(t, channels, whose) for t in group if t.channels != channels]
+        axes, kept, other_axes, left_out = settle_axes(kept, f"the trials at angle {angle}")
+        aside += other_axes
         external = [t for t in kept if is_external(t.batch_id, p.external_batches)]
         internal = {t.key: t for t in kept if not is_external(t.batch_id, p.external_batches)}
         keys = assign(list(internal), angle, p)
         splits = {name: [internal[k] for k in keys[name]] for name in ("train", "val", "test")}
         splits["external"] = sorted(external, key=lambda t: t.key)
-        out.append(AngleSplit(angle, channels, splits, aside))
+        out.append(AngleSplit(angle, channels, splits, aside, axes, left_out))
     return out
 
 
@@ -235,11 +286,18 @@ class AngleCalibration:
     channels: tuple[str, ...]
     trials: list[Trial]
     set_aside: list[dict[str, str]]
+    axes: tuple[str, ...] = AXES
+    axes_left_out: dict[str, list[str]] = field(default_factory=dict)
 
 
-def plan_calibration(trials: list[Trial], channels_of: dict[str, tuple[str, ...]]) -> list[AngleCalibration]:
+def plan_calibration(
+    trials: list[Trial],
+    channels_of: dict[str, tuple[str, ...]],
+    axes_of_angle: dict[str, tuple[str, ...]] | None = None,
+) -> list[AngleCalibration]:
     """Group calibration trials by angle; keep those with the angle's channels (`channels_of`,
-    from the angle's split), or the calibration majority's at an angle with no other trials."""
+    from the angle's split), or the calibration majority's at an angle with no other trials, and
+    the force axes both they and the angle's models have (`axes_of_angle`)."""
     by_angle: dict[str, list[Trial]] = {}
     for t in trials:
         by_angle.setdefault(t.angle, []).append(t)
@@ -253,7 +311,10 @@ def plan_calibration(trials: list[Trial], channels_of: dict[str, tuple[str, ...]
             whose = f"the majority of calibration trials at angle {angle}"
         kept = [t for t in group if t.channels == channels]
         aside = [_other_channels(t, channels, whose) for t in group if t.channels != channels]
-        out.append(AngleCalibration(angle, channels, kept, aside))
+        within = (axes_of_angle or {}).get(angle, AXES)
+        whose = f"the calibration trials at angle {angle}"
+        axes, kept, other_axes, left_out = settle_axes(kept, whose, within)
+        out.append(AngleCalibration(angle, channels, kept, aside + other_axes, axes, left_out))
     return out
 
 
@@ -264,11 +325,11 @@ def split_table(trials: list[Trial], schema: pa.Schema) -> pa.Table:
     return pa.concat_tables([t.table.cast(schema) for t in trials])
 
 
-def _schema(trials: list[Trial], channels: tuple[str, ...]) -> pa.Schema:
+def _schema(trials: list[Trial], channels: tuple[str, ...], axes: tuple[str, ...]) -> pa.Schema:
     """The schema of a file of these trials: the first one's, else the documented one."""
     if trials:
-        return trials[0].table.select(columns_for(channels)).schema.remove_metadata()
-    return table_schema(channels)
+        return trials[0].table.select(columns_for(channels, axes)).schema.remove_metadata()
+    return table_schema(channels, axes)
 
 
 def untrainable(angles: list[AngleSplit], trained: Sequence[float]) -> str | None:
@@ -304,14 +365,20 @@ def run(
     if trained is not None and (why := untrainable(angles, trained)):
         raise ValueError(why)
     calibration = plan_calibration(
-        [t for t in trials if t.purpose == CALIBRATION], {a.angle: a.channels for a in angles}
+        [t for t in trials if t.purpose == CALIBRATION],
+        {a.angle: a.channels for a in angles},
+        {a.angle: a.axes for a in angles},
     )
     out_dir.mkdir(parents=True, exist_ok=True)
     manifest: dict[str, Any] = {"rate_hz": rate_hz, "angles": {}, "set_aside": list(copies)}
     schemas: dict[str, pa.Schema] = {}
     for a in angles:
-        schema = schemas[a.angle] = _schema([t for ts in a.splits.values() for t in ts], a.channels)
+        schema = schemas[a.angle] = _schema([t for ts in a.splits.values() for t in ts], a.channels, a.axes)
         entry: dict[str, Any] = {"channels": list(a.channels), "splits": {}, "n_samples": {}, "n_trials": {}}
+        if a.axes != AXES:  # absent: all three (a manifest of three-axis data reads as before)
+            entry["axes"] = list(a.axes)
+        if a.axes_left_out:
+            entry["axes_left_out"] = a.axes_left_out
         for name in SPLITS:
             table = split_table(a.splits[name], schema)
             write_table(table, out_dir / a.angle / f"{name}.parquet")
@@ -322,6 +389,11 @@ def run(
         _write_front_ends(out_dir / a.angle, [t for ts in a.splits.values() for t in ts], circuits)
         manifest["set_aside"] += a.set_aside
         log(_angle_table(a.angle, entry, len(a.set_aside)))
+        for batch, extra in sorted(a.axes_left_out.items()):
+            log(
+                f"split: warning: angle {a.angle}: {batch} records {', '.join(extra)} too, which other "
+                f"batches of the angle do not: its models estimate {', '.join(a.axes)} only"
+            )
         if not entry["n_trials"]["external"]:
             log(
                 f"split: warning: angle {a.angle} has no external trials (no usable trial of a batch "
@@ -329,9 +401,11 @@ def run(
                 "the test split, trials of the training batches, not on data never seen in training"
             )
     manifest["calibration"] = {}
+    angle_axes = {a.angle: a.axes for a in angles}
     for c in calibration:
         if c.trials:  # the angle's schema, so that the calibration rows read like its split files
-            schema = schemas.get(c.angle) or _schema(c.trials, c.channels)
+            schema = schemas.get(c.angle) if c.angle in schemas and c.axes == angle_axes[c.angle] else None
+            schema = schema or _schema(c.trials, c.channels, c.axes)
             write_table(split_table(c.trials, schema), out_dir / CALIBRATION / f"{c.angle}.parquet")
             manifest["calibration"][c.angle] = [
                 {"batch_id": t.batch_id, "trial_id": t.trial_id, "unit_id": t.unit_id} for t in c.trials
@@ -339,6 +413,10 @@ def run(
         manifest["set_aside"] += c.set_aside
         units = sorted({t.unit_id for t in c.trials})
         log(f"split: calibration, angle {c.angle}: {len(c.trials)} trials (units {', '.join(units) or '-'})")
+        for batch, extra in sorted(c.axes_left_out.items()):
+            log(f"split: warning: calibration, angle {c.angle}: {batch}'s {', '.join(extra)} not used")
+        if c.axes_left_out:
+            manifest.setdefault("calibration_axes_left_out", {})[c.angle] = c.axes_left_out
     calibrating = [t for c in calibration for t in c.trials]
     if calibrating:
         _write_front_ends(out_dir / CALIBRATION, calibrating, circuits)
@@ -354,7 +432,9 @@ def run(
 
 def _angle_table(angle: str, entry: dict[str, Any], n_aside: int) -> str:
     """The progress lines of one angle: its channels, then trials and samples per split."""
-    lines = [f"split: angle {angle} (channels {', '.join(entry['channels'])}; {n_aside} trials set aside)"]
+    axes = f"; forces {', '.join(entry['axes'])}" if "axes" in entry else ""
+    channels = ", ".join(entry["channels"])
+    lines = [f"split: angle {angle} (channels {channels}{axes}; {n_aside} trials set aside)"]
     lines.append(f"  {'split':<9}{'trials':>7}{'samples':>10}")
     for name in SPLITS:
         lines.append(f"  {name:<9}{entry['n_trials'][name]:>7}{entry['n_samples'][name]:>10}")

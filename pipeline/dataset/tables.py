@@ -18,15 +18,16 @@ TEXT_IDS = frozenset(
 )  # the other columns are float64
 
 
-def columns_for(channels: Iterable[str]) -> list[str]:
-    """Column order of a table with these estimator channels: ids, channels, forces."""
-    return [*ID_COLUMNS, *channels, *AXES]
+def columns_for(channels: Iterable[str], axes: Iterable[str] = AXES) -> list[str]:
+    """Column order of a table with these estimator channels and recorded force axes: ids, channels,
+    forces."""
+    return [*ID_COLUMNS, *channels, *axes]
 
 
-def table_schema(channels: Iterable[str]) -> pa.Schema:
-    """Arrow schema of a table with these estimator channels."""
+def table_schema(channels: Iterable[str], axes: Iterable[str] = AXES) -> pa.Schema:
+    """Arrow schema of a table with these estimator channels and recorded force axes."""
     ids = [pa.field(c, pa.string() if c in TEXT_IDS else pa.float64()) for c in ID_COLUMNS]
-    return pa.schema([*ids, *(pa.field(c, pa.float64()) for c in [*channels, *AXES])])
+    return pa.schema([*ids, *(pa.field(c, pa.float64()) for c in [*channels, *axes])])
 
 
 def write_table(table: pa.Table, path: Path) -> None:

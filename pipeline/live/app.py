@@ -86,6 +86,7 @@ def run_live(
             },
         },
         settings.channels,
+        targets=client.targets,
     )
     web.start()
     term = TerminalView()

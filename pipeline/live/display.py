@@ -19,6 +19,7 @@ from importlib import resources
 from typing import IO, Any
 
 from pipeline.cues.tracker import NO_CUE_REASONS
+from pipeline.vocab import AXES
 
 KEEPALIVE_S = 5.0
 
@@ -171,6 +172,16 @@ CUE_WORDS = {
 }
 
 
+def _force_text(force: list[float] | None, targets: list[str] | None) -> str:
+    """` F=(+0.10, -0.20, +1.50) N` for the three axes; the axes named when the model gives fewer
+    (` fz=+1.50 N`: only what the reference recorded)."""
+    if not force:
+        return ""
+    if targets is None or list(targets) == list(AXES):
+        return " F=(" + ", ".join(f"{v:+.2f}" for v in force) + ") N"
+    return " " + " ".join(f"{a}={v:+.2f}" for a, v in zip(targets, force, strict=True)) + " N"
+
+
 def terminal_line(state: dict[str, Any]) -> str:
     """The compact terminal view of one state."""
     cue = CUE_WORDS.get(state.get("cue", ""), state.get("cue", ""))
@@ -180,8 +191,7 @@ def terminal_line(state: dict[str, Any]) -> str:
     head = f"[{state.get('preset_angle_deg', 0):g}°] " + (f"#{ins} " if ins else "rest ")
     est = state.get("angle_est_deg")
     angle = f" angle {est:.0f}°" if est is not None else ""
-    f = state.get("force_n")
-    force = " F=(" + ", ".join(f"{v:+.2f}" for v in f) + ") N" if f else ""
+    force = _force_text(state.get("force_n"), state.get("targets"))
     unit = "" if state.get("calibrated") else " [uncalibrated unit]"
     problems = "; ".join((state.get("problems") or {}).values())
     return f"{head}{cue:<13}{angle}{force}{unit}" + (f"  ! {problems}" if problems else "")

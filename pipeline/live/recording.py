@@ -6,7 +6,9 @@
                               line (escaped); connects and disconnects too. `needlecue replay` plays it
     <session>/trials.csv      one row per insertion found in the signal, with its cue sequence
     <session>/<trial>.fsr.csv that insertion's samples (host t_ms, counts; board_ms kept beside)
-    <session>/<trial>.cues.csv what the trainee was shown, frame by frame
+    <session>/<trial>.cues.csv what the trainee was shown, frame by frame: t_s, cue, angle_est_deg,
+                              the predicted force of each of the model's targets (fx, fy, fz, or
+                              fz alone for a model of a load cell's fz), reason
     <session>/session.json    the session's totals (samples, garbage, gaps, late samples, disconnects)
 
 Every file is written line by line and flushed, so a crash or a pulled plug keeps what arrived.
@@ -63,13 +65,18 @@ class _Csv:
 class SessionRecorder:
     """Writes one session's folder as it happens."""
 
-    def __init__(self, folder: Path, meta: Mapping[str, Any], channels: Sequence[str]) -> None:
+    def __init__(
+        self, folder: Path, meta: Mapping[str, Any], channels: Sequence[str], *, targets: Sequence[str]
+    ) -> None:
+        """`channels`: the unit's, in the order its counts come; `targets`: the force axes the model
+        gives (`ForceClient.targets`), one cues.csv column each."""
         if folder.exists() and any(folder.iterdir()):
             raise FileExistsError(f"{folder} exists and is not empty: a recording never overwrites one")
         folder.mkdir(parents=True, exist_ok=True)
         self.folder = folder
         self.failed: str | None = None  # why writing stopped (a full disk, a pulled USB stick), if it did
         self.channels = list(channels)
+        self.targets = list(targets)
         self._meta = dict(meta)
         self._write_batch_yaml()
         self._lines = _Csv(folder / LINES, ["host_s", "kind", "text"])
@@ -114,7 +121,7 @@ class SessionRecorder:
     def _open_trial(self, trial_id: str) -> None:
         self._fsr = _Csv(self.folder / f"{trial_id}.fsr.csv", ["t_ms", *self.channels, "board_ms"])
         self._cues = _Csv(
-            self.folder / f"{trial_id}.cues.csv", ["t_s", "cue", "angle_est_deg", "fx", "fy", "fz", "reason"]
+            self.folder / f"{trial_id}.cues.csv", ["t_s", "cue", "angle_est_deg", *self.targets, "reason"]
         )
 
     def sample(self, host_ms: float, board_ms: float, counts: Sequence[int]) -> None:

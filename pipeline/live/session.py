@@ -345,6 +345,7 @@ class LiveSession:
             "reason": reason,
             "angle_est_deg": None if not inside or cue_state is None else cue_state.angle_est_deg,
             "force_n": None if frame is None else [round(float(f), 5) for f in frame.force_n],
+            "targets": list(c.targets),  # the axes of force_n, in its order: those the model gives
             "preset_angle_deg": c.angle_deg,
             "model": c.name,
             "unit_id": c.unit_id,

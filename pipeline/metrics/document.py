@@ -28,7 +28,7 @@ class AxisScore(Document):
     nrmse_pct: Number
 
 
-Scores = dict[Axis, AxisScore]  # the three axes of one (model, angle)
+Scores = dict[Axis, AxisScore]  # the axes of one (model, angle): fx, fy, fz, or those recorded
 AxisNrmse = dict[Axis, Number]  # NRMSE % per axis
 
 
@@ -48,9 +48,9 @@ class MeanScores(MeanNrmse):
 class GapPoint(Document):
     """One gap of a model's gap curve: NRMSE % per axis, their mean, and how many pairs it averages."""
 
-    fx: Number
-    fy: Number
-    fz: Number
+    fx: Number = None  # absent (None): an axis the reference did not record
+    fy: Number = None
+    fz: Number = None
     mean: Number
     n_pairs: int
 

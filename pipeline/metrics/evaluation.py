@@ -22,9 +22,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.logs import Log
-from pipeline.metrics.scores import axis_scores, gap_summary, gaps_present, mean_known, mean_over_axes
+from pipeline.metrics.scores import gap_summary, gaps_present, mean_known, mean_over_axes, shared_scores
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import AXES, TRIAL_KEY, sorted_angles
+from pipeline.vocab import AXES, TRIAL_KEY, axes_of, sorted_angles
 
 
 @dataclass(frozen=True)
@@ -37,12 +37,21 @@ class EvalSet:
     test: pd.DataFrame
 
     @cached_property
+    def axes(self) -> tuple[str, ...]:
+        """The forces its reference recorded (the columns of `ref`)."""
+        return axes_of(self.frame.columns)
+
+    @cached_property
+    def test_axes(self) -> tuple[str, ...]:
+        return axes_of(self.test.columns)
+
+    @cached_property
     def ref(self) -> np.ndarray:
-        return self.frame[list(AXES)].to_numpy(dtype=float)
+        return self.frame[list(self.axes)].to_numpy(dtype=float)
 
     @cached_property
     def test_ref(self) -> np.ndarray:
-        return self.test[list(AXES)].to_numpy(dtype=float)
+        return self.test[list(self.test_axes)].to_numpy(dtype=float)
 
 
 def load_eval_sets(data_dir: Path, angles: Iterable[str], log: Log) -> dict[str, EvalSet]:
@@ -76,6 +85,12 @@ class Scored:
     on_eval: dict[tuple[str, str, str], np.ndarray] = field(default_factory=dict)  # (model, train, data)
     on_test: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)  # (model, angle)
     loaded: list[tuple[str, str]] = field(default_factory=list)  # (model, angle) that were found
+    axes: dict[tuple[str, str], tuple[str, ...]] = field(default_factory=dict)  # (model, angle): its forces
+
+    def axes_of(self, model: str, angle: str) -> tuple[str, ...]:
+        """The forces model (model, angle) estimates: the columns of its predictions (all three
+        unless `gather` found others)."""
+        return self.axes.get((model, angle), AXES)
 
 
 def gather(
@@ -93,6 +108,7 @@ def gather(
                 log(f"warning: {model} at {angle}° skipped: no predictions (no trained model)")
                 continue
             out.loaded.append((model, angle))
+            out.axes[(model, angle)] = predictions.axes(model, angle)
             for data_angle, es in eval_sets.items():
                 p = predictions.get(model, angle, data_angle, es.source)
                 if p is None:
@@ -120,14 +136,18 @@ def compute_metrics(
     within_test: dict[str, dict[str, Any]] = {}
     matrix: dict[str, dict[str, dict[str, dict[str, float]]]] = {}
     for (model, train_angle, data_angle), p in preds.on_eval.items():
-        scores = axis_scores(p, eval_sets[data_angle].ref)
+        es = eval_sets[data_angle]
+        scores = shared_scores(p, preds.axes_of(model, train_angle), es.ref, es.axes)
         matrix.setdefault(model, {}).setdefault(train_angle, {})[data_angle] = {
             a: s["nrmse_pct"] for a, s in scores.items()
         }
         if train_angle == data_angle:
             within.setdefault(model, {})[train_angle] = scores
     for (model, angle), p in preds.on_test.items():
-        within_test.setdefault(model, {})[angle] = axis_scores(p, eval_sets[angle].test_ref)
+        es = eval_sets[angle]
+        within_test.setdefault(model, {})[angle] = shared_scores(
+            p, preds.axes_of(model, angle), es.test_ref, es.test_axes
+        )
 
     angle_gap: dict[str, dict[str, Any]] = {}
     pairs: dict[str, dict[str, int]] = {}
@@ -148,11 +168,12 @@ def compute_metrics(
 
     mean: dict[str, dict[str, Any]] = {}
     for model, per_angle in within.items():
-        nrmse = {a: mean_known(s[a]["nrmse_pct"] for s in per_angle.values()) for a in AXES}
+        axes = [a for a in AXES if all(a in s for s in per_angle.values())]  # every angle's
+        nrmse = {a: mean_known(s[a]["nrmse_pct"] for s in per_angle.values()) for a in axes}
         overall = mean_over_axes(nrmse)
         mean[model] = {
             "within_angle": nrmse,
-            "within_angle_rmse": {a: mean_known(s[a]["rmse"] for s in per_angle.values()) for a in AXES},
+            "within_angle_rmse": {a: mean_known(s[a]["rmse"] for s in per_angle.values()) for a in axes},
             "accuracy_pct": None if overall is None else 100.0 - overall,
             "n_angles": len(per_angle),
         }

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -38,13 +38,25 @@ def nrmse_pct(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.where(span > 0, out, np.nan)
 
 
-def axis_scores(pred: np.ndarray, ref: np.ndarray) -> dict[str, dict[str, float]]:
-    """{axis: {"rmse": N, "nrmse_pct": %}} for (n, 3) arrays in fx, fy, fz order."""
+def axis_scores(pred: np.ndarray, ref: np.ndarray, axes: Sequence[str] = AXES) -> dict[str, dict[str, float]]:
+    """{axis: {"rmse": N, "nrmse_pct": %}} for (n, len(axes)) arrays, columns in `axes` order."""
     p, r = _pair(pred, ref)
-    if p.ndim != 2 or p.shape[1] != len(AXES):
-        raise ValueError(f"expected (n, {len(AXES)}) arrays, got {p.shape}")
+    if p.ndim != 2 or p.shape[1] != len(axes):
+        raise ValueError(f"expected (n, {len(axes)}) arrays for {list(axes)}, got {p.shape}")
     e, n = rmse(p, r), nrmse_pct(p, r)
-    return {a: {"rmse": float(e[i]), "nrmse_pct": float(n[i])} for i, a in enumerate(AXES)}
+    return {a: {"rmse": float(e[i]), "nrmse_pct": float(n[i])} for i, a in enumerate(axes)}
+
+
+def shared_scores(
+    pred: np.ndarray, pred_axes: Sequence[str], ref: np.ndarray, ref_axes: Sequence[str]
+) -> dict[str, dict[str, float]]:
+    """`axis_scores` on the axes both a prediction (columns `pred_axes`, a model's targets) and a
+    reference (columns `ref_axes`, what it recorded) have: a model is scored on no axis it does not
+    estimate or the data did not record."""
+    common = [a for a in AXES if a in pred_axes and a in ref_axes]
+    p = np.asarray(pred)[:, [list(pred_axes).index(a) for a in common]]
+    r = np.asarray(ref)[:, [list(ref_axes).index(a) for a in common]]
+    return axis_scores(p, r, common)
 
 
 def mean_known(values: Iterable[float | None]) -> float | None:
@@ -55,9 +67,14 @@ def mean_known(values: Iterable[float | None]) -> float | None:
     return float(np.mean(vals))
 
 
+def nrmse_of(scores: Mapping[str, Mapping[str, float]]) -> dict[str, float]:
+    """{axis: NRMSE %} of one `axis_scores` result, on the axes it has."""
+    return {a: scores[a]["nrmse_pct"] for a in AXES if a in scores}
+
+
 def mean_over_axes(scores: Mapping[str, float | None]) -> float | None:
-    """Mean of the fx, fy, fz values of one {axis: value} dict."""
-    return mean_known(scores.get(a) for a in AXES)
+    """Mean of the force axes' values of one {axis: value} dict (the axes it has)."""
+    return mean_known(scores[a] for a in AXES if a in scores)
 
 
 def gap_of(train_angle: str, data_angle: str) -> float:
@@ -76,7 +93,8 @@ def gap_summary(
         for data_angle, scores in row.items()
         if abs(gap_of(train_angle, data_angle) - gap) <= GAP_TOL
     ]
-    return {a: mean_known(c.get(a) for c in cells) for a in AXES} if cells else {}, len(cells)
+    axes = [a for a in AXES if all(a in c for c in cells)]  # the axes every pair was scored on
+    return {a: mean_known(c[a] for c in cells) for a in axes} if cells else {}, len(cells)
 
 
 def gaps_present(matrix: Mapping[str, Mapping[str, Any]]) -> list[float]:
@@ -85,5 +103,6 @@ def gaps_present(matrix: Mapping[str, Mapping[str, Any]]) -> list[float]:
 
 
 def mean_nrmse(scores: Mapping[str, Mapping[str, float]]) -> float:
-    """The champion rule's figure: NRMSE averaged over fx, fy, fz of one `axis_scores` result."""
-    return float(np.mean([scores[a]["nrmse_pct"] for a in AXES]))
+    """The champion rule's figure: NRMSE averaged over the axes of one `axis_scores` result (fx, fy,
+    fz, or those the reference recorded)."""
+    return float(np.mean([scores[a]["nrmse_pct"] for a in AXES if a in scores]))

@@ -14,9 +14,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.metrics.evaluation import EvalSet
-from pipeline.metrics.scores import axis_scores, mean_known, mean_over_axes
+from pipeline.metrics.scores import mean_known, mean_over_axes, nrmse_of, shared_scores
 from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
-from pipeline.vocab import AXES
 
 GROUPS = ("same_unit", "new_uncalibrated", "new_calibrated")
 
@@ -57,12 +56,13 @@ def by_unit(
                     p = predictions.get(kind, angle, angle, "external")
                 if p is None:
                     continue
-                entry.setdefault(kind, {})[angle] = axis_scores(p[mask], es.ref[mask])
+                axes = predictions.axes(kind, angle)
+                entry.setdefault(kind, {})[angle] = shared_scores(p[mask], axes, es.ref[mask], es.axes)
     return out
 
 
 def _mean_nrmse(per_angle: Mapping[str, Mapping[str, Mapping[str, float]]]) -> float | None:
-    return mean_known(mean_over_axes({a: s[a]["nrmse_pct"] for a in AXES}) for s in per_angle.values())
+    return mean_known(mean_over_axes(nrmse_of(s)) for s in per_angle.values())
 
 
 def group_scores(
@@ -91,11 +91,13 @@ def group_scores(
         raw = predictions.get(kind, angle, angle, UNCALIBRATED)
         if cal is None:
             continue
+        axes = predictions.axes(kind, angle)
         if same.any():
-            out["same_unit"][angle] = axis_scores(cal[same], es.ref[same])
+            out["same_unit"][angle] = shared_scores(cal[same], axes, es.ref[same], es.axes)
         if new.any():
-            out["new_calibrated"][angle] = axis_scores(cal[new], es.ref[new])
-            out["new_uncalibrated"][angle] = axis_scores((cal if raw is None else raw)[new], es.ref[new])
+            out["new_calibrated"][angle] = shared_scores(cal[new], axes, es.ref[new], es.axes)
+            raw_new = (cal if raw is None else raw)[new]
+            out["new_uncalibrated"][angle] = shared_scores(raw_new, axes, es.ref[new], es.axes)
     return out
 
 
@@ -130,7 +132,7 @@ def champions_by_angle(within: Mapping[str, Mapping[str, Any]], kinds: Sequence[
     best: dict[str, tuple[float, int, str]] = {}
     for rank, kind in enumerate(kinds):
         for angle, s in within.get(kind, {}).items():
-            m = mean_over_axes({a: s[a]["nrmse_pct"] for a in AXES})
+            m = mean_over_axes(nrmse_of(s))
             if m is not None and (angle not in best or (m, rank) < best[angle][:2]):
                 best[angle] = (m, rank, kind)
     return {a: v[2] for a, v in best.items()}

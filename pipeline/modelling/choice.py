@@ -37,7 +37,7 @@ from pipeline.modelling.features import INPUT_KINDS, ModelInputs
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes
 from pipeline.modelling.kinds.base import StandIn
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import AXES
+from pipeline.vocab import axes_of
 
 FORMAT = "needlecue-inputs-choice/1"  # the choose stage's file: one model kind's choice
 RIDGE = 1e-3  # relative to the mean diagonal of the normal equations: only against ill-conditioning
@@ -133,7 +133,7 @@ def choose_inputs(
     """The input kind that `stand_in` predicts the force from best on held-out rows (module
     docstring), among `candidates(front_end, other_designs)`."""
     folds_txt, folds, rows = _folds(train, val)
-    y = rows[list(AXES)].to_numpy(np.float64)
+    y = rows[list(axes_of(rows.columns))].to_numpy(np.float64)
     codes, t = trial_codes(rows), times_of(rows)
     scores: dict[str, float | None] = {}
     kinds = candidates(front_end, other_designs)

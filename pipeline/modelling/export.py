@@ -11,8 +11,10 @@ in any language need no needlecue code, and the Python client no pickle (docs/de
             `unit_matrix`     float64 (C, C)          the unit's calibration (identity: uncalibrated)
             `unit_offset`     float64 (C,)
             `unit_circuit`    float64 (6,)            the unit's circuit (zeros: the model's own)
-    output  `force_n`         float32 (N, 3)          fx, fy, fz in N
+    output  `force_n`         float32 (N, T)          the model's `targets` in N, one column each
 
+`targets` are the axes the reference sensor recorded and the model was trained on: a non-empty subset
+of fx, fy, fz in that order (all three, or only fz from a load cell, say), never padded to three.
 `window` is 1 for ls and fnn. The same checkpoint gives the same ONNX bytes, in any process (a test
 checks it), and the MLflow model carries a `needlecue` metadata block (`deploy_metadata`) with what a
 client needs besides: the rest period, the channels and rate, the cue pack. What a simulator runs is
@@ -41,7 +43,7 @@ from pipeline.modelling.features import features_at, rest_reading, spec_of, unit
 from pipeline.modelling.front import front_module
 from pipeline.modelling.inputs import window_index
 from pipeline.modelling.kinds import kind_of
-from pipeline.vocab import DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, description_sha256
+from pipeline.vocab import AXES, DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, description_sha256
 
 if TYPE_CHECKING:
     import torch
@@ -118,6 +120,7 @@ def to_onnx(checkpoint: dict[str, Any], description: str | None = None) -> bytes
         )
     proto = onnx.load_from_string(buffer.getvalue())
     _keep_every_input(proto, dummy)
+    _check_output(proto, checkpoint)
     # The graph alone says what it is: whoever finds a bare model.onnx can still feed it correctly.
     keys = ("format", "kind", "angle_deg", "channels", "targets", "rate_hz", "window", "checkpoint_sha256")
     info = {k: v for k, v in deploy_metadata(checkpoint, None).items() if k in keys}
@@ -149,6 +152,30 @@ def _keep_every_input(proto: Any, dummy: tuple[Any, ...]) -> None:
     proto.graph.input.extend(inputs)
 
 
+def _check_output(proto: Any, checkpoint: dict[str, Any]) -> None:
+    """ValueError unless the graph's output has one column per target: a network with another number
+    of outputs than its checkpoint's `targets` would give forces named for the wrong axes."""
+    dims = proto.graph.output[0].type.tensor_type.shape.dim
+    columns = dims[-1].dim_value if len(dims) == 2 and dims[-1].HasField("dim_value") else None
+    if columns != len(checkpoint["targets"]):
+        raise ValueError(
+            f"the exported {checkpoint['kind']} graph gives {columns} force column(s), its checkpoint's "
+            f"targets are {list(checkpoint['targets'])}"
+        )
+
+
+def targets_of(checkpoint: dict[str, Any]) -> list[str]:
+    """The checkpoint's `targets`, checked: a non-empty subset of fx, fy, fz in that order (ValueError)."""
+    targets = checkpoint.get("targets")
+    names = list(targets) if isinstance(targets, list | tuple) else None
+    if not names or names != [a for a in AXES if a in names]:
+        raise ValueError(
+            f"the checkpoint's targets are {targets!r}: expected a non-empty list of force axes among "
+            f"{', '.join(AXES)}, in that order (the axes its reference recorded)"
+        )
+    return names
+
+
 def _json_float(value: Any) -> float | None:
     """A float, or None for nan (JSON and YAML readers disagree about nan)."""
     x = float(value)
@@ -172,7 +199,7 @@ def deploy_metadata(checkpoint: dict[str, Any], cue_pack: dict[str, Any] | None)
         "kind": checkpoint["kind"],
         "angle_deg": _json_float(checkpoint["angle_deg"]),
         "channels": list(checkpoint["channels"]),
-        "targets": list(checkpoint["targets"]),
+        "targets": targets_of(checkpoint),
         "rate_hz": _json_float(checkpoint["rate_hz"]),
         "window": graph_window(checkpoint),
         "inputs": spec_of(checkpoint.get("inputs")).model_dump(mode="json"),
@@ -274,6 +301,7 @@ def describe(checkpoint: dict[str, Any]) -> str:
     """The registered version's description: what the graph takes and returns."""
     n, window = len(checkpoint["channels"]), graph_window(checkpoint)
     rest_s = spec_of(checkpoint.get("inputs")).rest_s
+    targets = targets_of(checkpoint)
     return (
         f"{checkpoint['kind']} force model for {checkpoint['angle_deg']:g}° insertions. Takes the "
         f"estimator's raw readings `reading` float64 (batch, {window}, {n}), counts or volts, for "
@@ -281,8 +309,8 @@ def describe(checkpoint: dict[str, Any]) -> str:
         f"first; `rest_reading`, the same shape, the running mean of the insertion's readings over its "
         f"first {rest_s:g} s in effect at each sample; `volts_per_count` (1,), 1 for volts; and the "
         f"unit's calibration `unit_matrix` ({n}, {n}), `unit_offset` ({n},), `unit_circuit` (6,) "
-        "(identity, zeros and zeros: uncalibrated). Returns `force_n` float32 (batch, 3): fx, fy, fz "
-        "in N. docs/deploy.md."
+        f"(identity, zeros and zeros: uncalibrated). Returns `force_n` float32 (batch, {len(targets)}): "
+        f"{', '.join(targets)} in N. docs/deploy.md."
     )
 
 
@@ -309,7 +337,7 @@ def log_onnx_model(
     example = input_example(checkpoint, trial)
     verify_onnx(checkpoint, model, example)  # MLflow's own check below only sees that it runs
     proto = onnx.load_from_string(model)
-    n_out = len(checkpoint["targets"])
+    n_out = len(meta["targets"])  # one column per target, named by `targets` in the metadata
     f64 = np.dtype(np.float64)
     shapes = {k: (-1, *v.shape[1:]) if k in INPUT_NAMES[:2] else v.shape for k, v in example.items()}
     signature = ModelSignature(

@@ -29,7 +29,7 @@ from pipeline.modelling.inputs import trial_codes
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.predictor import Predictor
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import AXES, channels_of, rate_hz
+from pipeline.vocab import AXES, axes_of, channels_of, rate_hz
 
 LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"
 ModelParams = LSParams | FNNParams | LSTMParams  # the built-in kinds' sections; a kind's own: `kind.params`
@@ -88,9 +88,15 @@ def fit(
     channels = channels_of(train)
     if not channels:
         raise ValueError(f"the training rows have no estimator channel (columns: {list(train.columns)})")
-    for name, frame in (("training", train), ("validation", val)):
-        if not frame.empty and (missing := [c for c in AXES if c not in frame.columns]):
-            raise ValueError(f"the {name} rows lack the target column(s) {missing}")
+    targets = axes_of(train.columns)  # the forces its reference recorded (reference.axes)
+    if not targets:
+        raise ValueError(
+            f"the training rows have no force column of {list(AXES)} (columns: {list(train.columns)})"
+        )
+    if not val.empty and axes_of(val.columns) != targets:
+        raise ValueError(
+            f"validation forces {list(axes_of(val.columns))} differ from training forces {list(targets)}"
+        )
     if not val.empty and channels_of(val) != channels:
         raise ValueError(f"validation channels {channels_of(val)} differ from training channels {channels}")
 
@@ -110,7 +116,7 @@ def fit(
         who = ", ".join(other_designs)
         log(f"warning: {who}: another circuit declared, which {params.inputs.kind} inputs cannot read")
     spec = inputs_for(choice.chosen if choice else params.inputs.kind, params.inputs.rest_s, front_end)
-    cfg = model_kind.config(params, len(channels))
+    cfg = replace(model_kind.config(params, len(channels)), n_out=len(targets))
     state, pre, history, summary = model_kind.train(cfg, params, spec, train, val, channels, log)
 
     seconds = time.perf_counter() - started
@@ -124,7 +130,7 @@ def fit(
         "channels": list(channels),
         "inputs": spec.model_dump(mode="json"),
         "inputs_choice": None if choice is None else choice.to_dict(),  # None: pinned in params
-        "targets": list(AXES),
+        "targets": list(targets),
         "rate_hz": rate_hz(train["t_s"], codes) if "t_s" in train.columns else math.nan,
         "angle_deg": _angle_deg(train),
         "train_data_sha256": sha,

@@ -4,7 +4,9 @@ The predict stage (`pipeline.modelling.split_predictions`) writes one file per m
 `PRED_DIR/<kind>/<angle>.parquet`, with one row per row of each split file it predicted, in that
 file's row order:
 
-    data_angle (str), split (str), row (int64: position in the split file), fx, fy, fz (float64, N)
+    data_angle (str), split (str), row (int64: position in the split file), then the forces the model
+    estimates, its checkpoint's `targets` (fx, fy, fz, or the axes its angle's reference records)
+    (float64, N)
 
 On the external split, rows of an estimator unit that has a calibration are predicted through the
 unit's input transform; those models also get an `external-uncalibrated` block (`UNCALIBRATED`),
@@ -29,30 +31,33 @@ import pyarrow.parquet as pq
 
 from pipeline.modelling.choice import Choice
 from pipeline.modelling.features import ModelInputs, spec_of
-from pipeline.vocab import AXES, angle_name, sorted_angles
+from pipeline.vocab import AXES, angle_name, axes_of, sorted_angles
 
 UNCALIBRATED = "external-uncalibrated"  # the external rows predicted without any unit's calibration
 
-SCHEMA = pa.schema(
-    [
-        ("data_angle", pa.string()),
-        ("split", pa.string()),
-        ("row", pa.int64()),
-        *((axis, pa.float64()) for axis in AXES),
-    ]
-)
+
+def schema_for(axes: Iterable[str] = AXES) -> pa.Schema:
+    """The schema of a model's predictions file: ids, then the forces it estimates."""
+    ids = [("data_angle", pa.string()), ("split", pa.string()), ("row", pa.int64())]
+    return pa.schema([*ids, *((axis, pa.float64()) for axis in axes)])
 
 
-def prediction_table(angle: str, split: str, force: np.ndarray) -> pa.Table:
-    """The rows of one (angle, split) block: forces (n, 3) in the split file's row order."""
+SCHEMA = schema_for(AXES)  # a three-axis model's
+
+
+def prediction_table(angle: str, split: str, force: np.ndarray, axes: Iterable[str] = AXES) -> pa.Table:
+    """The rows of one (angle, split) block: forces (n, len(axes)) in the split file's row order."""
+    axes = tuple(axes)
+    if force.ndim != 2 or force.shape[1] != len(axes):
+        raise ValueError(f"forces of shape {force.shape} for the axes {list(axes)}")
     n = len(force)
     columns = {
         "data_angle": pa.array([angle] * n, pa.string()),
         "split": pa.array([split] * n, pa.string()),
         "row": pa.array(np.arange(n, dtype=np.int64)),
-        **{axis: pa.array(force[:, k]) for k, axis in enumerate(AXES)},
+        **{axis: pa.array(force[:, k]) for k, axis in enumerate(axes)},
     }
-    return pa.table(columns, schema=SCHEMA)
+    return pa.table(columns, schema=schema_for(axes))
 
 
 INPUTS_FILE = "inputs.json"  # what each predicted model reads: {kind: {angle: {inputs, inputs_choice}}}
@@ -96,9 +101,10 @@ def _reads(record: Mapping[str, Any]) -> ModelReads:
     return ModelReads(spec_of(record["inputs"]), None if choice is None else Choice(**choice))
 
 
-def write_predictions(blocks: list[pa.Table], path: Path) -> int:
-    """One model's file of prediction blocks; returns its row count."""
-    table = pa.concat_tables(blocks) if blocks else SCHEMA.empty_table()
+def write_predictions(blocks: list[pa.Table], path: Path, axes: Iterable[str] = AXES) -> int:
+    """One model's file of prediction blocks (forces on `axes`, the model's targets); returns its row
+    count."""
+    table = pa.concat_tables(blocks) if blocks else schema_for(axes).empty_table()
     path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(table, path, compression="zstd")
     return table.num_rows
@@ -112,6 +118,7 @@ class Predictions:
         if not self.pred_dir.is_dir():
             raise FileNotFoundError(f"{self.pred_dir}: no such folder (run the predict stage first)")
         self._cache: dict[tuple[str, str], dict[tuple[str, str], np.ndarray]] = {}
+        self._axes: dict[tuple[str, str], tuple[str, ...]] = {}
 
     def models(self) -> list[tuple[str, str]]:
         """(kind, angle) of every model with predictions, by kind folder then angle."""
@@ -124,22 +131,31 @@ class Predictions:
     def has(self, kind: str, angle: str) -> bool:
         return (self.pred_dir / kind / f"{angle}.parquet").is_file()
 
+    def axes(self, kind: str, angle: str) -> tuple[str, ...]:
+        """The forces model (kind, angle) estimates, the columns of what `get` returns (all three
+        if it has no predictions)."""
+        self._load(kind, angle)
+        return self._axes[(kind, angle)]
+
     def _load(self, kind: str, angle: str) -> dict[tuple[str, str], np.ndarray]:
         if (kind, angle) not in self._cache:
             path = self.pred_dir / kind / f"{angle}.parquet"
             blocks: dict[tuple[str, str], np.ndarray] = {}
+            axes = AXES
             if path.is_file():
-                table = pq.read_table(path, schema=SCHEMA).to_pandas()
+                axes = axes_of(pq.read_schema(path).names)
+                table = pq.read_table(path, schema=schema_for(axes)).to_pandas()
                 for (data_angle, split), rows in table.groupby(["data_angle", "split"], sort=False):
-                    force = np.empty((len(rows), len(AXES)))
-                    force[rows["row"].to_numpy()] = rows[list(AXES)].to_numpy(np.float64)
+                    force = np.empty((len(rows), len(axes)))
+                    force[rows["row"].to_numpy()] = rows[list(axes)].to_numpy(np.float64)
                     blocks[(str(data_angle), str(split))] = force
             self._cache[(kind, angle)] = blocks
+            self._axes[(kind, angle)] = axes
         return self._cache[(kind, angle)]
 
     def get(self, kind: str, model_angle: str, data_angle: str, split: str) -> np.ndarray | None:
-        """Forces (n, 3) of model (kind, model_angle) on `data_angle`'s `split`, in the split file's
-        row order; None if that model was not predicted there."""
+        """Forces (n, len(axes)) of model (kind, model_angle) on `data_angle`'s `split`, in the split
+        file's row order, on `axes(kind, model_angle)`; None if that model was not predicted there."""
         return self._load(kind, model_angle).get((data_angle, split))
 
     def on_split(

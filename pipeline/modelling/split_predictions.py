@@ -40,13 +40,14 @@ def predict_frame(
     transform: InputTransform | None = None,
     front_end: Circuit | None = None,
 ) -> np.ndarray:
-    """Forces (n, 3) for a processed frame (read through `front_end`, the rows' unit's circuit, if
+    """Forces (n, len(targets)) for a processed frame (read through `front_end`, the rows' unit's circuit, if
     given); the forces are dropped first, so that no model can read the answer, by mistake or
     otherwise."""
     inputs = frame.drop(columns=[a for a in AXES if a in frame])
     out = np.asarray(predictor.predict(inputs, transform, front_end), dtype=np.float64)
-    if out.shape != (len(frame), len(AXES)):
-        raise ValueError(f"{what}: predict returned shape {out.shape}, expected {(len(frame), len(AXES))}")
+    expected = (len(frame), len(predictor.targets))
+    if out.shape != expected:
+        raise ValueError(f"{what}: predict returned shape {out.shape}, expected {expected}")
     return out
 
 
@@ -73,7 +74,7 @@ def predict_model(
             continue
         what = f"{label} on {angle}° {split}"
         # each row once: a unit with its own circuit through it, every other row as the training units
-        force = np.zeros((len(frame), len(AXES)))
+        force = np.zeros((len(frame), len(predictor.targets)))
         left = np.ones(len(frame), dtype=bool)
         for unit, circuit in own.items() if "unit_id" in frame.columns else ():
             mask = (frame["unit_id"] == unit).to_numpy()
@@ -84,7 +85,7 @@ def predict_model(
             force = predict_frame(predictor, frame, what)
         elif left.any():
             force[left] = predict_frame(predictor, frame[left], what)
-        parts.append(prediction_table(angle, split, force))
+        parts.append(prediction_table(angle, split, force, predictor.targets))
         if split == "external" and units and "unit_id" in frame.columns:
             calibrated = force.copy()
             for unit, transform in sorted(units.items()):
@@ -95,8 +96,8 @@ def predict_model(
                         predictor, rows, f"{what}, unit {unit}", transform, own.get(unit)
                     )
             if not np.array_equal(calibrated, force):
-                parts[-1] = prediction_table(angle, split, calibrated)
-                parts.append(prediction_table(angle, UNCALIBRATED, force))
+                parts[-1] = prediction_table(angle, split, calibrated, predictor.targets)
+                parts.append(prediction_table(angle, UNCALIBRATED, force, predictor.targets))
     return parts
 
 
@@ -126,7 +127,7 @@ def _predict_one(
     warnings: list[str] = []
     predictor = load_predictor(model_dir)
     blocks = predict_model(predictor, _FRAMES, f"{kind}/{angle}", warnings.append, units, circuits)
-    rows = write_predictions(blocks, target)
+    rows = write_predictions(blocks, target, predictor.targets)
     choice = predictor.checkpoint.get("inputs_choice")
     reads = ModelReads(
         inputs=predictor.inputs,

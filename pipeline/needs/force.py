@@ -23,7 +23,7 @@ from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import features_of, times_of, trial_codes
 from pipeline.needs.subsample import Selection, select
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import AXES, angle_name, channels_of
+from pipeline.vocab import angle_name, axes_of, channels_of
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,7 @@ def ls_model(params: LSParams, kind: str, front_end: Circuit | None) -> ForceMod
 
     def predict(train: pd.DataFrame, rows: pd.DataFrame) -> np.ndarray:
         found = fit("ls", pinned, train, train_data_sha256="subsample", front_end=front_end)
-        return found.predictor.predict(rows.drop(columns=list(AXES)))
+        return found.predictor.predict(rows.drop(columns=list(axes_of(rows.columns))))
 
     return ForceModel(f"LS (the paper's calibration matrix) on {kind}", predict)
 
@@ -67,10 +67,10 @@ def stand_in_model(params: FNNParams, kind: str, front_end: Circuit | None) -> F
 
     def predict(train: pd.DataFrame, rows: pd.DataFrame) -> np.ndarray:
         # one basis over both, standardised over both, as the inputs choice builds it for its folds
-        both = pd.concat([train, rows.drop(columns=list(AXES))], ignore_index=True)
+        both = pd.concat([train, rows.drop(columns=list(axes_of(rows.columns)))], ignore_index=True)
         x = features_of(both, channels_of(train), spec)
         basis = stand_in_basis(x, False, True, [], trial_codes(both), times_of(both))
-        weights = ridge(basis[: len(train)], train[list(AXES)].to_numpy(np.float64))
+        weights = ridge(basis[: len(train)], train[list(axes_of(train.columns))].to_numpy(np.float64))
         return basis[len(train) :] @ weights
 
     about = f"the networks' stand-in (ridge on the FNN's inputs {kind}, their squares and pairwise products)"
@@ -128,7 +128,8 @@ def force_curve(
                 by_angle = {}
                 for a in sorted(set(sel) & set(same)):
                     pred = model.predict(select(train[a], sel[a]), same[a])
-                    by_angle[angle_name(a)] = mean_known(nrmse_pct(pred, same[a][list(AXES)]).tolist())
+                    truth = same[a][list(axes_of(train[a].columns))]  # the forces the model estimates
+                    by_angle[angle_name(a)] = mean_known(nrmse_pct(pred, truth).tolist())
                 step[name] = {"mean_nrmse_pct": mean_known(by_angle.values()), "by_angle": by_angle}
         except ValueError as e:  # the data cannot be read the way the model reads it
             notes.append({"what": f"force of {name}", "why": str(e)})

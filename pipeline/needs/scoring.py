@@ -23,7 +23,7 @@ from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.logs import Log
 from pipeline.needs.subsample import Key, Selection, select
 from pipeline.rig.frontend import Circuit
-from pipeline.vocab import AXES, channels_of
+from pipeline.vocab import axes_of, channels_of
 from pipeline.workers import WORKERS_ENV, ordered_imap, workers_for
 
 SEEN = ("wrong_final", "wrong_frames", "coverage_frames")  # what the trainee sees, of `seen`
@@ -115,7 +115,7 @@ def _score_job(job: CueJob) -> tuple[list[dict[str, Any]], float]:
             test,
             one_kind,
             packs,
-            lambda _kind, _preset, a, test=test: test[a][list(AXES)].to_numpy(np.float64),
+            lambda _kind, _preset, a, test=test: test[a][list(axes_of(test[a].columns))].to_numpy(np.float64),
             log=lambda _m: None,
             units=units,
             circuits=circuits,

@@ -12,10 +12,10 @@ import pandas as pd
 
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
-from pipeline.metrics.scores import axis_scores, mean_nrmse
+from pipeline.metrics.scores import mean_nrmse, shared_scores
 from pipeline.modelling.checkpoint import checkpoint_sha256, load_checkpoint, read_train_metrics
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import AXES, KINDS
+from pipeline.vocab import KINDS, axes_of
 
 SPLITS = ("val", "test", "external")  # what each model is scored on
 
@@ -37,7 +37,8 @@ class Trained:
         """The split the champion rule scores this model on: the external set, or the test split
         for an angle without external rows (as evaluate does); None when neither has rows."""
         for split in ("external", "test"):
-            if all(np.isfinite(self.scores[split][a]["nrmse_pct"]) for a in AXES):
+            scores = self.scores[split]
+            if scores and all(np.isfinite(s["nrmse_pct"]) for s in scores.values()):
                 return split
         return None
 
@@ -51,10 +52,14 @@ def kind_rank(kind: str) -> int:
     return KINDS.index(kind) if kind in KINDS else len(KINDS)
 
 
-def _scores(truth: pd.DataFrame, predicted: np.ndarray | None) -> dict[str, dict[str, float]]:
+def _scores(
+    truth: pd.DataFrame, predicted: np.ndarray | None, targets: tuple[str, ...]
+) -> dict[str, dict[str, float]]:
+    """The scores on the axes both the model (its `targets`) and the truth have; NaN where unscored."""
     if truth.empty or predicted is None:
-        return {a: {"rmse": float("nan"), "nrmse_pct": float("nan")} for a in AXES}
-    return axis_scores(predicted, truth[list(AXES)].to_numpy(np.float64))
+        return {a: {"rmse": float("nan"), "nrmse_pct": float("nan")} for a in targets}
+    recorded = axes_of(truth.columns)
+    return shared_scores(predicted, targets, truth[list(recorded)].to_numpy(np.float64), recorded)
 
 
 def collect(
@@ -65,8 +70,9 @@ def collect(
     for kind, angle in predictions.models():
         folder = models_dir / kind / angle
         checkpoint = load_checkpoint(folder)
+        targets = predictions.axes(kind, angle)
         scores = {
-            split: _scores(files.frame(angle, split), predictions.get(kind, angle, angle, split))
+            split: _scores(files.frame(angle, split), predictions.get(kind, angle, angle, split), targets)
             for split in SPLITS
         }
         out.append(

@@ -11,7 +11,7 @@ import json
 import subprocess
 import tempfile
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,19 +35,22 @@ if TYPE_CHECKING:
 def run_metrics(t: Trained, metrics: Evaluation | None) -> dict[str, float]:
     """The run's flat metrics: `<split>_<rmse|nrmse_pct>_<axis|mean>`, accuracy, gap NRMSE, and the
     cues of its kind (`cues_<group>_<balanced_within_s|wrong_final|wrong_frames|...>_pct`); without an
-    evaluation (`metrics` None), its own scores only."""
+    evaluation (`metrics` None), its own scores only. The axes are those the scores have (the model's
+    targets: a model of fz alone logs `..._fz` and a mean over fz); none is logged for an axis the
+    reference did not record."""
     out: dict[str, float] = {}
     for split, scores in t.scores.items():
+        axes = scored_axes(scores)
         for what in ("rmse", "nrmse_pct"):
-            values = [scores[a][what] for a in AXES]
-            out.update({f"{split}_{what}_{a}": v for a, v in zip(AXES, values, strict=True)})
-            out[f"{split}_{what}_mean"] = float(np.mean(values))
+            values = [scores[a][what] for a in axes]
+            out.update({f"{split}_{what}_{a}": v for a, v in zip(axes, values, strict=True)})
+            out[f"{split}_{what}_mean"] = float(np.mean(values)) if values else float("nan")
     out["external_accuracy_pct"] = 100.0 - out["external_nrmse_pct_mean"]
     # This model on the other angles' external sets, averaged per gap (the paper's Table II, per model).
     row = {} if metrics is None else metrics.angle_gap_matrix.get(t.kind, {}).get(t.angle, {})
     for gap in [] if metrics is None else metrics.gaps_deg:
         cells = [row[d] for d in row if abs(gap_of(t.angle, d) - float(gap)) < 1e-9]
-        for a in AXES:
+        for a in t.checkpoint["targets"]:
             vals = [c[a] for c in cells if c.get(a) is not None]
             if vals:
                 out[f"gap{float(gap):g}_nrmse_pct_{a}"] = float(np.mean(vals))
@@ -60,6 +63,16 @@ def run_metrics(t: Trained, metrics: Evaluation | None) -> dict[str, float]:
         if isinstance(t.train_metrics.get(key), int | float):
             out[key] = float(t.train_metrics[key])
     return {k: v for k, v in out.items() if np.isfinite(v)}
+
+
+def scored_axes(scores: Mapping[str, Any]) -> list[str]:
+    """The force axes a score dict ({axis: {...}}) has, in fx, fy, fz order."""
+    return [a for a in AXES if a in scores]
+
+
+def axes_words(targets: Sequence[str]) -> str:
+    """How a figure averaged over `targets` is named: "mean of fx, fy, fz", or "fz" for one axis."""
+    return targets[0] if len(targets) == 1 else f"mean of {', '.join(targets)}"
 
 
 def run_params(t: Trained) -> dict[str, str]:
@@ -222,7 +235,7 @@ def track(
         f"{TAG}deploy_sha256": deploy,
         "mlflow.note.content": (
             f"{t.kind} for {t.angle}° insertions, trained on {t.train_metrics.get('n_train', '?')} samples; "
-            f"external-set NRMSE (mean of fx, fy, fz) {t.mean_nrmse():.2f} %."
+            f"external-set NRMSE ({axes_words(ck['targets'])}) {t.mean_nrmse():.2f} %."
         ),
     }
     with mlflow.start_run(experiment_id=exp_id, run_name=f"{t.angle}°-{t.kind}", tags=tags) as run:

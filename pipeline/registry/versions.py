@@ -7,7 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,7 +18,7 @@ from pipeline.config import RegisterParams
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.metrics.document import EVALUATION_FILE, read_evaluation
-from pipeline.metrics.scores import axis_scores, mean_nrmse
+from pipeline.metrics.scores import mean_nrmse, shared_scores
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pipeline.modelling.export import describe
 from pipeline.modelling.prediction_store import Predictions
@@ -40,11 +40,17 @@ from pipeline.registry.store import (
     versions,
     writing,
 )
-from pipeline.registry.tracking import TAG, Datasets, deploy_sha256, git_commit, track
-from pipeline.vocab import AXES, DEPLOY_FORMAT
+from pipeline.registry.tracking import TAG, Datasets, axes_words, deploy_sha256, git_commit, track
+from pipeline.vocab import AXES, DEPLOY_FORMAT, axes_of
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient
+
+
+def force_words(targets: Sequence[str]) -> str:
+    """What a registered model gives: "3-D needle force (fx, fy, fz in N)", "Needle force (fz in N)"."""
+    what = "3-D needle force" if list(targets) == list(AXES) else "Needle force"
+    return f"{what} ({', '.join(targets)} in N)"
 
 
 def rescore_version(
@@ -68,12 +74,16 @@ def rescore_version(
             tracking_uri=client.tracking_uri,
         )
         predictor = Predictor(load_checkpoint(Path(path)))
+    # scored as today's candidates are (`candidates`): on the axes it gives that today's data recorded
+    targets, recorded = list(predictor.targets), list(axes_of(external.columns))
     try:
+        if not any(a in recorded for a in targets):
+            raise ValueError(f"it gives {targets}, today's data records {recorded or 'no force axis'}")
         predicted = predict_frame(predictor, external, f"{version.name} v{version.version}")
     except (KeyError, ValueError) as e:
         log(f"{version.name} v{version.version}: cannot score today's data ({type(e).__name__}: {e})")
         return None
-    return mean_nrmse(axis_scores(predicted, external[list(AXES)].to_numpy(np.float64)))
+    return mean_nrmse(shared_scores(predicted, targets, external[recorded].to_numpy(np.float64), recorded))
 
 
 def register_angle(
@@ -115,7 +125,8 @@ def register_angle(
             client,
             name,
             description=(
-                f"3-D needle force (fx, fy, fz in N) from the estimator's voltages, {t.angle}° insertions. "
+                f"{force_words(t.checkpoint['targets'])} from the estimator's voltages, "
+                f"{t.angle}° insertions. "
                 f"`@{CHAMPION}` is what the simulator loads (models:/{name}@{CHAMPION}); a new version "
                 f"takes it only if it beats it on the external set, else it is `@{CHALLENGER}`. "
                 "ONNX, no pickles; the cue pack is in the model's metadata."
@@ -154,8 +165,8 @@ def register_angle(
             name,
             mv.version,
             description=(
-                f"{t.kind}, external NRMSE {t.mean_nrmse():.2f} % (mean of fx, fy, fz), run {run_id}. "
-                + describe(t.checkpoint)
+                f"{t.kind}, external NRMSE {t.mean_nrmse():.2f} % ({axes_words(t.checkpoint['targets'])}), "
+                f"run {run_id}. " + describe(t.checkpoint)
             ),
         )
     decision = decide(

@@ -4,7 +4,8 @@ data of DVC's plots: Figs. 7-8 of the paper, the angle-gap heatmap, `plots/{gap,
 from __future__ import annotations
 
 import csv
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,7 +17,7 @@ from pipeline.metrics.evaluation import EvalSet, Scored
 from pipeline.metrics.paper import reference_angle
 from pipeline.metrics.scores import GAP_TOL, gap_of, mean_over_axes
 from pipeline.reporting.style import COLORS, fmt, placeholder_png, save_png
-from pipeline.vocab import AXES, TRIAL_KEY, kind_label, sorted_angles
+from pipeline.vocab import TRIAL_KEY, axes_of, kind_label, sorted_angles
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -51,22 +52,32 @@ def first_trial(frame: pd.DataFrame) -> np.ndarray:
 def profile_rows(
     eval_sets: Mapping[str, EvalSet], preds: Scored, kinds: Sequence[str]
 ) -> list[dict[str, str]]:
-    """plots/profile.csv: Fz of one held-out trial at the reference angle, reference and each model."""
+    """plots/profile.csv: Fz (or, where the reference did not record it, its first axis) of one
+    held-out trial at the reference angle, reference and each model."""
     angle = reference_angle(list(eval_sets))
     if angle is None:
         return []
     es = eval_sets[angle]
     rows = first_trial(es.frame)
-    k = AXES.index("fz")
-    cols = {m: preds.on_eval.get((m, angle, angle)) for m in kinds}
+    axis = "fz" if "fz" in es.axes else es.axes[0]
+    k = es.axes.index(axis)
+    cols = {m: _column(preds, m, angle, angle, axis) for m in kinds}
     return [
         {
             "t_s": fmt(float(es.frame["t_s"].iloc[i]), ".6g"),
             "reference": fmt(float(es.ref[i, k]), ".6g"),
-            **{m: "" if p is None else fmt(float(p[i, k]), ".6g") for m, p in cols.items()},
+            **{m: "" if p is None else fmt(float(p[i]), ".6g") for m, p in cols.items()},
         }
         for i in rows
     ]
+
+
+def _column(preds: Scored, model: str, train_angle: str, data_angle: str, axis: str) -> np.ndarray | None:
+    """One force axis of a model's predictions on an angle's scored set (None: not predicted, or an
+    axis the model does not estimate)."""
+    p = preds.on_eval.get((model, train_angle, data_angle))
+    axes = preds.axes_of(model, train_angle)
+    return None if p is None or axis not in axes else p[:, axes.index(axis)]
 
 
 def write_csv(path: Path, rows: list[dict[str, str]], columns: Sequence[str]) -> None:
@@ -89,17 +100,24 @@ def _finish_profiles(fig: Figure, grid: np.ndarray, path: Path) -> None:
 
 def _profile_panels(
     axes_row: Sequence[Axes],
+    shown: Sequence[str],
     es: EvalSet,
-    lines: Mapping[str, np.ndarray],
+    lines: Mapping[str, Callable[[str], np.ndarray | None]],
     rows: np.ndarray,
 ) -> None:
+    """One panel per force axis `shown`: the reference and each model's line (`lines`: model ->
+    its column of an axis, None where it has none); a panel whose axis the trial did not record
+    says so."""
     t = es.frame["t_s"].to_numpy()[rows]
-    ref = es.ref[rows]
-    for k, ax in enumerate(axes_row):
-        ax.plot(t, ref[:, k], color=COLORS["reference"], lw=1.6, label="reference")
-        for model, p in lines.items():
-            ax.plot(t, p[rows, k], color=COLORS.get(model), lw=1.0, alpha=0.85, label=kind_label(model))
+    for axis, ax in zip(shown, axes_row, strict=True):
         ax.grid(alpha=0.3)
+        if axis not in es.axes:
+            ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes)
+            continue
+        ax.plot(t, es.ref[rows, es.axes.index(axis)], color=COLORS["reference"], lw=1.6, label="reference")
+        for model, column in lines.items():
+            if (p := column(axis)) is not None:
+                ax.plot(t, p[rows], color=COLORS.get(model), lw=1.0, alpha=0.85, label=kind_label(model))
 
 
 def plot_profiles(eval_sets: Mapping[str, EvalSet], preds: Scored, kinds: Sequence[str], path: Path) -> None:
@@ -110,16 +128,19 @@ def plot_profiles(eval_sets: Mapping[str, EvalSet], preds: Scored, kinds: Sequen
     if not angles:
         placeholder_png(path, "no trained model to plot")
         return
-    fig = Figure(figsize=(12, 2.3 * len(angles) + 0.8), layout="constrained")
-    grid = fig.subplots(len(angles), len(AXES), squeeze=False, sharex="row")
+    shown = axes_of({a for angle in angles for a in eval_sets[angle].axes})
+    fig = Figure(figsize=(4 * len(shown), 2.3 * len(angles) + 0.8), layout="constrained")
+    grid = fig.subplots(len(angles), len(shown), squeeze=False, sharex="row")
     for r, angle in enumerate(angles):
         es = eval_sets[angle]
         rows = first_trial(es.frame)
-        lines = {m: preds.on_eval[(m, angle, angle)] for m in kinds if (m, angle, angle) in preds.on_eval}
-        _profile_panels(grid[r], es, lines, rows)
+        lines = {
+            m: partial(_column, preds, m, angle, angle) for m in kinds if (m, angle, angle) in preds.on_eval
+        }
+        _profile_panels(grid[r], shown, es, lines, rows)
         trial = es.frame["trial_id"].iloc[rows[0]]
-        for k, ax in enumerate(grid[r]):
-            ax.set_title(f"{angle}° models, {es.source} trial {trial}: F{AXES[k][1]}", fontsize=9)
+        for axis, ax in zip(shown, grid[r], strict=True):
+            ax.set_title(f"{angle}° models, {es.source} trial {trial}: F{axis[1]}", fontsize=9)
         grid[r][0].set_ylabel("force (N)")
     _finish_profiles(fig, grid, path)
 
@@ -161,21 +182,22 @@ def plot_gaps(
     if not examples:
         placeholder_png(path, "no (model, data) pair with the configured angle gaps")
         return
-    fig = Figure(figsize=(12, 2.6 * len(examples) + 0.8), layout="constrained")
-    grid = fig.subplots(len(examples), len(AXES), squeeze=False)
+    shown = axes_of({a for _, d in examples for a in eval_sets[d].axes})
+    fig = Figure(figsize=(4 * len(shown), 2.6 * len(examples) + 0.8), layout="constrained")
+    grid = fig.subplots(len(examples), len(shown), squeeze=False)
     for r, (train_angle, data_angle) in enumerate(examples):
         es = eval_sets[data_angle]
         rows = first_trial(es.frame)
         lines = {
-            m: preds.on_eval[(m, train_angle, data_angle)]
+            m: partial(_column, preds, m, train_angle, data_angle)
             for m in kinds
             if (m, train_angle, data_angle) in preds.on_eval
         }
-        _profile_panels(grid[r], es, lines, rows)
+        _profile_panels(grid[r], shown, es, lines, rows)
         gap = gap_of(train_angle, data_angle)
-        for k, ax in enumerate(grid[r]):
+        for axis, ax in zip(shown, grid[r], strict=True):
             ax.set_title(
-                f"{train_angle}° models on a {data_angle}° trial ({gap:g}° gap): F{AXES[k][1]}", fontsize=9
+                f"{train_angle}° models on a {data_angle}° trial ({gap:g}° gap): F{axis[1]}", fontsize=9
             )
         grid[r][0].set_ylabel("force (N)")
     _finish_profiles(fig, grid, path)

@@ -29,7 +29,7 @@ from pipeline.metrics.paper import (
 )
 from pipeline.metrics.scores import mean_over_axes
 from pipeline.reporting.style import fmt, table
-from pipeline.vocab import AXES, kind_label, sorted_angles
+from pipeline.vocab import AXES, axes_of, kind_label, sorted_angles
 
 FLAGGED_SHOWN = 5  # flagged trials named in report.md; the ledger lists them all
 
@@ -51,18 +51,31 @@ come from single (model, dataset) pairs, while ours average every pair with that
 both directions."""
 
 
-def _axis_cells(values: Mapping[str, float | None] | None) -> list[str]:
-    return [pct((values or {}).get(a)) for a in AXES]
+def recorded(metrics: Evaluation) -> tuple[str, ...]:
+    """The force axes the evaluation scored (those the references recorded): the report's columns."""
+    scored = {a for by_angle in metrics.within_angle.values() for s in by_angle.values() for a in s}
+    return axes_of(scored) or AXES
 
 
-def _paper_cells(values: Sequence[float] | None) -> list[str]:
-    return [pct(v) for v in values] if values else ["—"] * len(AXES)
+def _axis_cells(values: Mapping[str, float | None] | None, axes: Sequence[str]) -> list[str]:
+    return [pct((values or {}).get(a)) for a in axes]
+
+
+def _paper_cells(values: Sequence[float] | None, axes: Sequence[str]) -> list[str]:
+    """The paper's figures (fx, fy, fz) on `axes`."""
+    return [pct(values[AXES.index(a)]) for a in axes] if values else ["—"] * len(axes)
+
+
+def _headers(axes: Sequence[str], paper: bool = True) -> list[str]:
+    """ "Fx", "Fy", "Fz" (then "paper Fx", ...) for the axes shown."""
+    ours = [f"F{a[1]}" for a in axes]
+    return ours + [f"paper {h}" for h in ours] if paper else ours
 
 
 def _within_nrmse(table: Mapping[str, Mapping[str, Scores]], model: str, angle: str) -> AxisNrmse | None:
     """NRMSE per axis of one (model, angle) of `within_angle` or `within_angle_test`."""
     scores = table.get(model, {}).get(angle)
-    return None if scores is None else {a: scores[a].nrmse_pct for a in AXES}
+    return None if scores is None else {a: v.nrmse_pct for a, v in scores.items()}
 
 
 def title(metrics: Evaluation) -> list[str]:
@@ -81,9 +94,11 @@ def title(metrics: Evaluation) -> list[str]:
     return out
 
 
-def datasets(metrics: Evaluation, flagged: Sequence[Mapping[str, Any]] = ()) -> list[str]:
-    """## Datasets: which set each angle is scored on, and the trials used with a flag (ledger
-    entries)."""
+def datasets(
+    metrics: Evaluation, flagged: Sequence[Mapping[str, Any]] = (), left_out: Sequence[Mapping[str, Any]] = ()
+) -> list[str]:
+    """## Datasets: which set each angle is scored on, the force axes scored, the trials used with a
+    flag, and the batches whose recorded axes an angle leaves out (ledger entries)."""
     datasets = metrics.datasets
     out = [
         "## Datasets",
@@ -121,6 +136,31 @@ def datasets(metrics: Evaluation, flagged: Sequence[Mapping[str, Any]] = ()) -> 
             + " is on the test split, trials of the training batches' casts, and says nothing about "
             "data never seen in training. `reports/ledger` says where each trial went.",
         ]
+    if recorded(metrics) != AXES:
+        axes = ", ".join(recorded(metrics))
+        out += [
+            "",
+            f"**Force axes: {axes}.** The references recorded these (batch.yaml `reference.axes`): "
+            "the models estimate them alone, and every table and figure shows them alone.",
+        ]
+    if left_out:
+        where: dict[tuple[str, str], tuple[str, set[str]]] = {}
+        for e in left_out:
+            key = (str(e.get("angle")), str(e["batch_id"]))
+            where.setdefault(key, (", ".join(e["unused_axes"]), set()))[1].add(str(e.get("use")))
+        parts = [
+            f"{angle}°: `{batch}`'s {axes} ({', '.join(sorted(uses))})"
+            for (angle, batch), (axes, uses) in sorted(
+                where.items(), key=lambda kv: (float(kv[0][0]), kv[0][1])
+            )
+        ]
+        out += [
+            "",
+            "**Force axes left out.** Not every batch of these angles records them, so the angle's models "
+            "are trained and scored on the axes all its batches record (docs/rig-log-format.md): "
+            + "; ".join(parts)
+            + ". `reports/ledger/ledger.md` lists the trials.",
+        ]
     if flagged:
         shown = [f"`{e['batch_id']}/{e['trial_id']}` ({e['flag']})" for e in flagged[:FLAGGED_SHOWN]]
         more = f", and {len(flagged) - FLAGGED_SHOWN} more" if len(flagged) > FLAGGED_SHOWN else ""
@@ -135,6 +175,7 @@ def datasets(metrics: Evaluation, flagged: Sequence[Mapping[str, Any]] = ()) -> 
 
 def table1(metrics: Evaluation, kinds: list[str], angles: list[str]) -> list[str]:
     """## Table I: within-angle NRMSE on the external set, with the average RMSE."""
+    axes = recorded(metrics)
     out: list[str] = []
     out += ["", "## Table I: within-angle NRMSE on the external set", ""]
     rows = []
@@ -146,18 +187,18 @@ def table1(metrics: Evaluation, kinds: list[str], angles: list[str]) -> list[str
             )
             if ours is None and paper is None:
                 continue
-            rows.append([f"{kind_label(m)} ({angle}°)", *_axis_cells(ours), *_paper_cells(paper)])
+            rows.append([f"{kind_label(m)} ({angle}°)", *_axis_cells(ours, axes), *_paper_cells(paper, axes)])
     for m in kinds:
         mean = metrics.mean.get(m)
         n = 0 if mean is None else mean.n_angles
         rows.append(
             [
                 f"**{kind_label(m)} average** ({n} angles)",
-                *_axis_cells(None if mean is None else mean.within_angle),
-                *_paper_cells(PAPER_MEAN_NRMSE.get(m)),
+                *_axis_cells(None if mean is None else mean.within_angle, axes),
+                *_paper_cells(PAPER_MEAN_NRMSE.get(m), axes),
             ]
         )
-    out += table(["method", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
+    out += table(["method", *_headers(axes)], rows)
     out += [
         "",
         "The paper's Table I has no LSTM rows; its LSTM at 30° is from Table III. Paper averages are "
@@ -180,30 +221,32 @@ def table1(metrics: Evaluation, kinds: list[str], angles: list[str]) -> list[str
         rmse_rows.append(
             [
                 kind_label(m),
-                *(fmt(r.get(a)) or "—" for a in AXES),
-                *([f"{v:.4f}" for v in paper_r] if paper_r else ["—"] * 3),
+                *(fmt(r.get(a)) or "—" for a in axes),
+                *([f"{paper_r[AXES.index(a)]:.4f}" for a in axes] if paper_r else ["—"] * len(axes)),
             ]
         )
-    out += table(["method", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rmse_rows)
+    out += table(["method", *_headers(axes)], rmse_rows)
     return out
 
 
 def test_split(metrics: Evaluation, kinds: list[str], angles: list[str]) -> list[str]:
     """### Within-angle NRMSE on the test split."""
+    axes = recorded(metrics)
     out: list[str] = []
     out += ["", "### Within-angle NRMSE on the test split (ours only)", ""]
     rows = [
-        [f"{kind_label(m)} ({a}°)", *_axis_cells(_within_nrmse(metrics.within_angle_test, m, a))]
+        [f"{kind_label(m)} ({a}°)", *_axis_cells(_within_nrmse(metrics.within_angle_test, m, a), axes)]
         for a in angles
         for m in kinds
         if _within_nrmse(metrics.within_angle_test, m, a) is not None
     ]
-    out += table(["method", "Fx", "Fy", "Fz"], rows) if rows else ["No test-split results."]
+    out += table(["method", *_headers(axes, paper=False)], rows) if rows else ["No test-split results."]
     return out
 
 
 def table2(metrics: Evaluation, kinds: list[str]) -> list[str]:
     """## Table II: angle gaps, and the train-by-data angle matrix per model."""
+    axes = recorded(metrics)
     out: list[str] = []
     out += [
         "",
@@ -221,11 +264,11 @@ def table2(metrics: Evaluation, kinds: list[str]) -> list[str]:
                 [
                     f"{kind_label(m)} ({g}° gap)",
                     str(pairs.get(m, {}).get(g, 0)),
-                    *_axis_cells(ours),
-                    *_paper_cells(PAPER_TABLE2.get(m, {}).get(g)),
+                    *_axis_cells(ours, axes),
+                    *_paper_cells(PAPER_TABLE2.get(m, {}).get(g), axes),
                 ]
             )
-    out += table(["model", "pairs", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
+    out += table(["model", "pairs", *_headers(axes)], rows)
     out += ["", "Mean NRMSE over axes, train angle (rows) against data angle (columns):", ""]
     for m in kinds:
         mat = metrics.angle_gap_matrix.get(m)
@@ -246,6 +289,7 @@ def table2(metrics: Evaluation, kinds: list[str]) -> list[str]:
 
 def table3(metrics: Evaluation, angles: list[str]) -> list[str]:
     """## Table III: FNN against LSTM."""
+    axes = recorded(metrics)
     out: list[str] = []
     ref = reference_angle(angles) or "30"
     small = gap_key(metrics, 15.0)
@@ -255,19 +299,19 @@ def table3(metrics: Evaluation, angles: list[str]) -> list[str]:
         rows.append(
             [
                 f"{kind_label(m)} ({ref}°)",
-                *_axis_cells(_within_nrmse(metrics.within_angle, m, ref)),
-                *_paper_cells(PAPER_TABLE3.get((m, "30"))),
+                *_axis_cells(_within_nrmse(metrics.within_angle, m, ref), axes),
+                *_paper_cells(PAPER_TABLE3.get((m, "30")), axes),
             ]
         )
     for m in ("lstm", "fnn"):
         rows.append(
             [
                 f"{kind_label(m)} (angle gap {small}°)",
-                *_axis_cells(metrics.angle_gap.get(m, {}).get(small)),
-                *_paper_cells(PAPER_TABLE3.get((m, "gap15"))),
+                *_axis_cells(metrics.angle_gap.get(m, {}).get(small), axes),
+                *_paper_cells(PAPER_TABLE3.get((m, "gap15")), axes),
             ]
         )
-    out += table(["method & dataset", "Fx", "Fy", "Fz", "paper Fx", "paper Fy", "paper Fz"], rows)
+    out += table(["method & dataset", *_headers(axes)], rows)
     return out
 
 
@@ -344,13 +388,14 @@ def render(
     cue_sections: Sequence[str] = (),
     unit_section: str = "",
     flagged: Sequence[Mapping[str, Any]] = (),
+    left_out: Sequence[Mapping[str, Any]] = (),
 ) -> str:
     """report.md: the sections in order; `cue_sections` (the angle cues' Markdown), then
     `unit_section` (the estimator units') come last; `flagged`: the ledger's entries used with a
-    flag."""
+    flag; `left_out`: those whose reference records force axes their angle's models do not use."""
     kinds = kinds_in(metrics)
     angles = sorted_angles(list(metrics.datasets) + [a for m in metrics.within_angle.values() for a in m])
-    out = title(metrics) + datasets(metrics, flagged)
+    out = title(metrics) + datasets(metrics, flagged, left_out)
     out += table1(metrics, kinds, angles) + test_split(metrics, kinds, angles)
     out += table2(metrics, kinds) + table3(metrics, angles) + accuracy(metrics, kinds)
     out += figures_section(figures) + agreement(metrics, kinds)

@@ -165,7 +165,8 @@ def plot_example_trials(out_dir: Path, path: Path) -> None:
                     ax.axvspan(t[start], t[min(stop, len(t) - 1)], color=colour, lw=0)
         for c in channels:
             axes[0, col].plot(t, trial[c], lw=1, label=c)
-        for axis in AXES:
+        recorded = [a for a in AXES if a in trial.columns]  # the batch's reference.axes
+        for axis in recorded:
             axes[1, col].plot(t, trial[axis], lw=1, label=axis)
         axes[0, col].set_title(f"{angle:g}° — {trial.batch_id.iloc[0]}/{trial.trial_id.iloc[0]}", fontsize=9)
         axes[1, col].set_xlabel("t (s)")
@@ -173,7 +174,7 @@ def plot_example_trials(out_dir: Path, path: Path) -> None:
     axes[1, 0].set_ylabel("reference force (N)")
     axes[0, -1].legend(fontsize=7, loc="upper right")
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in PHASE_COLOURS.values()]
-    axes[1, -1].legend([*axes[1, -1].get_lines(), *handles], [*AXES, *PHASE_COLOURS], fontsize=7)
+    axes[1, -1].legend([*axes[1, -1].get_lines(), *handles], [*recorded, *PHASE_COLOURS], fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90, metadata={"Software": None})
     plt.close(fig)

@@ -10,7 +10,7 @@ from pipeline.cues.document import CueEvaluation, GroupResult, Seen, UnitGroup
 from pipeline.metrics.document import CalibrationSummary, Evaluation, TransferRow, UnitScores
 from pipeline.metrics.scores import mean_known, mean_over_axes
 from pipeline.reporting.style import fmt, table
-from pipeline.vocab import AXES, kind_label
+from pipeline.vocab import kind_label
 
 # Targets for a new unit after one short calibration (issue 12), measured on the data at hand.
 NEW_UNIT_RATIO = 1.2  # champion NRMSE on the calibrated new unit / on the training units
@@ -186,9 +186,9 @@ def unit_table(by_unit: Mapping[str, UnitScores], by_unit_uncal: Mapping[str, Un
         cells = []
         for kind in kinds:
             per_angle = entry.kind(kind)
-            m = mean_known(mean_over_axes({a: s[a].nrmse_pct for a in AXES}) for s in per_angle.values())
+            m = mean_known(mean_over_axes({a: v.nrmse_pct for a, v in s.items()}) for s in per_angle.values())
             raw = by_unit_uncal[unit].kind(kind) if unit in by_unit_uncal else {}
-            r = mean_known(mean_over_axes({a: s[a].nrmse_pct for a in AXES}) for s in raw.values())
+            r = mean_known(mean_over_axes({a: v.nrmse_pct for a, v in s.items()}) for s in raw.values())
             cells.append(fmt(m, ".2f") + ("" if not raw else f" ({fmt(r, '.2f')} uncalibrated)"))
         rows.append([unit, entry.role, "yes" if entry.calibrated else "no", *cells])
     return table(["unit", "role", "calibrated", *(f"{kind_label(k)} (%)" for k in kinds)], rows)

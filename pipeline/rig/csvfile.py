@@ -10,7 +10,7 @@ import gzip
 import io
 import zlib
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -99,9 +99,15 @@ def read_csv(path: Path, probs: ProblemLog, trial_id: str | None) -> CsvTable | 
 
 
 def column_index(
-    table: CsvTable, required: Sequence[str], file: str, probs: ProblemLog, trial_id: str | None
+    table: CsvTable,
+    required: Sequence[str],
+    file: str,
+    probs: ProblemLog,
+    trial_id: str | None,
+    why: Mapping[str, str] | None = None,
 ) -> dict[str, int] | None:
-    """Position of each header name; None (with Problems) if a name repeats or a required one is missing."""
+    """Position of each header name; None (with Problems) if a name repeats or a required one is missing
+    (`why` adds to a missing column's reason: what asked for it)."""
     counts = Counter(table.header)
     dups = [h for h, n in counts.items() if n > 1]
     for h in dups:
@@ -119,7 +125,8 @@ def column_index(
             detail = f" (header is {','.join(table.header)!r})"
             if all(_is_number(h) for h in table.header if h):
                 detail += "; the first row holds numbers: is the header row missing?"
-        probs.add(file, f"missing column {c!r}{detail}", trial_id=trial_id, line=table.header_line, column=c)
+        reason = f"missing column {c!r}{detail}{(why or {}).get(c, '')}"
+        probs.add(file, reason, trial_id=trial_id, line=table.header_line, column=c)
     if dups or missing:
         return None
     return {h: i for i, h in enumerate(table.header)}

@@ -8,22 +8,31 @@ can never disagree about the format.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from datetime import date
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
 from pipeline.rig.frontend import FrontEnd
-from pipeline.vocab import ID_PATTERN, one_line
+from pipeline.vocab import AXES, ID_PATTERN, one_line
 
 FORMAT = "rig-log/1"
 BATCH_FILE = "batch.yaml"
 TRIALS_FILE = "trials.csv"
 TRIAL_COLUMNS = ("trial_id", "angle_deg", "tissue_point")
-REF_COLUMNS = ("t_s", "fx", "fy", "fz")  # the forces keep these names downstream (vocab.AXES)
+REF_TIME = "t_s"
+# the reference file's columns with every axis (batch.yaml `reference.axes` may declare fewer); the
+# forces keep these names downstream (vocab.AXES)
+REF_COLUMNS = (REF_TIME, *AXES)
 REF_TORQUES = ("tx", "ty", "tz")
+# batch.yaml `reference.units`: newtons per unit of the file (kg and g: kilogram- and gram-force, the
+# standard gravity 9.80665 m/s²; lbf: pound-force). `signals.scaling.to_newtons` converts with it.
+NEWTONS_PER_UNIT = {"N": 1.0, "mN": 1e-3, "g": 9.80665e-3, "kg": 9.80665, "lbf": 4.4482216152605}
+RefUnit = Literal["N", "mN", "g", "kg", "lbf"]  # the keys of NEWTONS_PER_UNIT
+Axis = Literal["fx", "fy", "fz"]  # vocab.AXES
 FSR_TIME = "t_ms"
 
 
@@ -33,6 +42,25 @@ FSR_TIME = "t_ms"
 GZIP = ".gz"
 TDMS = ".tdms"
 TDMS_INDEX = ".tdms_index"
+
+
+def ref_columns(axes: Sequence[str] = AXES) -> tuple[str, ...]:
+    """The reference file's required columns when batch.yaml's `reference.axes` is `axes`."""
+    return (REF_TIME, *axes)
+
+
+def undeclared_axes(axes: Sequence[str]) -> dict[str, str]:
+    """{force axis a reference file must not have: why}, for batch.yaml's `reference.axes` = `axes`: a
+    column batch.yaml does not declare is not quietly dropped (the lab says which axes it records)."""
+    declared = ", ".join(axes)
+    return {
+        a: (
+            f"column {a!r} is a force axis that batch.yaml's reference.axes ({declared}) does not declare: "
+            f"add {a} to reference.axes, or leave the column out"
+        )
+        for a in AXES
+        if a not in axes
+    }
 
 
 def fsr_file(trial_id: str) -> str:
@@ -100,14 +128,38 @@ class SensorMeta(_Meta):
 
 
 class ReferenceMeta(_Meta):
-    """`reference`: the force/torque sensor and its units."""
+    """`reference`: the force/torque sensor, the force axes it records and their units."""
 
     model: str | None = None
-    units: Literal["N", "mN"]
+    units: RefUnit
     frame: str | None = "tissue"
     # `shared`: both streams were stamped by one clock (t_s and t_ms / 1000 name the same instant),
     # so no offset is estimated; `separate` (the default): the reference runs on its own clock
     clock: Literal["separate", "shared"] = "separate"
+    # the force axes the reference files hold (a one-axis load cell: [fz]), kept in the order of
+    # vocab.AXES; the default, all three, is not written out (batch.json stays as it was)
+    axes: list[Axis] = Field(default_factory=lambda: list(AXES))
+
+    @field_validator("axes", mode="before")
+    @classmethod
+    def _one_axis_as_a_list(cls, value: Any) -> Any:
+        return [value] if isinstance(value, str) else value  # `axes: fz` is `axes: [fz]`
+
+    @field_validator("axes")
+    @classmethod
+    def _axes_once_each(cls, value: list[str]) -> list[str]:
+        if not value:
+            raise ValueError(f"name at least one force axis of {', '.join(AXES)}")
+        if twice := sorted({a for a in value if value.count(a) > 1}):
+            raise ValueError(f"lists {', '.join(twice)} more than once")
+        return [a for a in AXES if a in value]
+
+    @model_serializer(mode="wrap")
+    def _axes_when_not_all(self, handler: Any) -> dict[str, Any]:
+        out = handler(self)
+        if tuple(self.axes) == AXES:
+            out.pop("axes", None)
+        return out
 
 
 class RobotMeta(_Meta):

@@ -8,7 +8,8 @@ in OUT_DIR/<batch_id>/ (values in raw units: counts or volts, N or mN; no conver
   ``samples_sha256``: each accepted trial's samples hash (`pipeline.rig.repeats`)
 - ``trials.parquet``  accepted trials: trial_id, angle_deg (float64), tissue_point, extra columns (str)
 - ``fsr.parquet``     trial_id, t_ms, one float64 column per ``sensor.channels`` entry, in that order
-- ``ref.parquet``     trial_id, t_s, fx, fy, fz (+ tx, ty, tz when every accepted trial has them)
+- ``ref.parquet``     trial_id, t_s, the axes of ``reference.axes`` (fx, fy, fz by default; in that
+  order) (+ tx, ty, tz when every accepted trial has them)
 - ``problems.json``   this batch's Problems
 - ``gx_results.json`` GX validation results per frame kind (scrubbed of run times and ids)
 - ``fingerprint.json`` written last: hash of the batch folder's bytes, ingest params, code and
@@ -52,7 +53,7 @@ from pipeline.rig.format import (
     BATCH_FILE,
     FSR_TIME,
     ID_PATTERN,
-    REF_COLUMNS,
+    REF_TIME,
     TRIAL_COLUMNS,
     TRIALS_FILE,
     Problem,
@@ -436,7 +437,7 @@ def trial_hashes(parsed: ParsedBatch) -> dict[str, str]:
     """{accepted trial: its samples' sha256} (`pipeline.rig.repeats`)."""
     if not parsed.accepted or parsed.trials is None or parsed.fsr is None or parsed.ref is None:
         return {}
-    streams = [(parsed.fsr, FSR_TIME), (parsed.ref, REF_COLUMNS[0])]
+    streams = [(parsed.fsr, FSR_TIME), (parsed.ref, REF_TIME)]
     return {str(t): samples_sha256(streams, str(t)) for t in parsed.trials["trial_id"]}
 
 

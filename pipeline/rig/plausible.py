@@ -15,10 +15,16 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import IngestParams
-from pipeline.rig.format import BatchMeta
+from pipeline.rig.format import NEWTONS_PER_UNIT, BatchMeta
 from pipeline.rig.problems import ProblemLog
 
 MN_PER_N = 1000.0
+
+
+def in_units(newtons: float, unit: str) -> float:
+    """A force limit in N expressed in the reference file's `unit` (batch.yaml reference.units), so
+    that the file's values are compared with the limit in newtons."""
+    return newtons * MN_PER_N if unit == "mN" else newtons / NEWTONS_PER_UNIT[unit]
 
 
 def reference_limit_n(meta: BatchMeta, p: IngestParams) -> float:
@@ -99,7 +105,7 @@ def check_flat(frame: pd.DataFrame, cols: Sequence[str], what: str, file: str, p
 
 def check_dead(frame: pd.DataFrame, cols: Sequence[str], what: str, file: str, probs: ProblemLog) -> None:
     """One column constant over the whole trial while another moves: a dead or disconnected channel
-    (all constant is `check_flat`'s)."""
+    (all constant is `check_flat`'s, and so is the one column of a one-axis reference)."""
     if len(frame) < 2:
         return
     values = frame[list(cols)].to_numpy(dtype=float)

@@ -3,12 +3,13 @@ trials.csv and every trial's two streams, validates the frames with Great Expect
 returns what is usable plus every `Problem`. Read-only; never raises on bad input.
 
 A bad cell sets aside its trial; a bad batch.yaml or trials.csv, or a failed check that names
-no row, sets aside the whole batch. Values stay in raw units (counts or volts, N or mN).
+no row, sets aside the whole batch. Values stay in raw units (counts or volts; the reference.axes
+forces in reference.units).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from pipeline.rig.expectations import Check, Validator, frame_dt
 from pipeline.rig.format import (
     BATCH_FILE,
     FSR_TIME,
-    REF_COLUMNS,
+    REF_TIME,
     REF_TORQUES,
     STREAM_SUFFIXES,
     TDMS,
@@ -37,6 +38,7 @@ from pipeline.rig.format import (
     forms,
     fsr_file,
     ref_file,
+    undeclared_axes,
 )
 from pipeline.rig.problems import ProblemLog, group_warnings
 from pipeline.rig.tdmsfile import read_ref
@@ -156,14 +158,22 @@ def _read_stream(
     integer: bool,
     probs: ProblemLog,
     warn: Warn,
+    undeclared: Mapping[str, str] | None = None,
+    why: Mapping[str, str] | None = None,
 ) -> pd.DataFrame | None:
-    """One CSV stream file as trial_id, line, time, values (+ optional columns if all present), float64."""
+    """One CSV stream file as trial_id, line, time, values (+ optional columns if all present), float64.
+    A column of `undeclared` in the header is a Problem (its reason), located on the header; `why`
+    adds to a missing value column's reason."""
     file = str(path)
     table = read_csv(path, probs, trial_id)
     if table is None:
         return None
     required = [time_col, *values]
-    idx = column_index(table, required, file, probs, trial_id)
+    idx = column_index(table, required, file, probs, trial_id, why)
+    undeclared = undeclared or {}
+    for c in [h for h in undeclared if h in table.header]:
+        probs.add(file, undeclared[c], trial_id=trial_id, line=table.header_line, column=c)
+        idx = None
     if idx is None:
         return None
     opt = [c for c in optional if c in idx]
@@ -224,21 +234,23 @@ def _plausible_ref(
     frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
 ) -> None:
     """Forces within the reference sensor's range, no isolated glitch, not flat, no dead axis, no flat
-    top, one insertion."""
-    forces = list(REF_COLUMNS[1:])
+    top, one insertion: on the axes batch.yaml declares, the limits (in N) in the file's units."""
+    forces = list(meta.reference.axes)
     unit = meta.reference.units
-    scale = plausible.MN_PER_N if unit == "mN" else 1.0
-    top = plausible.reference_limit_n(meta, p) * scale
+    limit_n = plausible.reference_limit_n(meta, p)
+    top = plausible.in_units(limit_n, unit)
+    in_n = "" if unit in ("N", "mN") else f"±{limit_n:g} N, "
     what = (
-        f"{unit} (the reference sensor's range: ingest.reference_max_n, or ingest.reference_max_n_by_model)"
+        f"{unit} (the reference sensor's range: {in_n}ingest.reference_max_n, or "
+        "ingest.reference_max_n_by_model)"
     )
     plausible.check_range(frame, forces, -top, top, what, file, probs)
-    jump = p.reference_glitch_n * scale
+    jump = plausible.in_units(p.reference_glitch_n, unit)
     plausible.check_glitches(frame, forces, jump, unit, "ingest.reference_glitch_n", file, probs)
     plausible.check_flat(frame, forces, "reference stream", file, probs)
     plausible.check_dead(frame, forces, "reference sensor", file, probs)
-    plausible.check_clipped(frame, forces, REF_COLUMNS[0], 1.0, p.clip_run_s, unit, file, probs)
-    plausible.check_length(frame, REF_COLUMNS[0], 1.0, meta, p, file, probs)
+    plausible.check_clipped(frame, forces, REF_TIME, 1.0, p.clip_run_s, unit, file, probs)
+    plausible.check_length(frame, REF_TIME, 1.0, meta, p, file, probs)
 
 
 # --------------------------------------------------------------------------- one batch
@@ -293,6 +305,8 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
     channels = list(meta.sensor.channels)
     counts = meta.sensor.units == "counts"
     adc_max = 2**meta.sensor.adc_bits - 1 if counts and meta.sensor.adc_bits else None
+    axes = list(meta.reference.axes)  # the force axes the reference files hold
+    why = {a: f"; batch.yaml's reference.axes declares {', '.join(axes)}" for a in axes}
     fsr_frames: list[pd.DataFrame] = []
     ref_frames: list[pd.DataFrame] = []
     summary: list[dict[str, Any]] = []
@@ -311,20 +325,23 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
         if ref_path is None:
             continue
         if ref_path.name.endswith(TDMS):
-            r = read_ref(ref_path, tid, meta.reference.units, probs, lambda msg, p=ref_path: warn(p, msg))
+            units = meta.reference.units
+            r = read_ref(ref_path, tid, units, axes, probs, lambda msg, p=ref_path: warn(p, msg))
         else:
-            r = _read_stream(ref_path, tid, REF_COLUMNS[0], REF_COLUMNS[1:], REF_TORQUES, False, probs, warn)
+            r = _read_stream(
+                ref_path, tid, REF_TIME, axes, REF_TORQUES, False, probs, warn, undeclared_axes(axes), why
+            )
         if r is not None:
             paths[ref_file(tid)] = ref_path
             _plausible_ref(r, str(ref_path), meta, params, probs)
             ref_frames.append(r)
-            summary.append(_rate_row(r, ref_file(tid), REF_COLUMNS[0], 1.0))
+            summary.append(_rate_row(r, ref_file(tid), REF_TIME, 1.0))
 
     # Torques go through only if every ref stream of the batch has them (no half-empty columns).
     torques = list(REF_TORQUES) if ref_frames and all(REF_TORQUES[0] in r for r in ref_frames) else []
     if not torques and any(REF_TORQUES[0] in r for r in ref_frames):
         warn(batch_dir, "torques ignored: not every reference stream has them")
-    ref_cols = [*REF_COLUMNS, *torques]
+    ref_cols = [REF_TIME, *axes, *torques]
     folder = str(batch_dir)
     checks: list[Check] = []
     fsr = ref = pd.DataFrame()
@@ -345,13 +362,13 @@ def parse_batch(batch_dir: Path, params: IngestParams, validator: Validator) -> 
         )
     if ref_frames:
         ref = pd.concat([r[["trial_id", "line", *ref_cols]] for r in ref_frames], ignore_index=True)
-        ref["dt"] = frame_dt(ref, REF_COLUMNS[0])
+        ref["dt"] = frame_dt(ref, REF_TIME)
         checks.append(
             validator.stream(
                 batch_id,
                 "ref",
                 ref,
-                REF_COLUMNS[0],
+                REF_TIME,
                 ref_cols[1:],
                 None,
                 folder,

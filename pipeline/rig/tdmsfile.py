@@ -1,17 +1,20 @@
 """Reading a trial's reference stream from an NI TDMS file (`<trial>.ref.tdms`, npTDMS) into the frame
-the CSV reader gives: trial_id, line, t_s, fx, fy, fz (+ tx, ty, tz when all three are there).
+the CSV reader gives: trial_id, line, t_s, the force axes batch.yaml's `reference.axes` declares (fx,
+fy, fz by default) (+ tx, ty, tz when all three are there).
 
-The layout (docs/rig-log-format.md, "The reference stream as NI TDMS"): one group holds channels named
-`fx`, `fy`, `fz` (optionally `tx`, `ty`, `tz`) of equal length, in `reference.units`; the time is a
-`t_s` channel of seconds in that group, or else the waveform properties NI writes on the force
-channels (`wf_increment` s per sample, `wf_start_offset` s). A TDMS file has no lines, so a Problem's
+The layout (docs/rig-log-format.md, "The reference stream as NI TDMS"): one group holds a channel per
+declared axis (`fx`, `fy`, `fz` by default; optionally `tx`, `ty`, `tz`) of equal length, in
+`reference.units`; the time is a `t_s` channel of seconds in that group, or else the waveform
+properties NI writes on the force channels (`wf_increment` s per sample, `wf_start_offset` s). The
+group is the one holding the first declared axis; a force axis there that batch.yaml does not
+declare is a Problem, as in a CSV header. A TDMS file has no lines, so a Problem's
 `line` is the 1-based sample number in its channel. Never raises on bad input.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -19,19 +22,24 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.rig.format import REF_COLUMNS, REF_TORQUES
+from pipeline.rig.format import REF_TIME, REF_TORQUES, undeclared_axes
 from pipeline.rig.problems import ProblemLog
+from pipeline.vocab import AXES
 
-TIME = REF_COLUMNS[0]
-FORCES = REF_COLUMNS[1:]
+TIME = REF_TIME
 WF_INCREMENT, WF_OFFSET, UNIT = "wf_increment", "wf_start_offset", "unit_string"
 
 
 def read_ref(
-    path: Path, trial_id: str, unit: str, probs: ProblemLog, warn: Callable[[str], None]
+    path: Path,
+    trial_id: str,
+    unit: str,
+    axes: Sequence[str],
+    probs: ProblemLog,
+    warn: Callable[[str], None],
 ) -> pd.DataFrame | None:
-    """The reference stream of `path` (values in `unit`, batch.yaml's reference.units), or None with
-    Problems saying why it cannot be used."""
+    """The reference stream of `path` (the force `axes`, batch.yaml's reference.axes, in `unit`, its
+    reference.units), or None with Problems saying why it cannot be used."""
     from nptdms import TdmsFile
 
     file = str(path)
@@ -44,7 +52,7 @@ def read_ref(
         # Opened as a file object, not a path, so that npTDMS reads the file itself and never a
         # `.tdms_index` beside it (which may be stale). Metadata now, data channel by channel.
         with _npTDMS_says(heard), path.open("rb") as handle, TdmsFile.open(handle) as tdms:
-            frame = _frame(tdms, path.stat().st_size, trial_id, unit, bad, warn, heard)
+            frame = _frame(tdms, path.stat().st_size, trial_id, unit, tuple(axes), bad, warn, heard)
     # npTDMS raises many kinds of error on a damaged file (ValueError, KeyError, struct.error,
     # EOFError, ...): each means the same to a lab, so all are one Problem.
     except Exception as e:
@@ -83,6 +91,7 @@ def _frame(
     size: int,
     trial_id: str,
     unit: str,
+    forces: tuple[str, ...],
     bad: Callable[..., None],
     warn: Callable[[str], None],
     heard: list[str],
@@ -91,43 +100,48 @@ def _frame(
         said = f" (npTDMS: {heard[0]})" if heard else ""
         bad(f"no data: an empty or damaged TDMS file{said}")
         return None
-    groups = [g for g in tdms.groups() if FORCES[0] in _names(g)]
+    key = forces[0]  # the group of the forces is the one holding the first declared axis
+    groups = [g for g in tdms.groups() if key in _names(g)]
     if len(groups) != 1:
         layout = _few(f"{g.name!r}: {_few(_names(g), ', ') or 'no channels'}" for g in tdms.groups())
         if groups:
             names = " and ".join(repr(g.name) for g in groups)
-            bad(f"channel {FORCES[0]!r} is in groups {names}: keep one group of forces", FORCES[0])
+            bad(f"channel {key!r} is in groups {names}: keep one group of forces", key)
         else:
-            bad(f"no group has a channel {FORCES[0]!r} (groups: {layout or 'none'})", FORCES[0])
+            bad(f"no group has a channel {key!r} (groups: {layout or 'none'})", key)
         return None
     group = groups[0]
     have = _names(group)
-    missing = [c for c in FORCES if c not in have]
+    missing = [c for c in forces if c not in have]
     for c in missing:
-        bad(f"missing channel {c!r} in group {group.name!r} (channels: {_few(have, ', ')})", c)
-    if missing:
+        declared = f"; batch.yaml's reference.axes declares {', '.join(forces)}" if forces != AXES else ""
+        bad(f"missing channel {c!r} in group {group.name!r} (channels: {_few(have, ', ')}){declared}", c)
+    undeclared = {c: why for c, why in undeclared_axes(forces).items() if c in have}
+    for c, why in undeclared.items():
+        bad(why.replace("column", "channel", 1), c)
+    if missing or undeclared:
         return None
     torques = [c for c in REF_TORQUES if c in have]
     if torques and len(torques) != len(REF_TORQUES):
         warn(f"only {', '.join(torques)} of {', '.join(REF_TORQUES)} present; ignored")
         torques = []
-    used = [*FORCES, *torques, *([TIME] if TIME in have else [])]
+    used = [*forces, *torques, *([TIME] if TIME in have else [])]
     if extra := [c for c in have if c not in used]:
         warn(f"extra channel(s) {_few(map(repr, extra), ', ')} ignored")
 
     channels = {c: group[c] for c in used}
-    n = len(channels[FORCES[0]])
+    n = len(channels[key])
     ok = True
     for c, ch in channels.items():
         if len(ch) != n:
             cut = " (a file cut short?)" if heard else ""
-            bad(f"channel {c!r} has {len(ch)} samples, {FORCES[0]!r} has {n}{cut}", c)
+            bad(f"channel {c!r} has {len(ch)} samples, {key!r} has {n}{cut}", c)
             ok = False
         elif not np.issubdtype(ch.dtype, np.number) or np.issubdtype(ch.dtype, np.complexfloating):
             bad(f"channel {c!r} holds {ch.dtype}, not real numbers", c)
             ok = False
         found = ch.properties.get(UNIT)
-        if c in FORCES and found not in (None, "", unit):  # torques are in N·m, whatever `unit` is
+        if c in forces and found not in (None, "", unit):  # torques are in N·m, whatever `unit` is
             bad(f"channel {c!r} is in {found!r} but batch.yaml says reference.units: {unit}", c)
             ok = False
     if not ok:
@@ -147,7 +161,7 @@ def _frame(
 
     values = {c: np.asarray(channels[c][:], dtype=np.float64) for c in used}
     if TIME not in values:
-        t = _waveform_time(channels, n, bad)
+        t = _waveform_time(channels, forces, n, bad)
         if t is None:
             return None
         values[TIME] = t
@@ -158,30 +172,34 @@ def _frame(
         {
             "trial_id": pd.Series([trial_id] * n, dtype=object),
             "line": np.arange(1, n + 1, dtype=np.int64),
-            **{c: values[c] for c in [TIME, *FORCES, *torques]},
+            **{c: values[c] for c in [TIME, *forces, *torques]},
         }
     )
 
 
-def _waveform_time(channels: dict[str, Any], n: int, bad: Callable[..., None]) -> np.ndarray | None:
-    """Sample times from the force channels' waveform properties, which must agree where given."""
-    first = channels[FORCES[0]].properties
+def _waveform_time(
+    channels: dict[str, Any], forces: Sequence[str], n: int, bad: Callable[..., None]
+) -> np.ndarray | None:
+    """Sample times from the force channels' waveform properties (the first declared axis's; the
+    others must agree where given)."""
+    key = forces[0]
+    first = channels[key].properties
     step = first.get(WF_INCREMENT)
     if step is None:
-        bad(f"no time: no {TIME!r} channel and no waveform property {WF_INCREMENT!r} on {FORCES[0]!r}")
+        bad(f"no time: no {TIME!r} channel and no waveform property {WF_INCREMENT!r} on {key!r}")
         return None
     step, start = _number(step), _number(first.get(WF_OFFSET, 0.0))
     if step is None or start is None:
-        bad(f"waveform properties {WF_INCREMENT!r} and {WF_OFFSET!r} must be numbers", FORCES[0])
+        bad(f"waveform properties {WF_INCREMENT!r} and {WF_OFFSET!r} must be numbers", key)
         return None
     if not (np.isfinite(step) and step > 0 and np.isfinite(start)):
-        bad(f"{WF_INCREMENT!r} must be a positive number of seconds, got {step}", FORCES[0])
+        bad(f"{WF_INCREMENT!r} must be a positive number of seconds, got {step}", key)
         return None
-    for c in FORCES[1:]:
+    for c in forces[1:]:
         for name, mine in ((WF_INCREMENT, step), (WF_OFFSET, start)):
             other = channels[c].properties.get(name)
             if other is not None and _number(other) != mine:
-                bad(f"waveform property {name!r} is {other}, {FORCES[0]!r} has {mine}", c)
+                bad(f"waveform property {name!r} is {other}, {key!r} has {mine}", c)
                 return None
     return start + step * np.arange(n, dtype=np.float64)
 

@@ -76,9 +76,10 @@ def estimate_offset(
 
     For every candidate lag L in [-max_offset_s, +max_offset_s] (step `step_s`) the
     reference is read at the estimator's own sample times (ref stamped t - L) and the
-    changes of the three forces over ~0.1 s (DIFF_SPAN_S) are regressed (least squares, with
-    intercept) on the changes of the channels (and those changes times the channel level,
-    for the FSR's saturating curve). The score is the explained share of variance (R²).
+    changes of the forces (each axis the reference records) over ~0.1 s (DIFF_SPAN_S) are
+    regressed (least squares, with intercept) on the changes of the channels (and those
+    changes times the channel level, for the FSR's saturating curve). The score is the
+    explained share of variance (R²).
     Differencing is the point: it makes the sharp events (contact, puncture drop, motion
     reversal, needle exit) dominate and removes most of what would bias a correlation of
     levels: the silicone's slow creep, drift, the preload. Regressing forces on channels
@@ -168,7 +169,7 @@ def _lag_scores(
     for a in range(0, lag_idx.size, chunk):
         lags = lag_idx[a : a + chunk]
         j = base[:, None] - lags[None, :]  # (n, lags)
-        y = fine[j] + frac[:, None, None] * (fine[j + 1] - fine[j])  # (n, lags, 3)
+        y = fine[j] + frac[:, None, None] * (fine[j + 1] - fine[j])  # (n, lags, axes)
         dy = y[span:] - y[:-span]
         dy -= dy.mean(axis=0)
         total = np.einsum("nlk,nlk->l", dy, dy)

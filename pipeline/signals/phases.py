@@ -15,7 +15,8 @@ from pipeline.vocab import PHASES
 
 
 def label_phases(force_n: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Phase of every sample of one trial's reference force (n, 3) on a uniform grid.
+    """Phase of every sample of one trial's reference force (n, axes: the one to three
+    axes it records) on a uniform grid.
 
     The rule, all on the force projected on its principal direction p(t):
     - rest baseline: median of the quieter of the first/last 0.5 s; p = (F - base) . u with u

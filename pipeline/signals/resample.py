@@ -6,7 +6,8 @@ overlap (`pipeline.signals.filters`) and every grid sample given a phase
 
 Input: the ingest stage's accepted batches, `IN_DIR/<batch_id>/{batch.json, trials.parquet,
 fsr.parquet, ref.parquet}` (folders without `trials.parquet` were set aside by ingest and are
-skipped). Output: `OUT_DIR/<batch_id>.parquet` (every row carries the batch's `unit_id`) + `.json`
+skipped). Output: `OUT_DIR/<batch_id>.parquet` (every row carries the batch's `unit_id`; the force
+columns are the axes the batch's reference records, batch.yaml `reference.axes`, in AXES order) + `.json`
 (channels, rate, unit_id, the batch's `purpose`, its declared `front_end` and each trial's samples
 hash from ingest), and one offsets.csv row per trial. A trial that cannot be aligned is set aside
 with its reason in that row.
@@ -67,7 +68,7 @@ class ResampledTrial:
     t0_host_s: float  # host time of grid point t_s = 0
     t_s: np.ndarray
     volts: np.ndarray  # (n, channels)
-    force_n: np.ndarray  # (n, 3)
+    force_n: np.ndarray  # (n, axes): the batch's recorded axes (BatchInfo.axes)
     phase: np.ndarray
     n_dropped_gap: int
 
@@ -79,7 +80,7 @@ class Streams:
     t_fsr_s: np.ndarray
     volts: np.ndarray  # (n, channels)
     t_ref_s: np.ndarray
-    force_n: np.ndarray  # (m, 3)
+    force_n: np.ndarray  # (m, axes): the axes the reference records, one to three
 
 
 # An estimator that moves less than this (about two counts of a 10-bit, 5 V ADC) while the reference
@@ -243,6 +244,7 @@ class BatchInfo:
     vref_v: float | None
     ref_units: str
     shared_clock: bool = False  # batch.yaml reference.clock: shared
+    axes: tuple[str, ...] = AXES  # batch.yaml reference.axes: the force axes the reference records
     front_end: dict[str, Any] | None = None  # batch.yaml sensor.front_end, as declared (None: absent)
     samples_sha256: dict[str, str] = field(default_factory=dict)  # trial -> its samples' hash (ingest)
 
@@ -260,6 +262,8 @@ class BatchInfo:
             adc_bits=None if s.get("adc_bits") is None else int(s["adc_bits"]),
             vref_v=None if s.get("vref_v") is None else float(s["vref_v"]),
             ref_units=str(r["units"]),
+            # absent: all three (ingest writes reference.axes only when it is not the default)
+            axes=tuple(a for a in AXES if a in (r.get("axes") or AXES)),
             samples_sha256={str(k): str(v) for k, v in (meta.get(SAMPLES_KEY) or {}).items()},
         )
 
@@ -314,7 +318,8 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
     trials = pd.read_parquet(batch_dir / "trials.parquet")
     fsr = _by_trial(pd.read_parquet(batch_dir / "fsr.parquet"), "t_ms")
     ref = _by_trial(pd.read_parquet(batch_dir / "ref.parquet"), "t_s")
-    columns: dict[str, list[np.ndarray]] = {name: [] for name in table_schema(info.channels).names}
+    schema = table_schema(info.channels, info.axes)
+    columns: dict[str, list[np.ndarray]] = {name: [] for name in schema.names}
     rows: list[dict[str, Any]] = []
     trials = trials.assign(trial_id=trials["trial_id"].astype(str)).sort_values("trial_id", kind="stable")
     # First every trial's own alignment, then a low quality judged against the batch's other
@@ -354,7 +359,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
             )
             t_ref, force = _clean_time(
                 rf["t_s"].to_numpy(np.float64),
-                to_newtons(rf[list(AXES)].to_numpy(np.float64), info.ref_units),
+                to_newtons(rf[list(info.axes)].to_numpy(np.float64), info.ref_units),
             )
             streams = Streams(t_fsr, volts, t_ref, force)
             check_response(streams, tuple(info.channels))
@@ -397,9 +402,8 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
         columns["phase"].append(res.phase)
         for j, c in enumerate(info.channels):
             columns[c].append(res.volts[:, j])
-        for j, c in enumerate(AXES):
+        for j, c in enumerate(info.axes):
             columns[c].append(res.force_n[:, j])
-    schema = table_schema(info.channels)
     arrays = [
         pa.array(np.concatenate(columns[f.name]) if columns[f.name] else [], type=f.type) for f in schema
     ]

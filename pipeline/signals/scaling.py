@@ -1,9 +1,11 @@
-"""Raw units to physical ones: estimator ADC counts to volts, reference mN to N
+"""Raw units to physical ones: estimator ADC counts to volts, reference forces to N
 (`docs/rig-log-format.md`, "Units and clocks")."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from pipeline.rig.format import NEWTONS_PER_UNIT
 
 
 def to_volts(values: np.ndarray, units: str, adc_bits: int | None, vref_v: float | None) -> np.ndarray:
@@ -19,10 +21,12 @@ def to_volts(values: np.ndarray, units: str, adc_bits: int | None, vref_v: float
 
 
 def to_newtons(values: np.ndarray, units: str) -> np.ndarray:
-    """Reference forces in N."""
+    """Reference forces in N, from batch.yaml's `reference.units` (`rig.format.NEWTONS_PER_UNIT`: N,
+    mN, g and kg of force, lbf)."""
     values = np.asarray(values, dtype=np.float64)
     if units == "N":
         return values
-    if units == "mN":
-        return values * 1e-3
-    raise ValueError(f"unknown reference units {units!r} (expected 'N' or 'mN')")
+    if units not in NEWTONS_PER_UNIT:
+        allowed = ", ".join(repr(u) for u in NEWTONS_PER_UNIT)
+        raise ValueError(f"unknown reference units {units!r} (reference.units is one of {allowed})")
+    return values * NEWTONS_PER_UNIT[units]

@@ -42,15 +42,15 @@ from pipeline.rig.format import (
     FORMAT,
     FSR_TIME,
     ID_PATTERN,
-    REF_COLUMNS,
     TRIAL_COLUMNS,
     TRIALS_FILE,
     fsr_file,
     is_valid_id,
+    ref_columns,
     ref_file,
 )
 from pipeline.sim import physics, rigs
-from pipeline.vocab import CALIBRATION, angle_name
+from pipeline.vocab import AXES, CALIBRATION, angle_name
 
 MANIFEST = "simulate.json"
 CHANNELS = ("fsr1", "fsr2", "fsr3")
@@ -198,9 +198,15 @@ def simulate_batch(p: SimulateParams, plan: BatchPlan) -> Iterator[tuple[dict, p
             yield row, record
 
 
+def recorded_axes(p: SimulateParams) -> tuple[str, ...]:
+    """The force axes the simulated reference records (`simulate.reference_axes`), in AXES order."""
+    return tuple(a for a in AXES if a in p.reference_axes)
+
+
 def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
     """batch.yaml of one simulated batch (unknown keys such as `simulator` are kept by ingest); the
-    rig's read-out circuit as `sensor.front_end` when `simulate.declare_front_end`."""
+    rig's read-out circuit as `sensor.front_end` when `simulate.declare_front_end`, and
+    `reference.axes` when `simulate.reference_axes` is not all three."""
     design = rigs.rig(p.rig)
     sensor: dict[str, object] = {
         "unit_id": plan.unit_id,
@@ -211,6 +217,9 @@ def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
     }
     if p.declare_front_end:
         sensor["front_end"] = rigs.declared_front_end(design).model_dump(mode="json")
+    reference: dict[str, object] = {"model": "ATI Nano17 (simulated)", "units": "N", "frame": "tissue"}
+    if (axes := recorded_axes(p)) != AXES:  # the default, all three, is not written (rig-log/1's default)
+        reference["axes"] = list(axes)
     return {
         "format": FORMAT,
         "batch_id": plan.batch_id,
@@ -218,7 +227,7 @@ def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
         "recorded": (date(2026, 11, 2) + timedelta(days=plan.number)).isoformat(),
         "tissue": {"material": "Ecoflex 00-30", "notes": f"simulated cast {plan.cast} (needlecue simulate)"},
         "sensor": sensor,
-        "reference": {"model": "ATI Nano17 (simulated)", "units": "N", "frame": "tissue"},
+        "reference": reference,
         "robot": {"insertion_speed_mm_s": 1.0, "insertion_time_s": 10.0, "retraction_speed_mm_s": 2.0},
         "simulator": {"seed": p.seed, "role": plan.role, "rig": p.rig},
     }
@@ -230,13 +239,15 @@ def write_batch(p: SimulateParams, plan: BatchPlan, out_dir: Path) -> int:
     folder.mkdir(parents=True)
     rows, n_samples = [], 0
     integer = p.effects.adc
+    axes = recorded_axes(p)
+    columns = ref_columns(axes)
     for row, rec in simulate_batch(p, plan):
         rows.append(row)
         fsr = np.column_stack([rec.t_ms, rec.counts])
         fmt = ["%.3f"] + (["%d"] if integer else ["%.5f"]) * len(CHANNELS)
         _savetxt(folder / fsr_file(row["trial_id"]), fsr, fmt, (FSR_TIME, *CHANNELS))
-        ref = np.column_stack([rec.t_s, rec.force])
-        _savetxt(folder / ref_file(row["trial_id"]), ref, ["%.5f"] * len(REF_COLUMNS), REF_COLUMNS)
+        ref = np.column_stack([rec.t_s, rec.force[:, [AXES.index(a) for a in axes]]])
+        _savetxt(folder / ref_file(row["trial_id"]), ref, ["%.5f"] * len(columns), columns)
         n_samples += rec.t_ms.size
     with (folder / BATCH_FILE).open("w") as f:
         yaml.safe_dump(batch_yaml(p, plan), f, sort_keys=False)
@@ -278,7 +289,8 @@ def run(p: SimulateParams, out_dir: Path, *, log: Log = logger.info) -> list[str
     units = {u: unit_summary(draw_unit(p, u)) for u in sorted({plan.unit_id for plan in plans})}
     manifest = {
         "generator": "needlecue simulate",
-        "params": p.model_dump(mode="json"),
+        # reference_axes only when not the default: the default's manifest is as it was before it
+        "params": p.model_dump(mode="json", exclude={"reference_axes"} if recorded_axes(p) == AXES else None),
         "batches": written,
         "units": units,
     }

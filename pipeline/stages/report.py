@@ -76,12 +76,15 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
         _log(f"warning: no {needs_file} (run the needs stage): no data-needs section")
     ledger_file = reports_dir / "ledger" / "ledger.json"
     flagged: list[dict] = []
+    left_out: list[dict] = []
     if ledger_file.is_file():  # the trials used with a flag (a low alignment quality, kept)
-        flagged = [e for e in json.loads(ledger_file.read_text())["entries"] if e.get("flag")]
+        entries = json.loads(ledger_file.read_text())["entries"]
+        flagged = [e for e in entries if e.get("flag")]
+        left_out = [e for e in entries if e.get("unused_axes")]  # force axes their angle does not use
     else:
         _log(f"warning: no {ledger_file} (run the ledger stage): flagged trials not listed")
     text = report.render(
-        metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section, flagged
+        metrics, [f"figures/{f}" for f in figures.FIGURES], cue_sections, unit_section, flagged, left_out
     )
     (reports_dir / "report.md").write_text(text)
     _log(f"report.md, {len(figures.FIGURES)} figures and the cue summary -> {reports_dir}")

@@ -93,6 +93,31 @@ def cue_trials(
     return pd.concat(parts, ignore_index=True)
 
 
+# the output layer of each kind: the rows a model of fewer axes keeps (`keep_axes`)
+OUTPUT_LAYER = {
+    "ls": ("weight", "bias"),
+    "fnn": ("out.weight", "out.bias"),
+    "lstm": ("head.weight", "head.bias"),
+}
+
+
+def keep_axes(checkpoint: dict, axes: tuple[str, ...] = ("fz",)) -> dict:
+    """`checkpoint` as the model of `axes` alone (a non-empty subset of its targets, in their order): what
+    training gives when the reference recorded only those axes (a load cell's fz, say), with this
+    model's very numbers for them, so its force is exactly the given model's on those axes."""
+    import copy
+
+    keep = [list(checkpoint["targets"]).index(a) for a in axes]
+    out = copy.deepcopy(checkpoint)
+    for key in OUTPUT_LAYER[checkpoint["kind"]]:
+        out["state_dict"][key] = out["state_dict"][key][keep].clone()
+    for key in ("y_mean", "y_std"):
+        out["preprocessing"][key] = out["preprocessing"][key][keep].clone()
+    out["config"] = {**out["config"], "n_out": len(axes)}
+    out["targets"] = list(axes)
+    return out
+
+
 def cue_predictions(checkpoint: dict, train_by_angle: Mapping[float, pd.DataFrame]) -> dict[str, dict]:
     """`build_cue_pack`'s `predicted`: {kind: {angle: forces}}, the model on every angle's training frame
     (its volts only, as a deployed model sees them)."""

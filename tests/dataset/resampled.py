@@ -26,9 +26,11 @@ def write_resampled(
     rate_hz: float = 30.0,
     unit_id: str = "u1",
     purpose: str = "training",
+    axes: tuple[str, ...] = AXES,
 ) -> None:
-    """A resampled batch (parquet + json) as the resample stage writes it; trial_id -> angle."""
-    cols: dict[str, list] = {name: [] for name in table_schema(channels).names}
+    """A resampled batch (parquet + json) as the resample stage writes it; trial_id -> angle; its
+    reference recorded the force `axes`."""
+    cols: dict[str, list] = {name: [] for name in table_schema(channels, axes).names}
     for tid, angle in trials.items():
         rng = np.random.default_rng(zlib.crc32(f"{batch_id}/{tid}".encode()))
         n = int(rng.integers(20, 40))
@@ -39,15 +41,17 @@ def write_resampled(
         cols["tissue_point"] += ["p1"] * n
         cols["t_s"] += list(np.arange(n) / rate_hz)
         cols["phase"] += ["rest"] * n
-        for c in [*channels, *AXES]:
-            cols[c] += list(rng.normal(size=n))
-    schema = table_schema(channels)
+        for c in [*channels, *AXES]:  # every axis drawn, so that the values do not depend on `axes`
+            values = list(rng.normal(size=n))
+            if c in cols:
+                cols[c] += values
+    schema = table_schema(channels, axes)
     write_table(
         pa.table({f.name: pa.array(cols[f.name], f.type) for f in schema}, schema=schema),
         root / f"{batch_id}.parquet",
     )
     frame = pd.DataFrame(cols)  # ingest's hash of each trial's samples, as if these were its values
-    streams = [(frame[["trial_id", "t_s", *channels]], "t_s"), (frame[["trial_id", "t_s", *AXES]], "t_s")]
+    streams = [(frame[["trial_id", "t_s", *channels]], "t_s"), (frame[["trial_id", "t_s", *axes]], "t_s")]
     meta = {
         "samples_sha256": {tid: samples_sha256(streams, tid) for tid in trials},
         "batch_id": batch_id,

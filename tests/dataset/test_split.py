@@ -12,7 +12,7 @@ from pipeline.config import SplitParams
 from pipeline.dataset import split as sp
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.dataset.tables import write_table
-from pipeline.vocab import AXES, ID_COLUMNS, SPLITS
+from pipeline.vocab import AXES, CALIBRATION, ID_COLUMNS, SPLITS
 from tests.dataset.resampled import CHANNELS, files_of, make_input, trials_in, write_resampled
 
 
@@ -298,3 +298,58 @@ def test_angles_to_train_without_data_stop_the_split_with_the_params_line_to_set
         "30",
         "45",
     ]
+
+
+def test_an_angle_whose_batches_record_different_axes_trains_on_the_axes_all_of_them_record(tmp_path):
+    # Given: at 30 deg, the training casts record fx, fy, fz and the held-out batch fz alone (a load
+    # cell); 45 deg is recorded on all three axes throughout; and a calibration batch with fy and fz
+    src = make_input(tmp_path / "in")
+    write_resampled(src, "sim-heldout-30deg", {f"a30-t{k:02d}": 30.0 for k in range(1, 5)}, axes=("fz",))
+    write_resampled(
+        src,
+        "calib-u-new",
+        {"a30-t01": 30.0, "a45-t01": 45.0},
+        unit_id="u-new",
+        purpose=CALIBRATION,
+        axes=("fy", "fz"),
+    )
+    logged: list[str] = []
+    # When: split
+    manifest = sp.run(src, tmp_path / "out", SplitParams(), log=logged.append)
+    out = tmp_path / "out"
+    # Then: every 30 deg file holds fz alone (nothing stands in for fx or fy), 45 deg keeps all three
+    for name in SPLITS:
+        assert [a for a in AXES if a in pq.read_schema(out / "30" / f"{name}.parquet").names] == ["fz"]
+        assert [a for a in AXES if a in pq.read_schema(out / "45" / f"{name}.parquet").names] == list(AXES)
+    # And: no trial is set aside for it; the manifest and the log name the axes left out, and where
+    assert not manifest["set_aside"]
+    assert manifest["angles"]["30"]["axes"] == ["fz"]
+    assert manifest["angles"]["30"]["axes_left_out"] == {
+        "sim-tissue-1": ["fx", "fy"],
+        "sim-tissue-2": ["fx", "fy"],
+    }
+    assert "axes" not in manifest["angles"]["45"] and "axes_left_out" not in manifest["angles"]["45"]
+    assert any("angle 30: sim-tissue-1 records fx, fy too" in line for line in logged)
+    # And: a calibration trial keeps the axes both it and its angle's models have
+    assert [a for a in AXES if a in pq.read_schema(out / "calibration" / "30.parquet").names] == ["fz"]
+    assert [a for a in AXES if a in pq.read_schema(out / "calibration" / "45.parquet").names] == ["fy", "fz"]
+    assert manifest["calibration_axes_left_out"] == {"30": {"calib-u-new": ["fy"]}}
+
+
+def test_trials_sharing_no_axis_with_their_angle_are_set_aside_saying_which_axes(tmp_path):
+    # Given: at 30 deg the two training casts record fz, the held-out batch fx alone
+    src = make_input(tmp_path / "in")
+    for b in (1, 2):
+        trials = {f"a30-t{k:02d}": 30.0 for k in range(1, 9)}
+        write_resampled(src, f"sim-tissue-{b}", trials, axes=("fz",))
+    write_resampled(src, "sim-heldout-30deg", {f"a30-t{k:02d}": 30.0 for k in range(1, 5)}, axes=("fx",))
+    # When: split
+    manifest = sp.run(src, tmp_path / "out", SplitParams())
+    # Then: the majority's axis is kept, and the held-out trials are set aside with the reason
+    assert manifest["angles"]["30"]["axes"] == ["fz"]
+    aside = [s for s in manifest["set_aside"] if s["batch_id"] == "sim-heldout-30deg"]
+    assert len(aside) == 4
+    assert (
+        aside[0]["reason"]
+        == "its reference records ['fx'], no force axis of the ['fz'] of the trials at angle 30"
+    )

@@ -15,7 +15,7 @@ from pipeline.modelling import export
 from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
 from pipeline.rig.frontend import Divider
-from tests.client.builders import cue_trials, register, register_unit, unit_document
+from tests.client.builders import cue_trials, keep_axes, register, register_unit, unit_document
 
 CIRCUIT = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.5)
 MIX = [[1.08, 0.05, 0.0], [0.0, 0.93, 0.04], [-0.03, 0.0, 1.1]]
@@ -30,13 +30,16 @@ class Champion:
     trial: pd.DataFrame  # a held-out trial of the unit
 
 
-def registered_champion(root: Path) -> Champion:
+def registered_champion(root: Path, axes: tuple[str, ...] | None = None) -> Champion:
     """A 30° LSTM on rest-relative volts as needle-force-30@champion in a sqlite store under `root`,
-    a unit calibrated with it on its FSRs' conductance, and a held-out trial of that unit."""
+    a unit calibrated with it on its FSRs' conductance, and a held-out trial of that unit. `axes`: the
+    model of those axes alone (`keep_axes`: a reference that recorded only them), else of all three."""
     uri = f"sqlite:///{root / 'mlflow.db'}"
     inputs = InputParams(kind="rest_volts")
     params = LSTMParams(window=6, hidden=6, max_epochs=3, patience=2, batch_size=64, inputs=inputs)
     checkpoint = fit("lstm", params, cue_trials(30, 3)).checkpoint
+    if axes is not None:
+        checkpoint = keep_axes(checkpoint, axes)
     register(uri, root, checkpoint)
     doc = unit_document(UNIT, {30: checkpoint}, MIX)
     doc["front_end"] = CIRCUIT.model_dump(mode="json")

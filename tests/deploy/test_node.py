@@ -73,6 +73,7 @@ def test_node_runs_the_published_champion_as_the_python_client_does(
     expected = client_forces(champion, tmp_path / "cache")
     # then: calibrated, the same model, the same force within 1e-5 N; the calibration mattered
     assert got["calibrated"] and got["model"]["checkpoint_sha256"] == checkpoint_sha256(champion.checkpoint)
+    assert got["targets"] == ["fx", "fy", "fz"]
     np.testing.assert_allclose(np.asarray(got["force_n"]), expected, rtol=0, atol=1e-5)
     assert not uncalibrated["calibrated"]
     assert np.abs(np.asarray(uncalibrated["force_n"]) - expected).max() > 1e-3
@@ -97,3 +98,39 @@ def test_node_refuses_a_changed_graph_and_a_foreign_signature(champion: Champion
         args = ["node", str(NODE_DIR / "replay.mjs"), str(bucket), "30", bad_key, str(recording)]
         done = subprocess.run(args, capture_output=True, text=True, timeout=NODE_S, check=False)
         assert done.returncode != 0 and expected in done.stderr, done.stderr[-2000:]
+
+
+def test_node_gives_a_model_of_fz_one_value_per_sample(fz_champion: Champion, tmp_path: Path) -> None:
+    # given: the champion of a lab whose reference recorded fz alone, published with its unit
+    bucket = tmp_path / "bucket"
+    key = publish_to(bucket, fz_champion.uri)
+    # when: the JavaScript client replays a held-out trial for the calibrated unit, as Python does
+    got = replay_in_node(bucket, key, fz_champion.trial, tmp_path, UNIT)
+    expected = client_forces(fz_champion, tmp_path / "cache")
+    # then: the targets it read from the description, and one value per sample: Python's fz
+    assert got["calibrated"] and got["targets"] == ["fz"]
+    assert len(got["force_n"]) == len(fz_champion.trial) and all(len(f) == 1 for f in got["force_n"])
+    np.testing.assert_allclose(np.asarray(got["force_n"]), expected, rtol=0, atol=1e-5)
+
+
+def test_node_refuses_a_description_whose_targets_are_not_axes_in_order(tmp_path: Path) -> None:
+    # given / when: the description check of the JavaScript client, on good and bad targets
+    script = (
+        f"import {{ targetsOf }} from {json.dumps((NODE_DIR / 'needlecue.mjs').as_uri())};\n"
+        "for (const t of [['fz'], ['fx', 'fy', 'fz'], ['fz', 'fx'], [], ['fz', 'fz'], 'fz', undefined]) {\n"
+        "  try { console.log(JSON.stringify(targetsOf({ targets: t }, 'm'))); }\n"
+        "  catch (e) { console.log(e.message); }\n"
+        "}\n"
+    )
+    done = subprocess.run(
+        ["node", "--input-type=module", "-e", script],
+        capture_output=True,
+        text=True,
+        timeout=NODE_S,
+        check=False,
+    )
+    # then: the subsets in order pass; anything else is one line naming the field
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.splitlines()
+    assert lines[:2] == ['["fz"]', '["fx","fy","fz"]'] and len(lines) == 7
+    assert all(line.startswith("m: field needlecue.targets is ") for line in lines[2:]), lines

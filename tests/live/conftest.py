@@ -21,6 +21,7 @@ from tests.client.builders import (
     cue_evidence,
     cue_predictions,
     cue_trials,
+    keep_axes,
     register,
     register_unit,
     unit_document,
@@ -51,6 +52,16 @@ def live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
     register(uri, root, checkpoint, pack)
     # the unit's calibration insertions read as the training unit's trials (the same synthetic unit)
     register_unit(uri, unit_document(UNIT, {30: checkpoint}, cues=cue_evidence(pack)))
+    return LiveModel(uri, fetch(30, cache_dir=root / "cache", tracking_uri=uri))
+
+
+@pytest.fixture(scope="package")
+def fz_live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
+    """The champion of a lab whose reference recorded fz alone (a 30° LS of fz, no cue pack), fetched."""
+    root = tmp_path_factory.mktemp("live-fz-registry")
+    uri = f"sqlite:///{root / 'mlflow.db'}"
+    train = pd.concat([cue_trials(30, 3, "b1"), cue_trials(30, 3, "b2", seed=1)], ignore_index=True)
+    register(uri, root, keep_axes(fit("ls", TINY["ls"], train).checkpoint, ("fz",)))
     return LiveModel(uri, fetch(30, cache_dir=root / "cache", tracking_uri=uri))
 
 

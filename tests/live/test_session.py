@@ -10,6 +10,7 @@ import pytest
 
 from pipeline.client import ForceClient, UncalibratedUnit
 from pipeline.live.app import replay_session
+from pipeline.live.display import terminal_line
 from pipeline.live.emulate import load_trial, schedule
 from pipeline.live.recording import SessionRecorder, read_trials
 from pipeline.live.session import LiveSession, StreamSettings
@@ -35,7 +36,9 @@ def test_an_uncalibrated_unit_gets_force_without_cues_and_the_recording_replays_
         client = ForceClient.from_dir(live_model.model_dir, unit_id="est-never")
     assert any(issubclass(w.category, UncalibratedUnit) for w in caught)
     states: list[dict] = []
-    recorder = SessionRecorder(tmp_path / "s", {"sensor": {"unit_id": "est-never"}}, client.channels)
+    recorder = SessionRecorder(
+        tmp_path / "s", {"sensor": {"unit_id": "est-never"}}, client.channels, targets=client.targets
+    )
     session = LiveSession(
         client, StreamSettings(tuple(client.channels)), recorder=recorder, publish=states.append
     )
@@ -53,6 +56,32 @@ def test_an_uncalibrated_unit_gets_force_without_cues_and_the_recording_replays_
     assert replay_session(tmp_path / "s", client)["insertions"] == summary["insertions"]
     fsr = pd.read_csv(tmp_path / "s" / "i001.fsr.csv")
     assert list(fsr.columns) == ["t_ms", *client.channels, "board_ms"] and fsr["t_ms"].is_monotonic_increasing
+    cues = pd.read_csv(tmp_path / "s" / "i001.cues.csv")
+    assert list(cues.columns) == ["t_s", "cue", "angle_est_deg", "fx", "fy", "fz", "reason"]
+    assert inside[-1]["targets"] == ["fx", "fy", "fz"] and len(inside[-1]["force_n"]) == 3
+    assert " F=(" in terminal_line(inside[-1])
+
+
+def test_a_model_of_fz_shows_and_records_fz_alone(fz_live_model: LiveModel, tmp_path: Path) -> None:
+    # given: the champion of a lab whose reference recorded fz alone, and a recorded session
+    with pytest.warns(UncalibratedUnit):
+        client = ForceClient.from_dir(fz_live_model.model_dir, unit_id="est-never")
+    states: list[dict] = []
+    recorder = SessionRecorder(tmp_path / "s", {}, client.channels, targets=client.targets)
+    session = LiveSession(
+        client, StreamSettings(tuple(client.channels)), recorder=recorder, publish=states.append
+    )
+    # when: an insertion arrives
+    _feed(session, write_trials(tmp_path / "held", [30]))
+    session.close(100.0)
+    # then: each frame's force is fz alone, named so for the page and the terminal; the recording's
+    # cues.csv has an fz column and none for fx or fy
+    inside = [s for s in states if s["insertion"] is not None]
+    assert inside and all(s["targets"] == ["fz"] and len(s["force_n"]) == 1 for s in inside)
+    line = terminal_line(inside[-1])
+    assert f" fz={inside[-1]['force_n'][0]:+.2f} N" in line and "F=(" not in line
+    cues = pd.read_csv(tmp_path / "s" / "i001.cues.csv")
+    assert list(cues.columns) == ["t_s", "cue", "angle_est_deg", "fz", "reason"] and cues["fz"].notna().all()
 
 
 def test_one_garbled_board_time_is_garbage_but_a_restarted_board_is_a_restart(

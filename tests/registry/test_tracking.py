@@ -1,12 +1,17 @@
-"""Tracking: what a split file's MLflow dataset says about itself."""
+"""Tracking: what a split file's MLflow dataset says about itself; the metrics and descriptions of a
+model name its own axes (a model of fz alone: fz only)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.registry.tracking import frame_schema
+from pipeline.registry.candidates import Trained
+from pipeline.registry.tracking import axes_words, frame_schema, run_metrics
+from pipeline.registry.versions import force_words
 
 # MLflow hints about integer columns, and about its local dataset source (both beside the point here)
 pytestmark = [
@@ -106,3 +111,36 @@ def test_a_logged_dataset_describes_itself_as_mlflow_would(
     # and, where every column is one the schema is computed for, no column was walked value by value
     if set(frame.columns) <= TYPED:
         assert walked <= 1
+
+
+def _trained(targets: list[str]) -> Trained:
+    """A model of `targets` with made-up scores on its axes only (what a reference of them gives)."""
+    scores = {
+        split: {a: {"rmse": 0.1 * (k + 1), "nrmse_pct": 2.0 * (k + 1)} for k, a in enumerate(targets)}
+        for split in ("val", "test", "external")
+    }
+    checkpoint = {"targets": targets}
+    return Trained("ls", "30", Path("models/ls/30"), "0" * 64, checkpoint, {"best_epoch": 1}, scores)
+
+
+def test_a_model_of_fz_logs_metrics_of_fz_alone() -> None:
+    # given: a model whose reference recorded fz alone, and one of all three axes
+    one, three = _trained(["fz"]), _trained(["fx", "fy", "fz"])
+    # when: their run metrics are made
+    got_one, got_three = run_metrics(one, None), run_metrics(three, None)
+    # then: fz and the mean over fz for the one, never a figure for fx or fy; all three for the other
+    per_axis = {k.rsplit("_", 1)[1] for k in got_one if "_rmse_" in k or "_nrmse_pct_" in k}
+    assert (
+        per_axis == {"fz", "mean"} and got_one["external_nrmse_pct_mean"] == got_one["external_nrmse_pct_fz"]
+    )
+    assert got_one["external_accuracy_pct"] == 98.0
+    assert {k.rsplit("_", 1)[1] for k in got_three if "_rmse_" in k} == {"fx", "fy", "fz", "mean"}
+    assert got_three["external_nrmse_pct_mean"] == 4.0
+
+
+def test_the_registered_descriptions_name_the_models_axes() -> None:
+    # given / when / then: three axes read as before; one axis is named alone, never "mean of fx, fy, fz"
+    assert force_words(["fx", "fy", "fz"]) == "3-D needle force (fx, fy, fz in N)"
+    assert force_words(["fz"]) == "Needle force (fz in N)"
+    assert axes_words(["fx", "fy", "fz"]) == "mean of fx, fy, fz"
+    assert axes_words(["fz"]) == "fz" and axes_words(["fx", "fz"]) == "mean of fx, fz"

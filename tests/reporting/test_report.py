@@ -88,3 +88,56 @@ def test_trials_used_with_a_flag_are_named_in_the_datasets_section():
     assert "`b/t0` (alignment quality 0.31, kept)" in report and "and 2 more" in report
     assert "`reports/ledger/ledger.md` lists them all" in report
     assert "used with a flag" not in render(m)
+
+
+def _fz_only(error: ErrorFn) -> Evaluation:
+    """`in_memory_metrics` of a lab whose references recorded fz alone: frames and models without fx, fy."""
+    from pipeline.metrics.evaluation import EvalSet, Scored, compute_metrics
+    from tests.metrics.fakes import FakePredictor, angle_frame, evaluation
+
+    angles = ["0", "15", "30", "45", "60", "75"]
+    sets = {
+        a: EvalSet(
+            a, "external", *(angle_frame(a, s, k).drop(columns=["fx", "fy"]) for s, k in (("h", 2), ("t", 1)))
+        )
+        for a in angles
+    }
+    preds = Scored()
+    for m in ("ls", "fnn", "lstm"):
+        for t in angles:
+            p = FakePredictor(m, t, error)
+            preds.loaded.append((m, t))
+            preds.axes[(m, t)] = ("fz",)
+            for d, es in sets.items():
+                preds.on_eval[(m, t, d)] = p.predict(es.frame.drop(columns=["fz"]))[:, [2]]
+            preds.on_test[(m, t)] = p.predict(sets[t].test.drop(columns=["fz"]))[:, [2]]
+    return evaluation(**compute_metrics(sets, preds, (15, 30)))
+
+
+def test_a_lab_that_recorded_fz_alone_gets_tables_of_fz_alone():
+    # Given the evaluation of models of fz alone (a one-axis load cell), and batches whose fx and fy the
+    # ledger says their angle left out
+    m = _fz_only(network_error(0.20, 0.05, 0.06))
+    left_out = [
+        {
+            "batch_id": "cast-1",
+            "trial_id": f"t{k}",
+            "angle": "30",
+            "use": "train",
+            "unused_axes": ["fx", "fy"],
+        }
+        for k in range(3)
+    ]
+    # When the report is rendered
+    report = render(m, left_out=left_out)
+    # Then every table has an Fz column and none for Fx or Fy; the Datasets section says which axes
+    tables = [line for line in report.splitlines() if line.startswith("|")]
+    assert "| Fz | paper Fz |" in report and not [t for t in tables if "Fx" in t or "Fy" in t]
+    # (the paper's own findings on fx and fy are quoted, and ours said to need those axes)
+    assert "Ours: needs FNN at the 30° gap and LS averages, on fx and fy." in report
+    assert "**Force axes: fz.**" in report
+    # and names the batch whose recorded axes its angle leaves out, once, with its use
+    assert "**Force axes left out.**" in report and "30°: `cast-1`'s fx, fy (train)" in report
+    # and a three-axis evaluation says neither
+    three = render(in_memory_metrics(network_error(0.20, 0.05, 0.06)))
+    assert "Force axes" not in three and "| Fx | Fy | Fz |" in three

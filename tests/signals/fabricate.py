@@ -164,8 +164,10 @@ def write_ingested(
     with_truth: bool = True,
     purpose: str | None = None,
     clock: str | None = None,
+    axes: tuple[str, ...] = ("fx", "fy", "fz"),
 ) -> Path:
-    """An ingested batch folder as the ingest stage writes it (`purpose`, `clock` None: no such key)."""
+    """An ingested batch folder as the ingest stage writes it (`purpose`, `clock` None: no such key;
+    `axes`: the reference's recorded axes, batch.json's reference.axes when not all three)."""
     folder = root / batch_id
     folder.mkdir(parents=True)
     meta = {
@@ -185,6 +187,8 @@ def write_ingested(
         meta["purpose"] = purpose
     if clock is not None:
         meta["reference"]["clock"] = clock
+    if axes != ("fx", "fy", "fz"):
+        meta["reference"]["axes"] = list(axes)
     rows = {
         "trial_id": list(trials),
         "angle_deg": [angle] * len(trials),
@@ -205,7 +209,11 @@ def write_ingested(
                 {
                     "trial_id": tid,
                     "t_s": fab.t_s,
-                    **dict(zip(["fx", "fy", "fz"], fab.force.T * scale, strict=True)),
+                    **{
+                        a: f
+                        for a, f in zip(["fx", "fy", "fz"], fab.force.T * scale, strict=True)
+                        if a in axes
+                    },
                 }
             )
         )

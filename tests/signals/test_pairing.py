@@ -263,3 +263,28 @@ def test_a_lag_every_trial_shares_is_the_sensors_not_a_shift():
     assert pairing.lag_off_the_batch(-0.4, 0.9, 0.2, [0.0]) is None  # nothing to compare with
     assert pairing.lag_off_the_batch(-0.4, 0.9, 0.2, [0.3, -0.3, 0.0]) is None  # the batch disagrees
     assert pairing.lag_off_the_batch(-0.4, 0.35, 0.1, [0.0, 0.01]) is None  # explains too little there
+
+
+@pytest.mark.parametrize("axes", [("fz",), ("fx", "fz")])
+def test_pairing_judges_a_reference_of_one_or_two_axes_on_the_axes_it_records(tmp_path, axes):
+    # Given insertions whose reference records only some axes (a one-axis load cell: fz), two of its
+    # trials' references swapped
+    trials = {f"a30-t{k:02d}": fabricate(seed=40 + k, offset_s=0.05 * k - 0.15) for k in range(6)}
+    _swap_references(trials, "a30-t01", "a30-t04")
+    folder = write_ingested(tmp_path, "load-cell", trials, channels=["fsr1", "fsr2", "fsr3"], axes=axes)
+    # When the batch is resampled
+    info, table, statuses = process_batch(folder, PARAMS)
+    rows = {r["trial_id"]: r for r in statuses}
+    # Then the alignment and the pairing work on those axes: the two are set aside for their pairing,
+    # the others aligned to their true offsets, and the table holds only the recorded axes. (One axis
+    # tells insertions of one shape apart less well than three: the reason may name another trial's
+    # reference, or a shifted clock, rather than the swap's partner.)
+    assert info.axes == axes
+    assert [t for t, r in rows.items() if r["status"] != "ok"] == ["a30-t01", "a30-t04"]
+    assert all(
+        ("swapped?" in r["status"]) or ("shifted clock" in r["status"])
+        for r in rows.values()
+        if r["status"] != "ok"
+    )
+    assert all(abs(float(r["error_s"])) < 0.02 for r in rows.values() if r["status"] == "ok")
+    assert [a for a in ("fx", "fy", "fz") if a in table.column_names] == list(axes)

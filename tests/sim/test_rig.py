@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from fnmatch import fnmatchcase
 
@@ -9,8 +10,9 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline.config import SimulateParams
+from pipeline.config import IngestParams, ResampleParams, SimulateParams
 from pipeline.rig.format import BatchMeta
+from pipeline.signals.one_batch import read_batch
 from pipeline.sim import rig
 from tests.helpers import tree_hash
 
@@ -194,3 +196,77 @@ def test_a_new_calibration_batch_by_a_new_unit(tmp_path):
     with pytest.raises(ValueError, match="unit id"):
         rig.write_new_batch(SMALL, tmp_path / "raw", "z", (15.0,), 1, unit_id="a unit")
     assert not (tmp_path / "raw" / "z").exists()
+
+
+# The SMALL run's files, hashed as `_tree_digest` does, by the simulator of git HEAD 4c1f45c (before
+# `simulate.reference_axes`): run in a copy of that commit (`git archive`), not guessed.
+SMALL_BEFORE_REFERENCE_AXES = "6f722e85a9c9268b60b4dcd50c91e625052766592a27856f243826eb3798a62b"
+
+
+def _tree_digest(root) -> str:
+    return hashlib.sha256(json.dumps(tree_hash(root), sort_keys=True).encode()).hexdigest()
+
+
+def test_the_default_reference_axes_write_the_same_bytes_as_before_they_existed(tmp_path):
+    # Given the default reference_axes (all three), said or not
+    said = SMALL.model_copy(update={"reference_axes": ("fx", "fy", "fz")})
+    # When the simulator runs
+    for name, params in (("default", SMALL), ("said", said)):
+        rig.run(params, tmp_path / name)
+        # Then every file, manifest included, is byte for byte what the simulator wrote before
+        assert _tree_digest(tmp_path / name) == SMALL_BEFORE_REFERENCE_AXES
+    assert (
+        "axes"
+        not in yaml.safe_load((tmp_path / "said" / "sim-heldout-15deg" / "batch.yaml").read_text())[
+            "reference"
+        ]
+    )
+
+
+def test_a_one_axis_reference_writes_t_s_and_fz_and_declares_it(tmp_path):
+    # Given simulate.reference_axes [fz] (a one-axis load cell)
+    params = SMALL.model_copy(update={"reference_axes": ("fz",)})
+    # When the simulator runs, and the default one beside it
+    ids = rig.run(params, tmp_path / "one")
+    rig.run(SMALL, tmp_path / "three")
+    # Then each batch.yaml declares reference.axes [fz] and each reference file holds t_s and fz only,
+    # the same fz as the three-axis run's; the estimator streams are the same bytes
+    for b in ids:
+        meta = BatchMeta.model_validate(yaml.safe_load((tmp_path / "one" / b / "batch.yaml").read_text()))
+        assert meta.reference.axes == ["fz"]
+        for ref in sorted((tmp_path / "one" / b).glob("*.ref.csv")):
+            one = pd.read_csv(ref)
+            assert list(one.columns) == ["t_s", "fz"]
+            three = pd.read_csv(tmp_path / "three" / b / ref.name)
+            pd.testing.assert_frame_equal(one, three[["t_s", "fz"]])
+        for fsr in (tmp_path / "one" / b).glob("*.fsr.csv"):
+            assert fsr.read_bytes() == (tmp_path / "three" / b / fsr.name).read_bytes()
+    # And the manifest records the axes
+    manifest = json.loads((tmp_path / "one" / rig.MANIFEST).read_text())
+    assert manifest["params"]["reference_axes"] == ["fz"]
+
+
+@pytest.mark.parametrize(
+    ("axes", "reason"),
+    [
+        ((), "at least one"),
+        (("fz", "fz"), "at most once"),
+        (("fz", "tz"), "Input should be 'fx', 'fy' or 'fz'"),
+    ],
+    ids=["none", "twice", "not an axis"],
+)
+def test_bad_reference_axes_fail_loudly(axes, reason):
+    with pytest.raises(ValueError, match=reason):
+        SimulateParams.model_validate({**SMALL.model_dump(), "reference_axes": axes})
+
+
+def test_a_simulated_one_axis_batch_is_ingested_and_resampled_with_fz_alone(tmp_path):
+    # Given a simulated batch whose reference records fz alone
+    params = SMALL.model_copy(update={"reference_axes": ("fz",)})
+    rig.write_new_batch(params, tmp_path / "raw", "load-cell-1", (30.0,), 2)
+    # When it is read and resampled as the pipeline does
+    batch = read_batch(tmp_path / "raw" / "load-cell-1", IngestParams(), ResampleParams())
+    # Then nothing is set aside, and the rows carry the one force column
+    assert batch.problems == [] and batch.set_aside == []
+    assert [c for c in ("fx", "fy", "fz") if c in batch.rows.columns] == ["fz"]
+    assert sorted(batch.rows.trial_id.unique()) == ["a30-t01", "a30-t02"]

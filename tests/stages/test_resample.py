@@ -103,3 +103,35 @@ def test_bad_params_exit_1_with_the_reason(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("resample: error: ") and "rate_hz" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_one_axis_batch_is_resampled_to_its_one_force_column(tmp_path):
+    # Given an ingested batch whose reference records fz alone (reference.axes [fz]), in mN
+    ingested = tmp_path / "ingested"
+    trials = {"t1": fabricate(seed=31, offset_s=0.18), "t2": fabricate(seed=32, offset_s=-0.12)}
+    write_ingested(
+        ingested, "load-cell", trials, channels=["fsr1", "fsr2", "fsr3"], ref_units="mN", axes=("fz",)
+    )
+    params = tmp_path / "params.yaml"
+    params.write_text("resample: {}\n")
+    # When the stage runs
+    resample.main(ingested, tmp_path / "out", tmp_path / "rep", params)
+    # Then its table has that axis only, in N (no stand-in for fx and fy), every trial aligned
+    table = pq.read_table(tmp_path / "out" / "load-cell.parquet")
+    assert table.column_names == [*ID_COLUMNS, "fsr1", "fsr2", "fsr3", "fz"]
+    frame = table.to_pandas()
+    assert sorted(frame.trial_id.unique()) == ["t1", "t2"] and frame.fz.notna().all()
+    assert frame.fz.abs().max() < 2.0 and set(frame.phase) == set(PHASES)
+    offsets = pd.read_csv(tmp_path / "rep" / "offsets.csv")
+    assert (offsets.status == "ok").all() and (offsets.error_s.abs() < 0.02).all()
+    # And its .json has the keys of any batch's: the axes are the table's columns
+    meta = json.loads((tmp_path / "out" / "load-cell.json").read_text())
+    assert set(meta) == {
+        "batch_id",
+        "channels",
+        "rate_hz",
+        "unit_id",
+        "front_end",
+        "purpose",
+        "samples_sha256",
+    }

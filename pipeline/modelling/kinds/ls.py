@@ -17,7 +17,7 @@ from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.inputs import column_stats, features_of
 from pipeline.modelling.kinds.base import Fitted, ModelKind, StandIn, preprocessing
 from pipeline.modelling.kinds.linear import LinearModel
-from pipeline.vocab import AXES
+from pipeline.vocab import axes_of
 
 LSTSQ_CUTOFF = 1e-6  # relative singular-value cutoff: scikit-learn's LinearRegression `tol` default
 
@@ -50,7 +50,8 @@ class LS(ModelKind):
         import torch
 
         x = features_of(train, channels, spec)
-        y = train[list(AXES)].to_numpy(np.float64)
+        targets = list(axes_of(train.columns))
+        y = train[targets].to_numpy(np.float64)
         _, y_std = column_stats(y)  # only to report a loss on the same scale as the networks'
         weight, bias = least_squares(x, y, params.fit_intercept)
         train_loss = _scaled_mse(x @ weight.T + bias, y, y_std)
@@ -58,10 +59,10 @@ class LS(ModelKind):
             val_loss = math.nan
         else:
             xv = features_of(val, channels, spec)
-            val_loss = _scaled_mse(xv @ weight.T + bias, val[list(AXES)].to_numpy(np.float64), y_std)
+            val_loss = _scaled_mse(xv @ weight.T + bias, val[targets].to_numpy(np.float64), y_std)
         state = {"weight": torch.from_numpy(weight), "bias": torch.from_numpy(bias)}
         n = len(channels)
-        pre = preprocessing(np.zeros(n), np.ones(n), np.zeros(len(AXES)), np.ones(len(AXES)))
+        pre = preprocessing(np.zeros(n), np.ones(n), np.zeros(len(targets)), np.ones(len(targets)))
         history = [{"epoch": 1, "train_loss": train_loss, "val_loss": val_loss}]
         summary = {
             "epochs_run": 1,

@@ -32,7 +32,7 @@ from pipeline.modelling.inputs import (
 from pipeline.modelling.kinds.adam import Adam, flatten
 from pipeline.modelling.kinds.base import Fitted, ModelKind, preprocessing
 from pipeline.modelling.kinds.graph import standardised
-from pipeline.vocab import AXES
+from pipeline.vocab import axes_of
 
 if TYPE_CHECKING:
     import torch
@@ -63,14 +63,15 @@ class NetworkKind(ModelKind):
 
         window = self.sequence_window(cfg)
         x_mean, x_std = column_stats(features_of(train, channels, spec))
-        y = train[list(AXES)].to_numpy(np.float64)
+        targets = list(axes_of(train.columns))
+        y = train[targets].to_numpy(np.float64)
         y_mean, y_std = column_stats(y)
         x_tr = torch.from_numpy(inputs_of(train, channels, x_mean, x_std, spec, window))
         y_tr = torch.from_numpy(((y - y_mean) / y_std).astype(np.float32))
         has_val = not val.empty
         if has_val:
             x_va = torch.from_numpy(inputs_of(val, channels, x_mean, x_std, spec, window))
-            y_val = val[list(AXES)].to_numpy(np.float64)
+            y_val = val[targets].to_numpy(np.float64)
             y_va = torch.from_numpy(((y_val - y_mean) / y_std).astype(np.float32))
         else:
             log(f"no validation rows: no early stopping, training all {params.max_epochs} epochs")

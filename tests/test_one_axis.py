@@ -1,0 +1,128 @@
+"""End to end, a lab whose reference is a one-axis load cell (issue 56): the built-in simulator
+writes `t_s,fz` reference files (`simulate.reference_axes: [fz]`), and `dvc repro` takes them through
+register. Every stage estimates fz alone: no zero or NaN stands in for fx or fy anywhere, and the
+registered champion gives one force per sample in the Python client and in the Node client."""
+
+from __future__ import annotations
+
+import base64
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from pipeline.client import ForceClient
+from pipeline.metrics.document import read_evaluation
+from pipeline.modelling.prediction_store import Predictions
+from pipeline.registry import manifest as signed
+from pipeline.registry import store
+from pipeline.team.publish import Target, put_version
+from tests.deploy.bucket import FolderBucket
+from tests.deploy.test_node import NODE_DIR, NODE_S, node_ready
+from tests.projects import SMALL_SIM, first_external_trial, make_project, run, use_small_models
+
+pytestmark = pytest.mark.slow
+
+NEW = SMALL_SIM["new_units"][0]  # the new unit, with its calibration batch
+SIM = {**SMALL_SIM, "reference_axes": ["fz"]}
+
+
+@pytest.fixture(scope="module")
+def fz_project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small rig with a one-axis reference, reproduced through register into its own MLflow store."""
+    root = make_project(tmp_path_factory.mktemp("fz") / "proj", SIM)
+    use_small_models(root)
+    run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"})
+    return root
+
+
+def _publish(bucket: Path, uri: str) -> str:
+    """The 15° champion and the new unit's calibration, signed into a bucket folder, as the lab's
+    publisher does; returns the public key a simulator holds (base64)."""
+    private = signed.new_private_key()
+    target = Target(FolderBucket(bucket), "published", private, "test")
+    client = store.connect(uri)
+    for name, alias in (("needle-force-15", "champion"), (f"needle-unit-{NEW}", "current")):
+        put_version(store.alias_version(client, name, alias), alias, uri, target)
+    return base64.b64encode(signed.public_of(private)).decode()
+
+
+def test_a_one_axis_reference_is_estimated_on_that_axis_through_every_stage(fz_project: Path) -> None:
+    # given: the project reproduced on `t_s,fz` reference files
+    root = fz_project
+    raw = next((root / "data" / "simulated").glob("*/*.ref.csv"))
+    assert raw.read_text().splitlines()[0] == "t_s,fz"
+    # then: the split files hold fz and no other force; every model estimates fz alone
+    for angle in ("15", "45"):
+        for split in ("train", "external"):
+            columns = pd.read_parquet(root / "data" / "processed" / angle / f"{split}.parquet").columns
+            assert "fz" in columns and not {"fx", "fy"} & set(columns)
+    predictions = Predictions(root / "data" / "predictions")
+    assert {predictions.axes(k, a) for k, a in predictions.models()} == {("fz",)}
+    # and: evaluation.json scores fz only; the report's tables have an Fz column and no Fx or Fy
+    evaluation = read_evaluation(root / "reports" / "evaluation.json")
+    scored = {axis for by_angle in evaluation.within_angle.values() for s in by_angle.values() for axis in s}
+    assert scored == {"fz"}
+    assert all(set(m.within_angle) == {"fz"} for m in evaluation.mean.values())
+    report = (root / "reports" / "report.md").read_text()
+    tables = [line for line in report.splitlines() if line.startswith("|")]
+    assert "| Fz |" in report and not [t for t in tables if "Fx" in t or "Fy" in t]
+    metrics = json.loads((root / "reports" / "metrics.json").read_text())
+    assert "fx" not in json.dumps(metrics) and "fy" not in json.dumps(metrics)
+    # and: every trial is used (none set aside for its missing axes), the new unit calibrated on fz
+    ledger = json.loads((root / "reports" / "ledger" / "ledger.json").read_text())
+    assert ledger["counts"]["set_aside"] == 0 and ledger["counts"]["trials"] > 0
+    calibration = json.loads((root / "data" / "calibration" / f"{NEW}.json").read_text())
+    assert calibration["trials"] and not calibration.get("set_aside")
+
+
+def test_the_registered_one_axis_champion_gives_one_force_per_sample_in_python_and_node(
+    fz_project: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # given: the registered 15° champion and a held-out trial of the calibrated new unit
+    root = fz_project
+    uri = f"sqlite:///{root / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.chdir(root)
+    client = ForceClient.from_registry(15, unit_id=NEW, cache_dir=tmp_path / "cache", poll_s=None)
+    rows = first_external_trial(root, "15", NEW)
+    volts, times = rows[list(client.channels)].to_numpy(), rows.t_s.to_numpy()
+    # when: the Python client steps through it
+    client.reset()
+    forces = np.asarray([client.step(v, t).force_n for v, t in zip(volts, times, strict=True)])
+    # then: one force per sample, fz, the one the pipeline scored for that unit
+    expected = Predictions(root / "data" / "predictions").get(client.kind, "15", "15", "external")
+    assert client.targets == ("fz",) and client.calibrated
+    assert forces.shape == (len(rows), 1)
+    np.testing.assert_allclose(forces, expected[rows.index.to_numpy()], atol=1e-4)
+    if not node_ready():
+        pytest.skip("needs node and `make setup-node` (deploy/node)")
+    # when: the Node client replays the same trial from the published champion
+    bucket = tmp_path / "bucket"
+    key = _publish(bucket, uri)
+    recording = tmp_path / "recording.json"
+    recording.write_text(json.dumps({"t_s": times.tolist(), "volts": volts.tolist()}))
+    args = ["node", str(NODE_DIR / "replay.mjs"), str(bucket), "15", key, str(recording), NEW]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=NODE_S, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    got = json.loads(done.stdout)
+    # then: it read fz from the description and gives Python's force, one value per sample
+    assert got["targets"] == ["fz"] and got["calibrated"]
+    np.testing.assert_allclose(np.asarray(got["force_n"]), forces, rtol=0, atol=1e-5)
+
+
+def test_params_ask_for_axes_the_simulator_knows(tmp_path: Path) -> None:
+    # given: a params file whose simulate.reference_axes names no force axis
+    params = yaml.safe_load((Path(__file__).resolve().parents[1] / "params.yaml").read_text())
+    params["simulate"]["reference_axes"] = ["fw"]
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params))
+    # when / then: loading the section fails, naming the key
+    from pipeline.config import SimulateParams, load_section
+
+    with pytest.raises(ValueError, match="reference_axes"):
+        load_section(SimulateParams, "simulate", path)
