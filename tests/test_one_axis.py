@@ -5,9 +5,7 @@ registered champion gives one force per sample in the Python client and in the N
 
 from __future__ import annotations
 
-import base64
 import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +16,7 @@ import yaml
 from pipeline.client import ForceClient
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.registry import manifest as signed
-from pipeline.registry import store
-from pipeline.team.publish import Target, put_version
-from tests.deploy.bucket import FolderBucket
-from tests.deploy.test_node import NODE_DIR, NODE_S, node_ready
+from tests.deploy.test_node import node_ready, publish_to, replay_in_node
 from tests.projects import SMALL_SIM, first_external_trial, make_project, run, use_small_models
 
 pytestmark = pytest.mark.slow
@@ -38,17 +32,6 @@ def fz_project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     use_small_models(root)
     run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"})
     return root
-
-
-def _publish(bucket: Path, uri: str) -> str:
-    """The 15° champion and the new unit's calibration, signed into a bucket folder, as the lab's
-    publisher does; returns the public key a simulator holds (base64)."""
-    private = signed.new_private_key()
-    target = Target(FolderBucket(bucket), "published", private, "test")
-    client = store.connect(uri)
-    for name, alias in (("needle-force-15", "champion"), (f"needle-unit-{NEW}", "current")):
-        put_version(store.alias_version(client, name, alias), alias, uri, target)
-    return base64.b64encode(signed.public_of(private)).decode()
 
 
 def test_a_one_axis_reference_is_estimated_on_that_axis_through_every_stage(fz_project: Path) -> None:
@@ -102,14 +85,8 @@ def test_the_registered_one_axis_champion_gives_one_force_per_sample_in_python_a
     if not node_ready():
         pytest.skip("needs node and `make setup-node` (deploy/node)")
     # when: the Node client replays the same trial from the published champion
-    bucket = tmp_path / "bucket"
-    key = _publish(bucket, uri)
-    recording = tmp_path / "recording.json"
-    recording.write_text(json.dumps({"t_s": times.tolist(), "volts": volts.tolist()}))
-    args = ["node", str(NODE_DIR / "replay.mjs"), str(bucket), "15", key, str(recording), NEW]
-    done = subprocess.run(args, capture_output=True, text=True, timeout=NODE_S, check=False)
-    assert done.returncode == 0, done.stderr[-3000:]
-    got = json.loads(done.stdout)
+    key = publish_to(tmp_path / "bucket", uri, "15", NEW)
+    got = replay_in_node(tmp_path / "bucket", key, rows, tmp_path, NEW, "15")
     # then: it read fz from the description and gives Python's force, one value per sample
     assert got["targets"] == ["fz"] and got["calibrated"]
     np.testing.assert_allclose(np.asarray(got["force_n"]), forces, rtol=0, atol=1e-5)

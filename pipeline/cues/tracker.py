@@ -629,7 +629,10 @@ class CueTracker:
             p, self._outside = self._judge()
             self._pdev = (p @ self._to_dev).tolist()  # type: ignore[operator]
             self._map = int(np.argmax(p))  # type: ignore[arg-type]
-        self._alarm = f[0] * f[0] + f[1] * f[1] + f[2] * f[2] > self._force_limit2
+        squared = 0.0
+        for fk in f:  # the model's targets: fx, fy, fz, or those its reference recorded
+            squared += fk * fk
+        self._alarm = squared > self._force_limit2
 
         # combined: angle estimate -> deviation class, force-in-range check
         if self.angle_unavailable is None:

@@ -206,13 +206,13 @@ def common_axes(trials: list[Trial]) -> tuple[str, ...]:
     return min(counts, key=lambda axes: (-counts[axes], [AXES.index(a) for a in axes]))
 
 
+def _aside(t: Trial, reason: str) -> dict[str, str]:
+    """The manifest's record of a trial set aside."""
+    return {"angle": t.angle, "batch_id": t.batch_id, "trial_id": t.trial_id, "reason": reason}
+
+
 def _other_axes(t: Trial, axes: tuple[str, ...], whose: str) -> dict[str, str]:
-    return {
-        "angle": t.angle,
-        "batch_id": t.batch_id,
-        "trial_id": t.trial_id,
-        "reason": f"its reference records {list(t.axes)}, no force axis of the {list(axes)} of {whose}",
-    }
+    return _aside(t, f"its reference records {list(t.axes)}, no force axis of the {list(axes)} of {whose}")
 
 
 def settle_axes(
@@ -246,12 +246,7 @@ class AngleSplit:
 
 
 def _other_channels(t: Trial, channels: tuple[str, ...], whose: str) -> dict[str, str]:
-    return {
-        "angle": t.angle,
-        "batch_id": t.batch_id,
-        "trial_id": t.trial_id,
-        "reason": f"channels {list(t.channels)} differ from the channels {list(channels)} of {whose}",
-    }
+    return _aside(t, f"channels {list(t.channels)} differ from the channels {list(channels)} of {whose}")
 
 
 def plan(trials: list[Trial], p: SplitParams) -> list[AngleSplit]:

@@ -26,7 +26,7 @@ from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS
 from pipeline.registry.candidates import Trained
 from pipeline.registry.store import TAG, finished_run
 from pipeline.reporting.loss import loss_curve_png
-from pipeline.vocab import AXES, DEPLOY_FORMAT
+from pipeline.vocab import DEPLOY_FORMAT, axes_of
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient
@@ -40,7 +40,7 @@ def run_metrics(t: Trained, metrics: Evaluation | None) -> dict[str, float]:
     reference did not record."""
     out: dict[str, float] = {}
     for split, scores in t.scores.items():
-        axes = scored_axes(scores)
+        axes = axes_of(scores)
         for what in ("rmse", "nrmse_pct"):
             values = [scores[a][what] for a in axes]
             out.update({f"{split}_{what}_{a}": v for a, v in zip(axes, values, strict=True)})
@@ -63,11 +63,6 @@ def run_metrics(t: Trained, metrics: Evaluation | None) -> dict[str, float]:
         if isinstance(t.train_metrics.get(key), int | float):
             out[key] = float(t.train_metrics[key])
     return {k: v for k, v in out.items() if np.isfinite(v)}
-
-
-def scored_axes(scores: Mapping[str, Any]) -> list[str]:
-    """The force axes a score dict ({axis: {...}}) has, in fx, fy, fz order."""
-    return [a for a in AXES if a in scores]
 
 
 def axes_words(targets: Sequence[str]) -> str:

@@ -32,18 +32,22 @@ def node_ready() -> bool:
 pytestmark = pytest.mark.skipif(not node_ready(), reason="needs node and `make setup-node` (deploy/node)")
 
 
-def publish_to(folder: Path, uri: str) -> str:
-    """The champion and the unit's calibration published, signed, into a bucket copy `folder`, as the
-    lab's publisher does; returns the public key simulators hold (base64)."""
+def publish_to(folder: Path, uri: str, angle: str = "30", unit: str = UNIT) -> str:
+    """The champion at `angle` and `unit`'s calibration published, signed, into a bucket copy `folder`,
+    as the lab's publisher does; returns the public key simulators hold (base64)."""
     private = signed.new_private_key()
     target = Target(FolderBucket(folder), "published", private, "test")
     client = store.connect(uri)
-    for name, alias in (("needle-force-30", "champion"), (f"needle-unit-{UNIT}", "current")):
+    for name, alias in ((f"needle-force-{angle}", "champion"), (f"needle-unit-{unit}", "current")):
         put_version(store.alias_version(client, name, alias), alias, uri, target)
     return base64.b64encode(signed.public_of(private)).decode()
 
 
-def replay_in_node(bucket: Path, key: str, trial: pd.DataFrame, tmp_path: Path, unit: str | None) -> dict:
+def replay_in_node(
+    bucket: Path, key: str, trial: pd.DataFrame, tmp_path: Path, unit: str | None, angle: str = "30"
+) -> dict:
+    """What deploy/node/replay.mjs gives on `trial`'s readings (fsr1..3) with the published champion at
+    `angle`, for `unit` (None: uncalibrated)."""
     recording = tmp_path / "recording.json"
     volts = trial[["fsr1", "fsr2", "fsr3"]].to_numpy().tolist()
     recording.write_text(json.dumps({"t_s": trial["t_s"].tolist(), "volts": volts}))
@@ -51,7 +55,7 @@ def replay_in_node(bucket: Path, key: str, trial: pd.DataFrame, tmp_path: Path, 
         "node",
         str(NODE_DIR / "replay.mjs"),
         str(bucket),
-        "30",
+        angle,
         key,
         str(recording),
         *([unit] if unit else []),
