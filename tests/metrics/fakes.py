@@ -62,6 +62,7 @@ class FakePredictor:
         self.kind, self.angle_deg, self.channels = model, float(angle), tuple(channels)
         self.error = error
         self.inputs = ModelInputs()  # raw volts: no circuit to read through
+        self.targets = AXES  # the forces it predicts
 
     def predict(self, frame: pd.DataFrame, transform: object = None, front_end: object = None) -> np.ndarray:
         assert transform is None and front_end is None, "no unit calibration or circuit in these tests"
