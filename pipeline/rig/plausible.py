@@ -202,3 +202,45 @@ def check_length(
             line=int(frame["line"].iat[-1]),
             column=time_col,
         )
+
+
+# A forward step of a stream's clock is explained by lost samples up to this many of its median
+# intervals, or up to MIN_JUMP_S, whichever is longer (docs/rig-log-format.md §8, "clock jump"): the
+# simulator's longest step is 3 intervals (two samples lost in a row), a host-stamped serial stream's
+# bursts and lost samples stay within a few; a step of 10 intervals at 30 Hz (0.33 s) is nine
+# samples lost in a row. Longer honest losses are set aside too: the stamps alone cannot tell them from
+# a jumped clock, and pairing readings with the force of seconds later is worse than losing the trial.
+MAX_STEP_INTERVALS = 10.0
+MIN_JUMP_S = 0.1  # a fast stream's (1 kHz) host or USB stall of tens of ms is lost samples, not a jump
+
+
+def check_time_steps(
+    frame: pd.DataFrame, time_col: str, per_second: float, stream: str, file: str, probs: ProblemLog
+) -> None:
+    """A forward step of the time that no sampling rate explains: longer than MAX_STEP_INTERVALS
+    median intervals and than MIN_JUMP_S, a clock that jumped (every sample after it is stamped that
+    much late). Blamed at the first sample after the step. (A step backwards or a repeated time is
+    the expectations' "time does not increase".)"""
+    t = frame[time_col].to_numpy(dtype=float)
+    if len(t) < 3:
+        return
+    steps = np.diff(t)
+    usable = np.isfinite(steps) & (steps > 0)
+    if usable.sum() < 2:
+        return
+    median = float(np.median(steps[usable]))
+    limit = max(MAX_STEP_INTERVALS * median, MIN_JUMP_S * per_second)
+    jumps = usable & (steps > limit)
+    if not jumps.any():
+        return
+    i = _first(jumps) + 1
+    unit = "ms" if per_second == 1000.0 else "s"
+    reason = (
+        f"clock jump in the {stream}: {time_col} steps forward {steps[i - 1]:g} {unit} from the previous "
+        f"sample, {steps[i - 1] / median:.0f} times its median interval of {median:.4g} {unit}; no sampling "
+        f"rate explains it, and lost samples do not run past {MAX_STEP_INTERVALS:g} intervals and "
+        f"{MIN_JUMP_S:g} s (every sample after it would pair with the wrong force)"
+    )
+    probs.add(
+        file, reason, trial_id=str(frame["trial_id"].iat[0]), line=int(frame["line"].iat[i]), column=time_col
+    )

@@ -216,7 +216,7 @@ def _plausible_fsr(
     frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
 ) -> None:
     """Volts within 0 and the ADC's reference (counts: GX checks the ADC range), not flat, no dead
-    channel, no flat top, one insertion."""
+    channel, no flat top, one insertion, no clock jump."""
     channels = list(meta.sensor.channels)
     if meta.sensor.units == "volts":
         unit, top = "V", plausible.volts_limit(meta, p)
@@ -228,13 +228,15 @@ def _plausible_fsr(
     plausible.check_dead(frame, channels, "estimator", file, probs)
     plausible.check_clipped(frame, channels, FSR_TIME, 1000.0, p.clip_run_s, unit, file, probs, (0.0, top))
     plausible.check_length(frame, FSR_TIME, 1000.0, meta, p, file, probs)
+    plausible.check_time_steps(frame, FSR_TIME, 1000.0, "estimator stream", file, probs)
 
 
 def _plausible_ref(
     frame: pd.DataFrame, file: str, meta: BatchMeta, p: IngestParams, probs: ProblemLog
 ) -> None:
     """Forces within the reference sensor's range, no isolated glitch, not flat, no dead axis, no flat
-    top, one insertion: on the axes batch.yaml declares, the limits (in N) in the file's units."""
+    top, one insertion, no clock jump: on the axes batch.yaml declares, the limits (in N) in the
+    file's units."""
     forces = list(meta.reference.axes)
     unit = meta.reference.units
     limit_n = plausible.reference_limit_n(meta, p)
@@ -251,6 +253,7 @@ def _plausible_ref(
     plausible.check_dead(frame, forces, "reference sensor", file, probs)
     plausible.check_clipped(frame, forces, REF_TIME, 1.0, p.clip_run_s, unit, file, probs)
     plausible.check_length(frame, REF_TIME, 1.0, meta, p, file, probs)
+    plausible.check_time_steps(frame, REF_TIME, 1.0, "reference stream", file, probs)
 
 
 # --------------------------------------------------------------------------- one batch

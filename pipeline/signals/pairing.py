@@ -7,7 +7,10 @@ reference explains a little of it too: neither an absolute gate nor "no better t
 shows that anything is wrong. So a trial is set aside for its pairing only on evidence that its
 files disagree:
 
-- one of its streams is a copy of another trial's (the trial its own files fit worse is set aside);
+- one of its streams is another trial's: the same values, whatever its stamps (the same, shifted or
+  re-timed); the trial its own files fit worse is set aside naming the other (`copied`), whatever
+  `resample.max_offset_s` is, before any clock is judged (a copy re-timed by a second would
+  otherwise pass for a shifted clock, and widening the window would let it in);
 - below `resample.min_quality`, another trial's reference of its batch (up to `MAX_PEERS`, same
   angle first) fits it clearly better than its own (`SWAP_RATIO` times and by `MARGIN`), or better
   by `MARGIN` while that trial is set aside as swapped with this one (`mutual_swaps`): swapped files;
@@ -132,6 +135,19 @@ def lag_off_the_batch(lag: float, there: float, at_zero: float, others: list[flo
     )
 
 
+def copied(what: str, trial: str, original: str, stamped: str, theirs: float, own: float) -> str:
+    """The reason a trial is set aside for a stream that is another trial's (`what`: "reference" or
+    "estimator stream"; `stamped`: how its stamps relate to the original's; the qualities each
+    trial's own files fit with, -1 where they cannot be aligned)."""
+    fits = f"{theirs:.2f}" if theirs >= 0 else "none"
+    mine = f"{own:.2f}" if own >= 0 else "none"
+    return (
+        f"the {what} of {trial} is {original}'s: the same values, {stamped} (a file copied for another "
+        f"trial? {original}'s own files fit {fits}, this trial's {mine}); set aside whatever "
+        "resample.max_offset_s is"
+    )
+
+
 def swapped(partner: str, theirs: float, own: float) -> str:
     """The reason a trial is set aside for another trial's reference."""
     return (
@@ -159,11 +175,17 @@ def mutual_swaps(
 
 def shifted(shift: Shift, *, shared: bool) -> str:
     """The reason a trial is set aside for a clock shifted beyond the search window."""
-    claim = "reference.clock: shared says 0 s" if shared else f"the search covers ±{shift.window_s:g} s"
+    # On one clock no offset is searched: a wider window would only stop calling the shift one and
+    # keep the trial at 0 s, its forces paired with the wrong readings. Only the stamps can be fixed.
+    claim, advice = (
+        ("reference.clock: shared says 0 s", "fix the stamps")
+        if shared
+        else (f"the search covers ±{shift.window_s:g} s", "fix the stamps or widen resample.max_offset_s")
+    )
     return (
         f"shifted clock: its own reference fits best at an offset of {shift.offset_s:+.2f} s (quality "
         f"{shift.outside:.2f}, against {shift.inside:.2f} within ±{shift.window_s:g} s), but {claim}; "
-        "fix the stamps or widen resample.max_offset_s"
+        f"{advice}"
     )
 
 

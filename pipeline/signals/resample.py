@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -325,7 +326,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
     # First every trial's own alignment, then a low quality judged against the batch's other
     # references (pipeline.signals.pairing), then the grid: rows and table in trial order.
     records = trials.to_dict("records")
-    usable: dict[str, tuple[Streams, OffsetEstimate]] = {}
+    built: dict[str, Streams] = {}
     for trial in records:
         tid = str(trial["trial_id"])
         truth = _truth(trial.get(TRUTH_COLUMN))
@@ -363,11 +364,37 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
             )
             streams = Streams(t_fsr, volts, t_ref, force)
             check_response(streams, tuple(info.channels))
-            usable[tid] = streams, align(streams, streams, p, shared_clock=info.shared_clock)
+            built[tid] = streams
         except SetAside as e:
             row["status"] = f"set aside: {e}"
         except KeyError as e:
             row["status"] = f"set aside: missing column {e}"
+    # A stream that is another trial's (its values, whatever its stamps) is named before any clock
+    # is judged: a copy re-timed beyond the search window would otherwise pass for a shifted clock.
+    aligned: dict[str, OffsetEstimate | SetAside] = {}
+
+    def own(tid: str) -> OffsetEstimate | SetAside:
+        if tid not in aligned:
+            try:
+                aligned[tid] = align(built[tid], built[tid], p, shared_clock=info.shared_clock)
+            except SetAside as e:
+                aligned[tid] = e
+        return aligned[tid]
+
+    copies = _copied_streams(built, own)
+    usable: dict[str, tuple[Streams, OffsetEstimate]] = {}
+    for trial, row in zip(records, rows, strict=True):
+        tid = str(trial["trial_id"])
+        if tid not in built:
+            continue
+        if tid in copies:
+            row["status"] = f"set aside: {copies[tid]}"
+            continue
+        est = own(tid)
+        if isinstance(est, SetAside):
+            row["status"] = f"set aside: {est}"
+        else:
+            usable[tid] = built[tid], est
     verdicts = _judge_pairings(
         usable, {str(t["trial_id"]): angle_name(t["angle_deg"]) for t in records}, info, p
     )
@@ -416,11 +443,11 @@ def _judge_pairings(
     info: BatchInfo,
     p: ResampleParams,
 ) -> dict[str, pairing.Verdict]:
-    """The batch's verdicts on its trials' pairings (pipeline.signals.pairing): a stream that is a
-    copy of another trial's, then, per trial below `min_quality`, its estimator stream aligned with
+    """The batch's verdicts on its trials' pairings (pipeline.signals.pairing), copies already set
+    aside (`_copied_streams`): per trial below `min_quality`, its estimator stream aligned with
     the references of up to MAX_PEERS other usable trials and with its own reference over a wider
     window, its stamps against the batch's on one clock, and last a swap seen from both sides."""
-    out = _copied_streams(usable)
+    out: dict[str, pairing.Verdict] = {}
     usable_angles = {t: angles[t] for t in usable}
     ends = {t: _ends(streams) for t, (streams, _) in usable.items()}
     lags = _best_lags(usable, p) if info.shared_clock else {}
@@ -474,12 +501,16 @@ def _ends(streams: Streams) -> tuple[tuple[float, float], tuple[float, float]]:
     return (float(fsr[0]), float(fsr[-1])), (float(ref[0]), float(ref[-1]))
 
 
-def _copied_streams(usable: dict[str, tuple[Streams, OffsetEstimate]]) -> dict[str, pairing.Verdict]:
-    """Trials one of whose streams is a copy of another trial's (same stamps, same values) while
-    the other stream differs: the one its own reference fits worse is set aside, naming the other.
-    (Both streams copied is a copied trial: the split stage names it.)"""
-    out: dict[str, pairing.Verdict] = {}
-    digests = {t: (_fsr_digest(s), _ref_digest(s)) for t, (s, _) in usable.items()}
+def _copied_streams(
+    built: dict[str, Streams], own: Callable[[str], OffsetEstimate | SetAside]
+) -> dict[str, str]:
+    """{trial: why} for the trials one of whose streams is another trial's (the same values in order,
+    whatever their stamps: the same, shifted or re-timed) while the other stream differs. Of the
+    trials sharing a stream, the one its own files fit best (`own`: its alignment, or why it has
+    none) keeps it; every other is set aside naming it, whatever `resample.max_offset_s` is. (Both
+    streams another's is a copied trial: the split stage names it, `pipeline.rig.repeats`.)"""
+    out: dict[str, str] = {}
+    digests = {t: (_digest(s.volts), _digest(s.force_n)) for t, s in built.items()}
     for which, what in enumerate(("estimator stream", "reference")):
         groups: dict[str, list[str]] = {}
         for tid, both in digests.items():
@@ -487,24 +518,40 @@ def _copied_streams(usable: dict[str, tuple[Streams, OffsetEstimate]]) -> dict[s
         for group in groups.values():
             if len(group) < 2 or len({digests[t] for t in group}) < 2:
                 continue
-            best = max(group, key=lambda t: (usable[t][1].quality, t))
+            best = max(group, key=lambda t: (_quality(own(t)), t))
             for tid in group:
                 if tid != best and tid not in out:
-                    out[tid] = pairing.Verdict(
-                        f"its {what} is a copy of trial {best}'s (which its own files fit better: "
-                        f"{usable[best][1].quality:.2f} against {usable[tid][1].quality:.2f}): a file copied "
-                        "for another trial?",
-                        None,
+                    out[tid] = pairing.copied(
+                        what,
+                        tid,
+                        best,
+                        _stamped(built[tid], built[best], which),
+                        _quality(own(best)),
+                        _quality(own(tid)),
                     )
     return out
 
 
-def _fsr_digest(streams: Streams) -> str:
-    return hashlib.sha256(streams.t_fsr_s.tobytes() + streams.volts.tobytes()).hexdigest()
+def _quality(est: OffsetEstimate | SetAside) -> float:
+    """A trial's alignment quality on its own files; -1 where they cannot be aligned."""
+    return est.quality if isinstance(est, OffsetEstimate) else -1.0
 
 
-def _ref_digest(streams: Streams) -> str:
-    return hashlib.sha256(streams.t_ref_s.tobytes() + streams.force_n.tobytes()).hexdigest()
+def _stamped(copy: Streams, original: Streams, which: int) -> str:
+    """How the copied stream's stamps relate to the original's: the same, shifted, or other."""
+    a, b = (copy.t_fsr_s, original.t_fsr_s) if which == 0 else (copy.t_ref_s, original.t_ref_s)
+    if a.size != b.size:
+        return "stamped otherwise"
+    shift = a - b
+    if np.all(shift == 0):
+        return "with the same stamps"
+    if float(np.ptp(shift)) <= 1e-6 * max(1.0, float(np.max(np.abs(b)))):
+        return f"stamped {float(np.median(shift)):+.2f} s from it"
+    return "stamped otherwise"
+
+
+def _digest(values: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(values).tobytes()).hexdigest()
 
 
 def _truth(value: Any) -> float | None:
@@ -516,6 +563,28 @@ def _truth(value: Any) -> float | None:
     except (TypeError, ValueError):
         return None
     return x if np.isfinite(x) else None
+
+
+def flag_warnings(rows: list[dict[str, Any]]) -> list[str]:
+    """One warning line per trial kept with a flag (its alignment quality below `min_quality` with no
+    evidence against its files: far below its batch's, or no batch to compare with), naming the
+    trial, its quality against the median of the batch's other kept trials, and the flag."""
+    kept = {r["trial_id"]: float(r["quality"]) for r in rows if r["status"] == "ok" and r["quality"] != ""}
+    out = []
+    for r in rows:
+        if r["status"] != "ok" or not r.get("flag"):
+            continue
+        others = [q for t, q in kept.items() if t != r["trial_id"]]
+        batch = (
+            f"the median of its batch's other {len(others)} kept trials is {np.median(others):.2f}"
+            if others
+            else "no other trial of its batch is kept"
+        )
+        out.append(
+            f"resample: warning: {r['batch_id']}/{r['trial_id']} kept with alignment quality "
+            f"{float(r['quality']):.2f} ({batch}): {r['flag']}"
+        )
+    return out
 
 
 @dataclass
@@ -556,6 +625,8 @@ def run(in_dir: Path, out_dir: Path, p: ResampleParams, *, log: Log = logger.inf
         log(
             f"resample: {info.batch_id}: {n_ok}/{len(rows)} trials ok, {table.num_rows} grid samples{err_txt}"
         )
+        for line in flag_warnings(rows):
+            log(line)
     # Files of batches that are gone would otherwise be picked up by `split`.
     for stale in sorted(out_dir.glob("*")):
         if stale.is_file() and stale.suffix in (".parquet", ".json") and stale.name not in written:

@@ -206,7 +206,7 @@ def test_a_copied_estimator_file_is_set_aside_naming_the_trial_it_copies(tmp_pat
     rows = _statuses(write_ingested(tmp_path, "copy", trials, channels=["fsr1", "fsr2", "fsr3"]))
     # Then the copy is set aside, naming the trial it copies; the original is kept
     assert [t for t, r in rows.items() if r["status"] != "ok"] == ["a30-t02"]
-    assert "its estimator stream is a copy of trial a30-t00's" in rows["a30-t02"]["status"]
+    assert "the estimator stream of a30-t02 is a30-t00's: the same values" in rows["a30-t02"]["status"]
 
 
 def test_mutual_swaps_need_both_sides():
