@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from pipeline.vocab import AXES, KINDS
 
@@ -86,6 +86,17 @@ class SimulateParams(Section):
     reference_axes: tuple[Literal["fx", "fy", "fz"], ...] = AXES
     effects: EffectScales = EffectScales()
 
+    @field_validator("reference_axes")
+    @classmethod
+    def _axes_once_each(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        """Each axis once, at least one; kept in AXES order (the reference files' column order)."""
+        if not value or len(set(value)) != len(value):
+            raise ValueError(
+                f"reference_axes: {list(value)} must name each of {', '.join(AXES)} at most "
+                "once, and at least one"
+            )
+        return tuple(a for a in AXES if a in value)
+
     @model_validator(mode="after")
     def _check_units(self) -> SimulateParams:
         from pipeline.vocab import ID_PATTERN  # the rig-log/1 id pattern (sensor.unit_id, batch ids)
@@ -99,11 +110,6 @@ class SimulateParams(Section):
                 raise ValueError(f"{key}: {list(ids)} lists a unit twice")
         if both := sorted(set(self.units) & set(self.new_units)):
             raise ValueError(f"units and new_units must be disjoint; both list {both}")
-        if not self.reference_axes or len(set(self.reference_axes)) != len(self.reference_axes):
-            raise ValueError(
-                f"reference_axes: {list(self.reference_axes)} must name each of {', '.join(AXES)} at most "
-                "once, and at least one"
-            )
         return self
 
 

@@ -107,12 +107,11 @@ def build(
     for doc in calibrations:
         for s in doc.get("set_aside", []):
             calibrate_aside[(s["batch_id"], s["trial_id"])] = s
-    left_out = {
-        (batch, angle): list(axes)
-        for part in ("angles", "calibration_axes_left_out")
-        for angle, entry in manifest.get(part, {}).items()
-        for batch, axes in (entry.get("axes_left_out", {}) if part == "angles" else entry).items()
-    }
+    left_out: dict[tuple[str, str], list[str]] = {}  # split's axes_left_out, of angles and calibration
+    for angle, entry in manifest.get("angles", {}).items():
+        left_out |= {(batch, angle): list(axes) for batch, axes in entry.get("axes_left_out", {}).items()}
+    for angle, by_batch in manifest.get("calibration_axes_left_out", {}).items():
+        left_out |= {(batch, angle): list(axes) for batch, axes in by_batch.items()}
     later = _Later(resampled, split_aside, placed, calibrating, calibrated, calibrate_aside, left_out)
 
     out: list[Entry] = []

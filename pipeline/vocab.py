@@ -80,6 +80,12 @@ def axes_of(columns: Iterable[Any]) -> tuple[str, ...]:
     return tuple(a for a in AXES if a in names)
 
 
+def axes_in_order(names: Any) -> bool:
+    """Whether `names` (a list or tuple) are force axes a model may give (its `targets`): a non-empty
+    subset of AXES, each once, in AXES order (("fx", "fy", "fz"), ("fz",), ...)."""
+    return isinstance(names, list | tuple) and bool(names) and list(names) == [a for a in AXES if a in names]
+
+
 def channels_of(frame: Any) -> list[str]:
     """The estimator channels of a processed frame (anything with `.columns`), in column order."""
     return [str(c) for c in frame.columns if c not in NON_CHANNELS]

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.registry import store
-from pipeline.vocab import AXES, DEPLOY_FORMAT, DEPLOY_FORMATS, INPUT_NAMES, description_sha256
+from pipeline.vocab import AXES, DEPLOY_FORMAT, DEPLOY_FORMATS, INPUT_NAMES, axes_in_order, description_sha256
 
 log = logging.getLogger("pipeline.client")
 
@@ -51,11 +51,6 @@ def _names(value: Any) -> bool:
     return isinstance(value, list) and bool(value) and all(isinstance(v, str) and v for v in value)
 
 
-def _targets(value: Any) -> bool:
-    """The axes a model gives, one graph column each: those its reference recorded, in AXES order."""
-    return _names(value) and value == [a for a in AXES if a in value]
-
-
 # field -> (does the value fit, what was expected); checked in this order
 FIELDS: dict[str, tuple[Any, str]] = {
     "kind": (lambda v: isinstance(v, str) and bool(v), "a model kind (ls, fnn, lstm)"),
@@ -65,7 +60,7 @@ FIELDS: dict[str, tuple[Any, str]] = {
         "a list of distinct channel names, e.g. [fsr1, fsr2, fsr3]",
     ),
     "targets": (
-        _targets,
+        axes_in_order,
         f"a non-empty list of force axes among {', '.join(AXES)}, in that order, e.g. [fx, fy, fz] or [fz]",
     ),
     "rate_hz": (lambda v: v is None or (_number(v) and v > 0), "the sample rate in Hz (> 0) or null"),

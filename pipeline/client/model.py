@@ -128,10 +128,9 @@ class Model:
         if problem:
             log.warning("%s: no cues: %s", self.model_dir, problem)
             return None
+        # the pack's standard profile is compared with `step`'s force: the same axes, in the same order
         axes = (pack.get("standard_profile") or {}).get("axes")
-        if axes is not None and list(axes) != list(
-            self.targets
-        ):  # the profile is compared with `step`'s force
+        if axes is not None and list(axes) != list(self.targets):
             log.warning(
                 "%s: no cues: the cue pack's standard profile is of %s, the model gives %s",
                 self.model_dir,

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.client.force import ForceClient, StreamMismatch
-from pipeline.vocab import AXES, TRIAL_KEY
+from pipeline.vocab import TRIAL_KEY, axes_of
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -76,14 +76,9 @@ def rmse(replayed: pd.DataFrame) -> dict[str, float]:
     """RMSE in N per axis of a `replay` result against its reference (empty if it has none)."""
     return {
         c: float(np.sqrt(np.mean((replayed[c] - replayed[f"{c}_ref"]) ** 2)))
-        for c in replayed_axes(replayed)
+        for c in axes_of(replayed.columns)
         if f"{c}_ref" in replayed.columns
     }
-
-
-def replayed_axes(replayed: pd.DataFrame) -> list[str]:
-    """The force axes a `replay` result has (the model's targets), in fx, fy, fz order."""
-    return [c for c in AXES if c in replayed.columns]
 
 
 CUE_COLOURS = {
@@ -101,7 +96,7 @@ def plot_replay(replayed: pd.DataFrame, out: Path, title: str) -> Path:
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    names = replayed_axes(replayed)
+    names = axes_of(replayed.columns)  # the model's targets
     if not names:
         raise ValueError(f"no force column to plot (columns: {list(replayed.columns)})")
     fig = Figure(figsize=(10, 1 + 2 * len(names)), layout="constrained")

@@ -466,6 +466,7 @@ class CueTracker:
         self._isd = [tuple(1.0 / math.sqrt(s * s + floor2) for s in r) for r in prof["sd_n"]]
         self._dt = float(prof["dt_s"])
         self._n_prof = len(self._mean)
+        self._n_axes = len(self._mean[0]) if self._mean else 0  # the profile's axes, the model's targets
         self._horizon = p.profile_horizon_s + 1e-9
         kinds = th["profile"] or {}
         self.profile_unavailable: str | None = None
@@ -624,7 +625,7 @@ class CueTracker:
             for tp, _, fp in post:
                 self._accumulate(tp, fp)
         if self._nz:
-            self._score = math.sqrt(self._z2 / (len(self._mean[0]) * self._nz))
+            self._score = math.sqrt(self._z2 / (self._n_axes * self._nz))
         if changed and ev.rest_n and self._readings:
             p, self._outside = self._judge()
             self._pdev = (p @ self._to_dev).tolist()  # type: ignore[operator]

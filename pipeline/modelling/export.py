@@ -43,7 +43,7 @@ from pipeline.modelling.features import features_at, rest_reading, spec_of, unit
 from pipeline.modelling.front import front_module
 from pipeline.modelling.inputs import window_index
 from pipeline.modelling.kinds import kind_of
-from pipeline.vocab import AXES, DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, description_sha256
+from pipeline.vocab import AXES, DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, axes_in_order, description_sha256
 
 if TYPE_CHECKING:
     import torch
@@ -167,13 +167,12 @@ def _check_output(proto: Any, checkpoint: dict[str, Any]) -> None:
 def targets_of(checkpoint: dict[str, Any]) -> list[str]:
     """The checkpoint's `targets`, checked: a non-empty subset of fx, fy, fz in that order (ValueError)."""
     targets = checkpoint.get("targets")
-    names = list(targets) if isinstance(targets, list | tuple) else None
-    if not names or names != [a for a in AXES if a in names]:
+    if not axes_in_order(targets):
         raise ValueError(
             f"the checkpoint's targets are {targets!r}: expected a non-empty list of force axes among "
             f"{', '.join(AXES)}, in that order (the axes its reference recorded)"
         )
-    return names
+    return list(targets)
 
 
 def _json_float(value: Any) -> float | None:

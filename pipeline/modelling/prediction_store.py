@@ -42,9 +42,6 @@ def schema_for(axes: Iterable[str] = AXES) -> pa.Schema:
     return pa.schema([*ids, *((axis, pa.float64()) for axis in axes)])
 
 
-SCHEMA = schema_for(AXES)  # a three-axis model's
-
-
 def prediction_table(angle: str, split: str, force: np.ndarray, axes: Iterable[str] = AXES) -> pa.Table:
     """The rows of one (angle, split) block: forces (n, len(axes)) in the split file's row order."""
     axes = tuple(axes)

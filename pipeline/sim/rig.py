@@ -198,11 +198,6 @@ def simulate_batch(p: SimulateParams, plan: BatchPlan) -> Iterator[tuple[dict, p
             yield row, record
 
 
-def recorded_axes(p: SimulateParams) -> tuple[str, ...]:
-    """The force axes the simulated reference records (`simulate.reference_axes`), in AXES order."""
-    return tuple(a for a in AXES if a in p.reference_axes)
-
-
 def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
     """batch.yaml of one simulated batch (unknown keys such as `simulator` are kept by ingest); the
     rig's read-out circuit as `sensor.front_end` when `simulate.declare_front_end`, and
@@ -218,7 +213,7 @@ def batch_yaml(p: SimulateParams, plan: BatchPlan) -> dict:
     if p.declare_front_end:
         sensor["front_end"] = rigs.declared_front_end(design).model_dump(mode="json")
     reference: dict[str, object] = {"model": "ATI Nano17 (simulated)", "units": "N", "frame": "tissue"}
-    if (axes := recorded_axes(p)) != AXES:  # the default, all three, is not written (rig-log/1's default)
+    if (axes := p.reference_axes) != AXES:  # the default, all three, is not written (rig-log/1's default)
         reference["axes"] = list(axes)
     return {
         "format": FORMAT,
@@ -239,7 +234,7 @@ def write_batch(p: SimulateParams, plan: BatchPlan, out_dir: Path) -> int:
     folder.mkdir(parents=True)
     rows, n_samples = [], 0
     integer = p.effects.adc
-    axes = recorded_axes(p)
+    axes = p.reference_axes
     columns = ref_columns(axes)
     for row, rec in simulate_batch(p, plan):
         rows.append(row)
@@ -290,7 +285,7 @@ def run(p: SimulateParams, out_dir: Path, *, log: Log = logger.info) -> list[str
     manifest = {
         "generator": "needlecue simulate",
         # reference_axes only when not the default: the default's manifest is as it was before it
-        "params": p.model_dump(mode="json", exclude={"reference_axes"} if recorded_axes(p) == AXES else None),
+        "params": p.model_dump(mode="json", exclude={"reference_axes"} if p.reference_axes == AXES else None),
         "batches": written,
         "units": units,
     }

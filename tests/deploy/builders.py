@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -54,6 +55,15 @@ def client_forces(c: Champion, cache: Path) -> np.ndarray:
     assert client.calibrated
     volts, t = c.trial[list(client.channels)].to_numpy(), c.trial["t_s"].to_numpy()
     return np.array([client.step(v, float(s)).force_n for v, s in zip(volts, t, strict=True)])
+
+
+def pyfunc_champion(c: Champion) -> Any:
+    """The registered champion through MLflow's own loader (what `mlflow models serve` serves)."""
+    import mlflow
+
+    mlflow.set_tracking_uri(c.uri)
+    mlflow.set_registry_uri(c.uri)
+    return mlflow.pyfunc.load_model("models:/needle-force-30@champion")
 
 
 def raw_feed(c: Champion) -> dict[str, np.ndarray]:

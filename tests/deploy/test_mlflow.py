@@ -20,21 +20,17 @@ import numpy as np
 import pytest
 
 from pipeline.modelling.features import unit_inputs
-from tests.deploy.builders import Champion, client_forces, raw_feed
+from tests.deploy.builders import Champion, client_forces, pyfunc_champion, raw_feed
 from tests.helpers import stop_group
 
 SERVE_START_S = 120.0
 
 
 def test_pyfunc_on_raw_readings_gives_the_clients_force(champion: Champion, tmp_path: Path) -> None:
-    import mlflow
-
     # given: the champion, its calibrated unit, and a held-out trial of the unit's raw readings
     feed = raw_feed(champion)
     # when: MLflow's own loader runs it, and the ForceClient steps through the trial
-    mlflow.set_tracking_uri(champion.uri)
-    mlflow.set_registry_uri(champion.uri)
-    model = mlflow.pyfunc.load_model("models:/needle-force-30@champion")
+    model = pyfunc_champion(champion)
     got = np.asarray(model.predict(feed)["force_n"])
     expected = client_forces(champion, tmp_path / "cache")
     # then: the same force, within 1e-5 N, and the calibration mattered
@@ -47,8 +43,6 @@ def test_pyfunc_on_raw_readings_gives_the_clients_force(champion: Champion, tmp_
 
 
 def test_pyfunc_reads_adc_counts_as_their_volts(champion: Champion) -> None:
-    import mlflow
-
     # given: the trial as a 10-bit ADC on 5 V would send it (integer counts), and the same in volts
     per_count = 5.0 / 1023
     feed = raw_feed(champion)
@@ -56,8 +50,7 @@ def test_pyfunc_reads_adc_counts_as_their_volts(champion: Champion) -> None:
     as_counts = dict(feed, **counts, volts_per_count=np.array([per_count]))
     as_volts = dict(feed, **{k: v * per_count for k, v in counts.items()})
     # when: the champion reads both
-    mlflow.set_registry_uri(champion.uri)
-    model = mlflow.pyfunc.load_model("models:/needle-force-30@champion")
+    model = pyfunc_champion(champion)
     got = [np.asarray(model.predict(f)["force_n"]) for f in (as_counts, as_volts)]
     # then: the same force
     np.testing.assert_allclose(got[0], got[1], rtol=0, atol=1e-6)

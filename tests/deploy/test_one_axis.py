@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from pipeline.modelling import export
-from tests.deploy.builders import Champion, client_forces, raw_feed
+from tests.deploy.builders import Champion, client_forces, pyfunc_champion, raw_feed
 
 
 def _downloaded(c: Champion, tmp_path: Path) -> Path:
@@ -52,10 +52,7 @@ def test_pyfunc_of_a_model_of_fz_gives_one_force_per_row(fz_champion: Champion, 
     # given: the model of fz alone, its calibrated unit, and a held-out trial of the unit's raw readings
     feed = raw_feed(fz_champion)
     # when: MLflow's own loader runs it (what `mlflow models serve` serves), and the client steps
-    mlflow.set_tracking_uri(fz_champion.uri)
-    mlflow.set_registry_uri(fz_champion.uri)
-    model = mlflow.pyfunc.load_model("models:/needle-force-30@champion")
-    got = np.asarray(model.predict(feed)["force_n"])
+    got = np.asarray(pyfunc_champion(fz_champion).predict(feed)["force_n"])
     expected = client_forces(fz_champion, tmp_path / "cache")
     # then: one column, fz, the client's within 1e-5 N
     assert got.shape == (len(feed["reading"]), 1) and expected.shape == got.shape
