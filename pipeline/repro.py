@@ -97,14 +97,30 @@ def dvc_plan(root: Path, targets: Sequence[str] = ()) -> Plan:
     from dvc.repo import Repo
 
     with Repo(str(root)) as repo:
-        # DVC names a stage relative to this process's folder: name it as `dvc repro` in root would
-        name = {stage.addressing: _name(stage, root) for stage in repo.index.stages}
-        order = list(name.values())
-        depends_on: dict[str, set[str]] = {s: set() for s in order}
-        for stage, upstream in repo.index.graph.edges:  # DVC's edges point at what a stage depends on
-            depends_on[name[stage.addressing]].add(name[upstream.addressing])
+        order, depends_on, name = _graph(repo, root)
         changed = {name[s] for s in repo.status()}  # {stage: what changed}, the stages out of date only
     return plan_of(order, depends_on, changed, targets)
+
+
+def dvc_graph(root: Path) -> tuple[list[str], dict[str, set[str]]]:
+    """(the stages of the DVC project at `root` in dvc.yaml's order, {stage: the stages it depends on})."""
+    from dvc.repo import Repo
+
+    with Repo(str(root)) as repo:
+        return _graph(repo, root)[:2]
+
+
+def _graph(repo: Any, root: Path) -> tuple[list[str], dict[str, set[str]], dict[str, str]]:
+    """(stages in order, their dependencies, {DVC's address: our name}) from DVC's stage graph: its
+    internal `index.graph` (no public API gives it), checked against `dvc dag` by tests/test_repro.py
+    on the DVC that constraints.txt pins."""
+    # DVC names a stage relative to this process's folder: name it as `dvc repro` in root would
+    name = {stage.addressing: _name(stage, root) for stage in repo.index.stages}
+    order = list(name.values())
+    depends_on: dict[str, set[str]] = {s: set() for s in order}
+    for stage, upstream in repo.index.graph.edges:  # DVC's edges point at what a stage depends on
+        depends_on[name[stage.addressing]].add(name[upstream.addressing])
+    return order, depends_on, name
 
 
 def _name(stage: Any, root: Path) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 import signal
 import subprocess
 import sys
@@ -17,6 +18,21 @@ from tests.projects import make_repo, run
 # a diamond: a -> (b, c) -> d, and e on its own
 ORDER = ("a", "b", "c", "d", "e")
 DEPENDS = {"b": {"a"}, "c": {"a"}, "d": {"b", "c"}}
+
+
+def test_the_stage_graph_read_from_dvc_is_the_one_dvc_dag_prints() -> None:
+    # given: this repository's dvc.yaml (DVC's internal stage graph is what `needlecue repro` reads)
+    root = Path(__file__).resolve().parents[1]
+    # when: reading it, and asking DVC's own command for its edges
+    order, depends_on = repro.dvc_graph(root)
+    dot = subprocess.run(
+        [sys.executable, "-m", "dvc", "dag", "--dot"], cwd=root, capture_output=True, text=True, check=True
+    ).stdout
+    nodes = re.findall(r'^"([^"]+)";$', dot, re.M)
+    edges = {(a, b) for a, b in re.findall(r'"([^"]+)" -> "([^"]+)"', dot)}
+    # then: the same stages, in the same order, and the same dependencies (dot: upstream -> stage)
+    assert len(order) > 30 and order == nodes
+    assert {(up, s) for s, ups in depends_on.items() for up in ups} == edges
 
 
 def test_a_changed_stage_plans_itself_and_everything_downstream() -> None:

@@ -6,19 +6,17 @@ in `NEEDLECUE_PUBLISH_PUBLIC_KEY`) never talks to the MLflow tracking server: `p
 fetches through a `Bucket` when its location is `published+<url>`. A poll is one GET of the manifest with
 `If-None-Match: <the ETag last seen>`, answered 304 when nothing changed. Every manifest is verified
 (`pipeline.registry.manifest.verify`) before a field is read, and every object's sha256 and size before
-its bytes are written anywhere. A request is a plain HTTP GET signed with AWS Signature Version 4 on a
-kept-alive connection (one per thread): a simulator needs no boto3, and a poll costs it a fraction of a
-millisecond of CPU.
+its bytes are written anywhere. A request is a plain HTTP GET signed with AWS Signature Version 4 by
+botocore's signer, on a kept-alive connection (one per thread): a simulator needs botocore, not boto3's
+clients, and a poll costs it a fraction of a millisecond of CPU.
 """
 
 from __future__ import annotations
 
 import hashlib
-import hmac
 import http.client
 import os
 import threading
-import time
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import quote, urlsplit
@@ -102,7 +100,7 @@ class Bucket:
         """(status, body, ETag) of one signed GET of `key` (If-None-Match `etag`), on this thread's
         kept-alive connection (one retry on a connection the store closed meanwhile)."""
         path = "/" + quote(f"{self.name}/{key}", safe="/-_.~")
-        headers = sigv4_headers(self.host, path, self.keys, self.region)
+        headers = signed_headers(self.endpoint + path, self.keys, self.region)
         if etag:
             headers["If-None-Match"] = etag
         for attempt in (1, 2):
@@ -210,30 +208,16 @@ def _error_code(body: bytes) -> str:
     return text[start + 6 : end] if 0 <= start < end else ""
 
 
-def sigv4_headers(
-    host: str, path: str, keys: tuple[str, str], region: str, now: float | None = None
-) -> dict[str, str]:
-    """The headers of an AWS Signature Version 4 signed GET of `path` (no query, empty body) on an S3
-    endpoint `host`: what boto3 sends, without loading boto3 on a simulator."""
-    access, secret = keys
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now))
-    day, empty = stamp[:8], hashlib.sha256(b"").hexdigest()
-    signed_names = "host;x-amz-content-sha256;x-amz-date"
-    headers = f"host:{host}\nx-amz-content-sha256:{empty}\nx-amz-date:{stamp}\n"
-    canonical = f"GET\n{path}\n\n{headers}\n{signed_names}\n{empty}"  # method, path, query, ..., body hash
-    scope = f"{day}/{region}/s3/aws4_request"
-    to_sign = f"AWS4-HMAC-SHA256\n{stamp}\n{scope}\n{hashlib.sha256(canonical.encode()).hexdigest()}"
-    key = ("AWS4" + secret).encode()
-    for part in (day, region, "s3", "aws4_request"):
-        key = hmac.new(key, part.encode(), hashlib.sha256).digest()
-    signature = hmac.new(key, to_sign.encode(), hashlib.sha256).hexdigest()
-    return {
-        "Host": host,
-        "x-amz-content-sha256": empty,
-        "x-amz-date": stamp,
-        "Authorization": f"AWS4-HMAC-SHA256 Credential={access}/{scope}, SignedHeaders={signed_names}, "
-        f"Signature={signature}",
-    }
+def signed_headers(url: str, keys: tuple[str, str], region: str) -> dict[str, str]:
+    """The headers of a GET of `url` (an S3 object, no query, empty body) signed with AWS Signature
+    Version 4 by botocore's own S3 signer: botocore alone, without boto3's sessions and clients."""
+    from botocore.auth import S3SigV4Auth
+    from botocore.awsrequest import AWSRequest
+    from botocore.credentials import Credentials
+
+    request = AWSRequest(method="GET", url=url)
+    S3SigV4Auth(Credentials(*keys), "s3", region).add_auth(request)
+    return dict(request.headers.items())
 
 
 _buckets: dict[str, Bucket] = {}

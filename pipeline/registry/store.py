@@ -279,21 +279,19 @@ def environment(values: dict[str, str]) -> Iterator[None]:
 def fluent(uri: str) -> Iterator[None]:
     """MLflow's fluent API (`mlflow.start_run`, `mlflow.register_model`, `models:/` downloads) on the
     store at `uri`, tracking and registry, for the block. After it, MLflow's process-wide URIs and the
-    environment variables `set_tracking_uri` writes are as they were: set, or unset."""
+    environment variables `set_tracking_uri` writes are as they were, and MLflow reads its URIs from
+    them again (public API only: `set_tracking_uri` writes the environment variable whenever it sets
+    a URI, so a URI set before the block is in the environment the block restores)."""
     import mlflow
-    from mlflow.tracking._model_registry import utils as registry_state
-    from mlflow.tracking._tracking_service import utils as tracking_state
 
-    # MLflow keeps "not set" (fall back to the environment) only in these module variables
-    before = (tracking_state._tracking_uri, registry_state._registry_uri)
     with environment({k: os.environ.get(k, "") for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI")}):
         mlflow.set_tracking_uri(uri)
         mlflow.set_registry_uri(uri)
         try:
             yield
-        finally:
-            mlflow.set_tracking_uri(before[0])
-            mlflow.set_registry_uri(before[1])
+        finally:  # unset: MLflow falls back to the environment, restored as the block ends
+            mlflow.set_tracking_uri(None)
+            mlflow.set_registry_uri(None)
 
 
 @contextmanager
