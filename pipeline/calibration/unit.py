@@ -8,7 +8,12 @@ applies to those models only).
      "transforms": {kind: {"matrix", "offset", "fitted_through": [angle], "models": {angle: sha},
                            "loss_before", "loss_after", "loss_after_by_angle", "identity_kept"?}},
      "params": {...}, "cues": {"levels": [loading levels],
-     "evidence": {angle: {"n": [per stage], "means": [per stage]}}}}
+     "evidence": {angle: {"n": [per stage], "means": [per stage]}},
+     "mapped"?: {"kind", "matrix", "offset", "evidence"}}}
+
+`cues.mapped` is the same evidence gathered through the unit's map on its conductance (`cue_map_kind`
+says whose); the cues read the unit through it only where that removes a departure from the
+training units' layout (`pipeline.cues.tracker.cue_reading`).
 
 The stage and `needlecue calibrate` both build it here; `pipeline.calibration.document` reads it.
 """
@@ -23,6 +28,7 @@ import pandas as pd
 from pipeline.calibration.document import DIGITS, FORMAT
 from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
+from pipeline.cues.tracker import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import checkpoint_sha256
@@ -107,15 +113,6 @@ def calibrate_unit(
         "params": p.model_dump(mode="json"),
         "front_end": None if front_end is None else front_end.model_dump(mode="json"),
     }
-    if cues is not None:
-        channels = next((list(m.channels) for ms in models.values() for m in ms.values()), None)
-        frames = {float(a): f for a, f in by_angle.items()}
-        circuit = {unit_id: front_end}
-        trials = trial_features(frames, channels, cues, circuit, cue_levels)[0] if channels else []
-        doc["cues"] = {
-            "levels": list(cue_levels),
-            "evidence": evidence_of(trials, len(channels or ())).get(unit_id, {}),
-        }
     fit_angles = {kind: [a for a in angles if a in ms] for kind, ms in models.items()}
     fit_angles = {kind: found for kind, found in fit_angles.items() if found}
     data = {
@@ -136,4 +133,47 @@ def calibrate_unit(
             f"{unit_id}: {kind} through {len(fit_angles[kind])} angle(s): loss "
             f"{report['loss_before']:.4f} -> {report['loss_after']:.4f}{kept}"
         )
+    if cues is not None:
+        doc["cues"] = cue_evidence(unit_id, by_angle, models, cues, front_end, cue_levels, doc["transforms"])
     return jsonable(doc, DIGITS)
+
+
+def cue_map_kind(transforms: Mapping[str, Mapping[str, Any]]) -> str | None:
+    """The model kind whose map on the conductance fits the unit best: the lowest loss on the angles
+    left out (else on all), among the maps its calibration kept (not the identity); None if none."""
+    found = [
+        (t.get("held_out_loss_after", t["loss_after"]), kind)
+        for kind, t in sorted(transforms.items())
+        if t.get("domain") == "conductance" and "identity_kept" not in t
+    ]
+    return min(found)[1] if found else None
+
+
+def cue_evidence(
+    unit_id: str,
+    by_angle: Mapping[str, pd.DataFrame],
+    models: Mapping[str, Mapping[str, Predictor]],
+    cues: CuesParams,
+    front_end: Circuit | None,
+    levels: Sequence[float],
+    transforms: Mapping[str, Mapping[str, Any]],
+) -> dict[str, Any]:
+    """The document's `cues` section: the unit's evidence for the angle estimator, read as it is and,
+    where its circuit is declared and a map was kept, through the map of `cue_map_kind` (as stored:
+    rounded as the document keeps it, so that the simulator reading the stored map sees the same)."""
+    channels = next((list(m.channels) for ms in models.values() for m in ms.values()), None)
+    if not channels:
+        return {"levels": list(levels), "evidence": {}}
+    frames = {float(a): f for a, f in by_angle.items()}
+    circuit = {unit_id: front_end}
+
+    def evidence(maps: Mapping[str, UnitMap] | None) -> dict[str, Any]:
+        trials = trial_features(frames, channels, cues, circuit, levels, maps)[0]
+        return evidence_of(trials, len(channels)).get(unit_id, {})
+
+    out: dict[str, Any] = {"levels": list(levels), "evidence": evidence(None)}
+    kind = cue_map_kind(transforms)
+    if kind is not None:
+        stored = jsonable({k: transforms[kind][k] for k in ("matrix", "offset")}, DIGITS)
+        out["mapped"] = {"kind": kind, **stored, "evidence": evidence({unit_id: UnitMap.of(stored)})}
+    return out

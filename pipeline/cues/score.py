@@ -25,6 +25,7 @@ from pipeline.cues.tracker import (
     VERDICTS,
     CueTracker,
     UnitEvidence,
+    UnitMap,
     cue_for_deviation,
     reading_of,
     unit_evidence,
@@ -219,9 +220,11 @@ def _track(job: _Job) -> tuple[list[Run], list[tuple[float, float]], int, float]
                     unit_evidence=unit_evidence(job.pack, tr.unit, calibration),
                     front_end=tr.front_end,
                     reading=reading_of(job.pack, tr.unit, calibration),
+                    unit_map=tr.unit_map,
                 )
             else:
                 tracker.use_front_end(tr.front_end)
+                tracker.use_unit_map(tr.unit_map)
                 tracker.reset()
             n = tr.ins_end + 1
             codes = {m: np.zeros(n, dtype=np.int64) for m in METHODS}
@@ -283,10 +286,19 @@ def evaluate_cues(
     units: Mapping[str, UnitEvidence] | None = None,
     circuits: Mapping[str, Circuit | None] | None = None,
     paper_bound: bool = True,
+    maps: Mapping[str, UnitMap] | None = None,
 ) -> dict[str, Any]:
     """Cue quality on the external trials of every angle (`track_external`, then `cue_document`)."""
     tracked = track_external(
-        external, params, packs, forces_of, log=log, units=units, circuits=circuits, paper_bound=paper_bound
+        external,
+        params,
+        packs,
+        forces_of,
+        log=log,
+        units=units,
+        circuits=circuits,
+        paper_bound=paper_bound,
+        maps=maps,
     )
     return cue_document(tracked, params, packs)
 
@@ -301,6 +313,7 @@ def track_external(
     units: Mapping[str, UnitEvidence] | None = None,
     circuits: Mapping[str, Circuit | None] | None = None,
     paper_bound: bool = True,
+    maps: Mapping[str, UnitMap] | None = None,
 ) -> Tracked:
     """The trackers' runs on the external trials of every angle, for every preset angle with a pack;
     each trial read through its unit's declared circuit in `circuits` (else the pack's).
@@ -308,7 +321,8 @@ def track_external(
     `external`: {true angle: its external frame}; `forces_of(kind, preset, true angle)`: the preset
     angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
     the calibrated units' evidence (`pipeline.cues.unit_evidence`); a trial of a unit neither there nor
-    among the pack's training units is read as the average unit's. `paper_bound`: also score the
+    among the pack's training units is read as the average unit's. `maps`: the calibrated units read
+    through their map (`pipeline.cues.tracker.cue_reading`), {unit_id: map}. `paper_bound`: also score the
     paper's method on the measured force (its upper bound; the angle-estimate matrix comes with it).
     Without external trials with an insertion phase there is nothing to score: `skipped` says why.
     The combined method is scored only with an angle estimator."""
@@ -325,7 +339,7 @@ def track_external(
         missing = [c for c in channels if c not in f.columns]
         if missing:
             raise ValueError(f"the {angle_name(a)}° external set lacks channel(s) {missing}")
-        keep = [tr for tr in trials_of(f, channels, a, circuits) if tr.ins_start >= 0]
+        keep = [tr for tr in trials_of(f, channels, a, circuits, maps) if tr.ins_start >= 0]
         if len(keep) < f.groupby(list(TRIAL_KEY)).ngroups:
             log(f"warning: {angle_name(a)}°: trials without an insertion phase skipped")
         trials[a] = keep
@@ -503,11 +517,13 @@ def evaluate_unit_groups(
     calibrated: Mapping[str, bool],
     circuits: Mapping[str, Circuit | None] | None = None,
     tracked: Tracked | None = None,
+    maps: Mapping[str, UnitMap] | None = None,
 ) -> dict[str, Any]:
     """The cues scored per unit group: the training units' external trials (`same_unit`), and the
     external trials of new units that have a calibration, without it (`new_uncalibrated`: the angle
     estimator reads them as the average unit's, forces from `uncalibrated_split`) and with it
-    (`new_calibrated`: `units` holds their calibrations' evidence). Per group, kind and method:
+    (`new_calibrated`: `units` holds their calibrations' evidence, `maps` the maps some are read
+    through). Per group, kind and method:
     balanced accuracy within `cue_within_s`, per-cue recall, final confusion matrix.
 
     `tracked`: the runs of `evaluate_cues` on all of `external` (the external forces, `units`,
@@ -542,8 +558,17 @@ def evaluate_unit_groups(
                 full = forces_of(kind, preset, a, "external")
             return None if full is None else full[masks[a]]
 
-        known = {} if group == "new_uncalibrated" else units
-        ev = evaluate_cues(frames, params, packs, forces, log=lambda _m: None, units=known, circuits=circuits)
+        calibrated_now = group != "new_uncalibrated"  # an uncalibrated unit has neither evidence nor map
+        ev = evaluate_cues(
+            frames,
+            params,
+            packs,
+            forces,
+            log=lambda _m: None,
+            units=units if calibrated_now else {},
+            circuits=circuits,
+            maps=maps if calibrated_now else None,
+        )
         out[group] = {
             "units": members,
             "external_trials": ev.get("external_trials"),

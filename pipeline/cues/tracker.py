@@ -32,6 +32,7 @@ import numpy as np
 
 from pipeline.config import CuesParams
 from pipeline.cues.reading import Cell, UnitReading, distances, log_scores, outside, read_unit
+from pipeline.modelling.features import MIN_CONDUCTANCE_US
 from pipeline.rig.frontend import Circuit, conductance_us, conductance_us_of_frame, declared, legacy_divider
 from pipeline.vocab import format_problem
 
@@ -113,6 +114,30 @@ def calibration_evidence(pack: Mapping[str, Any], cues: Mapping[str, Any] | None
     return cues["evidence"] if same else None
 
 
+def cue_reading(
+    pack: Mapping[str, Any], cues: Mapping[str, Any] | None
+) -> tuple[UnitEvidence | None, UnitMap | None]:
+    """How the angle estimator reads a calibrated unit, from its calibration's `cues` section: (its
+    evidence, the map its conductance is read through, or None: as it is).
+
+    As it is, unless its calibration insertions depart from the training units' layout at some
+    evidence stage (`departing_levels`: no angle cue there) and, read through the unit's map on its
+    conductance (`cues.mapped`: the map of the model kind that fits it best, `pipeline.calibration.
+    unit`), they depart at fewer stages. A unit that departs nowhere is read as it is: through the
+    force models' map it would be read in a layout cross-validation never saw, and on the family's
+    units that cost more wrong cues than the 2 % a trainee may see (docs/units.md, "A new unit read
+    through a map")."""
+    evidence = calibration_evidence(pack, cues)
+    if not evidence or not cues or not cues.get("mapped"):
+        return evidence, None
+    mapped = cues["mapped"]
+    away = departing_levels(pack, evidence)
+    through = calibration_evidence(pack, {"levels": cues["levels"], "evidence": mapped["evidence"]})
+    if away and through and len(departing_levels(pack, through)) < len(away):
+        return through, UnitMap.of(mapped)
+    return evidence, None
+
+
 def _cells(classes: Sequence[float], evidence: UnitEvidence | None, j: int) -> list[Cell]:
     """The unit's cells at evidence stage j: per class, its trials that reached the stage."""
     cells = []
@@ -176,6 +201,24 @@ def _floats(x: Any) -> list[float]:
     return x.tolist() if isinstance(x, np.ndarray) else [float(v) for v in x]
 
 
+@dataclass(frozen=True)
+class UnitMap:
+    """A calibrated unit's map on its FSRs' conductance, g' = g A^T + b (µS), as its calibration
+    fitted it for the force models (`cue_reading` says when the cues read a unit through it).
+    Floored: a map must not open a loaded FSR."""
+
+    matrix: np.ndarray
+    offset: np.ndarray
+
+    def apply(self, g: np.ndarray) -> np.ndarray:
+        return np.maximum(g @ self.matrix.T + self.offset, MIN_CONDUCTANCE_US)
+
+    @classmethod
+    def of(cls, d: Mapping[str, Any]) -> UnitMap:
+        """A stored map ({"matrix", "offset"})."""
+        return cls(np.asarray(d["matrix"], dtype=np.float64), np.asarray(d["offset"], dtype=np.float64))
+
+
 # ---------------------------------------------------------------------------------------------
 # Causal evidence: rest reading, contact, loading snapshots (shared by build and tracker)
 # ---------------------------------------------------------------------------------------------
@@ -201,6 +244,7 @@ class Evidence:
         "snaps",
         "t_first",
         "thr",
+        "unit_map",
     )
 
     def __init__(
@@ -211,9 +255,11 @@ class Evidence:
         n_confirm: int,
         min_rest_s: float,
         front_end: Circuit | None,
+        unit_map: UnitMap | None = None,
     ):
         self.n_ch, self.levels, self.thr = n_ch, tuple(levels), thr
         self.n_confirm, self.min_rest_s, self.front_end = n_confirm, min_rest_s, front_end
+        self.unit_map = unit_map
         self.reset()
 
     def reset(self) -> None:
@@ -246,12 +292,15 @@ class Evidence:
 
     def signal(self, volts: Sequence[float]) -> np.ndarray:
         """What the evidence reads of `volts`: the FSRs' conductance through the declared circuit (the
-        same for every design of front end), else the volts themselves."""
+        same for every design of front end), else the volts themselves; through the unit's map on its
+        conductance where it is read through one (`cue_reading`)."""
         if self.front_end is None:
             return np.asarray(volts, dtype=np.float64)
         if isinstance(volts, list):  # one frame (every frame after contact): the fast path
-            return np.array(conductance_us_of_frame(volts, self.front_end))
-        return conductance_us(np.asarray(volts, dtype=np.float64), self.front_end)
+            g = np.array(conductance_us_of_frame(volts, self.front_end))
+        else:
+            g = conductance_us(np.asarray(volts, dtype=np.float64), self.front_end)
+        return g if self.unit_map is None else self.unit_map.apply(g)
 
     def rest_signal(self) -> np.ndarray:
         """The signal of the rest mean (frozen at contact)."""
@@ -425,6 +474,7 @@ class CueTracker:
         unit_evidence: UnitEvidence | None = None,
         front_end: Circuit | None = None,
         reading: str = "training",
+        unit_map: UnitMap | None = None,
     ) -> None:
         check_pack(pack)
         if abs(float(pack["preset_angle_deg"]) - float(preset_angle_deg)) > 1e-6:
@@ -497,6 +547,7 @@ class CueTracker:
             p.contact_samples,
             p.min_rest_s,
             front_end or self._pack_front_end,
+            unit_map,
         )
         self._min_stage = min(p.min_stage, len(levels))
         self._deb = _Debounce(p.debounce_s)
@@ -507,6 +558,11 @@ class CueTracker:
         """Read the loading direction through the unit's own circuit (None: the pack's training
         units'); takes effect at the next insertion (`reset`)."""
         self._ev.front_end = front_end or self._pack_front_end
+
+    def use_unit_map(self, unit_map: UnitMap | None) -> None:
+        """Read the unit's conductance through its map (`cue_reading`; None: as it is); takes effect
+        at the next insertion (`reset`)."""
+        self._ev.unit_map = unit_map
 
     def reset(self) -> None:
         self._ev.reset()

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import AUTO_EVIDENCE_LEVELS, CuesParams
-from pipeline.cues.tracker import MIN_VOLTS, Evidence
+from pipeline.cues.tracker import MIN_VOLTS, Evidence, UnitMap
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, TRIAL_KEY, axes_of, rate_hz
 
@@ -30,6 +30,7 @@ class Trial:
     unit: str | None = None  # the estimator unit that recorded it (None: the frame does not say)
     front_end: Circuit | None = None  # the circuit its unit declares (None: none declared)
     axes: tuple[str, ...] = AXES  # the force axes its reference recorded (the columns of `force`)
+    unit_map: UnitMap | None = None  # the map its unit is read through (`cue_reading`), if any
 
     def force_on(self, axes: Sequence[str]) -> np.ndarray | None:
         """The reference force on `axes` (a pack's profile axes, in that order); None if its reference
@@ -44,9 +45,11 @@ def trials_of(
     channels: Sequence[str],
     angle: float,
     circuits: Mapping[str, Circuit | None] | None = None,
+    maps: Mapping[str, UnitMap] | None = None,
 ) -> list[Trial]:
     """A processed frame's trials in (batch, trial) order, each with its unit's circuit from
-    `circuits` ({unit_id: circuit}, processed `front_ends.json`)."""
+    `circuits` ({unit_id: circuit}, processed `front_ends.json`) and the map it is read through from
+    `maps` ({unit_id: map}; none: as it is)."""
     out = []
     if frame.empty:
         return out
@@ -71,7 +74,10 @@ def trials_of(
         unit = str(unit_all[idx[0]]) if unit_all is not None and len(idx) else None
         circuit = (circuits or {}).get(unit) if unit is not None else None
         recorded = axes or AXES
-        out.append(Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit, circuit, recorded))
+        unit_map = (maps or {}).get(unit) if unit is not None else None
+        out.append(
+            Trial(angle, batch, t_all[idx], v_all[idx], force, s, e, idx, unit, circuit, recorded, unit_map)
+        )
     return out
 
 
@@ -111,6 +117,7 @@ def replay_evidence(trial: Trial, params: CuesParams, levels: Sequence[float]) -
         params.contact_samples,
         params.min_rest_s,
         trial.front_end,
+        trial.unit_map,
     )
     starts: list[int] = []
     for i, (ti, vi) in enumerate(zip(trial.t.tolist(), trial.volts.tolist(), strict=True)):

@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
+from pipeline.cues.tracker import UnitMap
 from pipeline.cues.trials import Trial, loading_levels, replay_evidence, stage_frames, trials_of
 from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, channels_of
@@ -50,11 +51,12 @@ def _trials(
     frames_by_angle: Mapping[float, pd.DataFrame],
     channels: Sequence[str],
     circuits: Mapping[str, Circuit | None] | None,
+    maps: Mapping[str, UnitMap] | None = None,
 ) -> list[Trial]:
     return [
         tr
         for angle in sorted(frames_by_angle, key=float)
-        for tr in trials_of(frames_by_angle[angle], channels, float(angle), circuits)
+        for tr in trials_of(frames_by_angle[angle], channels, float(angle), circuits, maps)
     ]
 
 
@@ -78,12 +80,13 @@ def trial_features(
     params: CuesParams,
     circuits: Mapping[str, Circuit | None] | None = None,
     levels: Sequence[float] | None = None,
+    maps: Mapping[str, UnitMap] | None = None,
 ) -> tuple[list[TrialFeatures], tuple[float, ...]]:
     """(the evidence of every trial with a rest reading, in angle then trial order, each read
     through its unit's circuit in `circuits`; the loading levels it was gathered at). `levels`: the
     angle estimator's (a new unit's evidence must be gathered at the training trials' levels); None:
     `loading_levels` of these trials."""
-    trials = _trials(frames_by_angle, channels, circuits)
+    trials = _trials(frames_by_angle, channels, circuits, maps)
     levels = loading_levels(trials, params) if levels is None else tuple(levels)
     out = []
     for tr in trials:

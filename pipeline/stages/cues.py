@@ -25,7 +25,7 @@ from pipeline.config import CuesParams, load_section
 from pipeline.cues.document import write_cue_evaluation
 from pipeline.cues.fit import Predicted, build_packs, pack_json
 from pipeline.cues.score import cue_document, evaluate_unit_groups, skipped_evaluation, track_external
-from pipeline.cues.tracker import calibration_evidence, departing_levels
+from pipeline.cues.tracker import cue_reading, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
 from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
@@ -75,11 +75,18 @@ def main(
             docs = read_units(cal_dir)
             # what each calibrated unit's calibration insertions tell the angle estimator
             pack = next(iter(packs.values()), {})  # every preset's estimator has the same levels
-            units = {u: calibration_evidence(pack, d.get("cues")) for u, d in docs.items()}
+            readings = {u: cue_reading(pack, d.get("cues")) for u, d in docs.items()}
             gathered = {u for u, d in docs.items() if (d.get("cues") or {}).get("evidence")}
-            for u in sorted(u for u, e in units.items() if e is None and u in gathered):
+            for u in sorted(u for u, (e, _) in readings.items() if e is None and u in gathered):
                 _log(f"warning: {u}: its calibration's cue evidence is at other loading levels, not used")
-            units = {u: e for u, e in units.items() if e}
+            units = {u: e for u, (e, _) in readings.items() if e}
+            maps = {u: m for u, (_, m) in readings.items() if m is not None}
+            for u in sorted(maps):
+                _log(
+                    f"{u}: its calibration insertions depart from the training units' layout less "
+                    f"through its {docs[u]['cues']['mapped']['kind']} map on the conductance: the cues "
+                    "read it through that map (docs/units.md)"
+                )
             for u, e in sorted(units.items()):
                 if away := departing_levels(pack, e):
                     _log(
@@ -96,6 +103,7 @@ def main(
                 log=_log,
                 units=units,
                 circuits=circuits,
+                maps=maps,
             )
             evaluation = cue_document(tracked, scored, packs)
             calibrated = calibrated_units(docs)
@@ -113,6 +121,7 @@ def main(
                 calibrated,
                 circuits,
                 tracked,
+                maps,
             )
     except (FileNotFoundError, ValueError) as e:
         _log(f"error: {e}")
