@@ -149,7 +149,12 @@ def pipeline_reads(project: Project, unit: str) -> str:
 
 def departures(project: Project, ev: Mapping[str, Any]) -> list[float]:
     """Per evidence stage, the unit's departure over the neighbouring angles' distance."""
-    est = project.estimator
+    return departure_ratios(project.estimator, ev)
+
+
+def departure_ratios(est: Mapping[str, Any], ev: Mapping[str, Any]) -> list[float]:
+    """Per evidence stage of the angle estimator `est`, the departure of a unit of evidence `ev` from
+    the training layout over the neighbouring angles' distance (above 1: it departs)."""
     out = []
     for j, stage in enumerate(est["stages"]):
         mu, precision = np.asarray(stage["means"]), np.asarray(stage["precision"])

@@ -26,16 +26,15 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import independent_rig
+from bench_cue_map import departure_ratios
 from bench_family import BIN, project, snapshot
 
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.fit import fit_angle_estimator
-from pipeline.cues.reading import neighbour_distance, own_departure
 from pipeline.cues.tracker import unit_readings
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.dataset.splits import SplitFiles, front_ends
@@ -80,15 +79,7 @@ def departures(root: Path) -> tuple[list[int], list[float]]:
     channels = channels_of(next(iter(cal.values())))
     found, _ = trial_features(cal, channels, p, front_ends(folder), est["levels"])
     ev = evidence_of(found, len(channels))[NEW]
-    ratios = []
-    for j, stage in enumerate(est["stages"]):
-        mu, precision = np.asarray(stage["means"]), np.asarray(stage["precision"])
-        cells = [
-            (c, float(e["n"][j]), np.asarray(e["means"][j]))
-            for c, a in enumerate(est["classes_deg"])
-            if (e := ev.get(f"{float(a):g}")) and len(e["n"]) > j
-        ]
-        ratios.append(own_departure(mu, cells, precision) / neighbour_distance(mu, precision))
+    ratios = departure_ratios(est, ev)
     away = [j for j, r in enumerate(unit_readings(est["stages"], est["classes_deg"], ev)) if r.departs]
     return away, ratios
 

@@ -123,17 +123,18 @@ def cue_reading(
     As it is, unless its calibration insertions depart from the training units' layout at some
     evidence stage (`departing_levels`: no angle cue there) and, read through the unit's map on its
     conductance (`cues.mapped`: the map of the model kind that fits it best, `pipeline.calibration.
-    unit`), they depart at fewer stages. A unit that departs nowhere is read as it is: through the
-    force models' map it would be read in a layout cross-validation never saw, and on the family's
-    units that cost more wrong cues than the 2 % a trainee may see (docs/units.md, "A new unit read
-    through a map")."""
+    unit`), they depart nowhere. A unit that departs nowhere is read as it is: through the force
+    models' map it would be read in a layout cross-validation never saw, and on the family's units
+    that cost more wrong cues than the 2 % a trainee may see. A map that leaves the unit departing
+    somewhere is not taken either: measured once, it added wrong cues (docs/units.md, "A new unit
+    read through a map")."""
     evidence = calibration_evidence(pack, cues)
     if not evidence or not cues or not cues.get("mapped"):
         return evidence, None
     mapped = cues["mapped"]
     away = departing_levels(pack, evidence)
     through = calibration_evidence(pack, {"levels": cues["levels"], "evidence": mapped["evidence"]})
-    if away and through and len(departing_levels(pack, through)) < len(away):
+    if away and through and not departing_levels(pack, through):
         return through, UnitMap.of(mapped)
     return evidence, None
 

@@ -8,7 +8,14 @@ import pandas as pd
 
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker, Evidence, UnitMap, cue_reading, unit_evidence
+from pipeline.cues.tracker import (
+    CueTracker,
+    Evidence,
+    UnitMap,
+    cue_reading,
+    departing_levels,
+    unit_evidence,
+)
 from pipeline.cues.unit_evidence import trial_features
 from pipeline.rig.frontend import Divider, conductance_us, volts_of_conductance
 from tests.cues.synthetic import CHANNELS, NOMINAL, make_split, run_tracker
@@ -66,11 +73,12 @@ PACK = {
 }
 
 
-def _evidence(off: float) -> dict:
-    """One insertion per angle fitting a shift of the layout, its 0° and 75° cells `off` at stage 1."""
+def _evidence(off: float, rest_off: float = 0.0) -> dict:
+    """One insertion per angle fitting a shift of the layout, its 0° and 75° cells `off` at stage 1
+    (and `rest_off` at the rest reading)."""
     out = {}
     for c in range(6):
-        rest = [c + 0.3] * 2
+        rest = [c + 0.3 + (rest_off if c in (0, 5) else 0.0)] * 2
         loading = [c + 0.3 + (off if c in (0, 5) else 0.0)] * 4
         out[f"{15 * c:g}"] = {"n": [1, 1], "means": [rest, loading]}
     return out
@@ -98,12 +106,16 @@ def test_a_unit_departing_as_it_is_but_not_through_its_map_is_read_through_it() 
     assert unit_map is not None and np.array_equal(unit_map.matrix, MIX.matrix)
 
 
-def test_a_unit_that_departs_nowhere_or_no_less_through_its_map_is_read_as_it_is() -> None:
-    # given: insertions that fit as they are; or that depart as much through the map; or no map
+def test_a_unit_that_departs_nowhere_or_still_through_its_map_is_read_as_it_is() -> None:
+    # given: insertions that fit as they are; or that still depart through the map; or no map
     fitting, departing = _evidence(0.0), _evidence(3.0)
     # when / then: as it is, without a map
     assert cue_reading(PACK, _cues(fitting, departing)) == (fitting, None)
     assert cue_reading(PACK, _cues(departing, _evidence(-3.0))) == (departing, None)
+    # and: a map that leaves fewer departing stages, but some, is not taken
+    everywhere = _evidence(3.0, rest_off=3.0)
+    assert departing_levels(PACK, everywhere) == [0, 1] and departing_levels(PACK, departing) == [1]
+    assert cue_reading(PACK, _cues(everywhere, departing)) == (everywhere, None)
     assert cue_reading(PACK, _cues(departing, None)) == (departing, None)
     # and: evidence at other levels than the estimator's is no reading at all
     assert cue_reading(PACK, {**_cues(departing, fitting), "levels": [0.2]}) == (None, None)
