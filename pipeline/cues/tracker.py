@@ -132,9 +132,8 @@ def cue_reading(
     if not evidence or not cues or not cues.get("mapped"):
         return evidence, None
     mapped = cues["mapped"]
-    away = departing_levels(pack, evidence)
-    through = calibration_evidence(pack, {"levels": cues["levels"], "evidence": mapped["evidence"]})
-    if away and through and not departing_levels(pack, through):
+    through = mapped.get("evidence")  # gathered at the same levels, which `evidence` has matched
+    if through and departing_levels(pack, evidence) and not departing_levels(pack, through):
         return through, UnitMap.of(mapped)
     return evidence, None
 

@@ -83,9 +83,9 @@ def main(
             maps = {u: m for u, (_, m) in readings.items() if m is not None}
             for u in sorted(maps):
                 _log(
-                    f"{u}: its calibration insertions depart from the training units' layout less "
-                    f"through its {docs[u]['cues']['mapped']['kind']} map on the conductance: the cues "
-                    "read it through that map (docs/units.md)"
+                    f"{u}: its calibration insertions depart from the training units' layout as they "
+                    f"are and nowhere through its {docs[u]['cues']['mapped']['kind']} map on the "
+                    "conductance: the cues read it through that map (docs/units.md)"
                 )
             for u, e in sorted(units.items()):
                 if away := departing_levels(pack, e):
