@@ -105,7 +105,7 @@ def run_variant(variant: str, keep: Path | None) -> dict[str, list[float | None]
         project(root, member, overrides)
         env = dict(os.environ, PYTHONPATH=str(root))
         for stage in STAGES:
-            run = [sys.executable, "-m", "pipeline.run", *stage]
+            run = [sys.executable, "-m", "pipeline.execution.run", *stage]
             subprocess.run(run, cwd=root, env=env, check=True, capture_output=True)
         out = subprocess.run(
             [sys.executable, str(Path(__file__).resolve()), "--measure", str(root)],

@@ -18,12 +18,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.config import IngestParams, ResampleParams, SimulateParams, load_section
+from pipeline.execution.workers import WORKERS
 from pipeline.reporting import ingest as ingest_report
 from pipeline.reporting import resample as resample_report
 from pipeline.rig import ingest
 from pipeline.signals import resample
 from pipeline.sim import rig as simulate
-from pipeline.workers import WORKERS
 
 REPO = Path(__file__).resolve().parents[1]
 REPEATS = 3

@@ -32,10 +32,10 @@ def main() -> int:
 
     from pipeline.calibration.document import transform_for
     from pipeline.client import ForceClient
+    from pipeline.frontend import declared
     from pipeline.modelling.checkpoint import ModelConfig
     from pipeline.modelling.export import graph_feed
     from pipeline.modelling.features import unit_inputs
-    from pipeline.rig.frontend import declared
 
     root = Path(__file__).resolve().parents[1]
     uri = store.tracking_uri()

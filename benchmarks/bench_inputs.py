@@ -25,13 +25,13 @@ import pandas as pd
 
 from pipeline.config import load_section
 from pipeline.dataset.splits import SplitFiles, unit_roles
+from pipeline.frontend import Circuit
 from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.features import INPUT_KINDS, NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.split_predictions import predict_model
 from pipeline.modelling.train import choose_folders, load_angle
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name
 
 AXES = ["fx", "fy", "fz"]

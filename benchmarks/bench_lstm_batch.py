@@ -1,11 +1,11 @@
 """What a larger LSTM batch would buy: training time against validation loss and test error.
 
 The LSTM's training is the largest part of a cold `dvc repro` (issue 43). Each setting below
-retrains the six angles' LSTMs exactly as the train stage does (`python -m pipeline.run train lstm
+retrains the six angles' LSTMs exactly as the train stage does (`python -m pipeline.execution.run train lstm
 ...`, the pinned environment included), two at a time (the timings are per model, each on its own
 core), from `make repro`'s data/processed and data/choices, with params.yaml's `lstm` section but
 for the setting's overrides. One untimed training first warms the stages' preload server
-(pipeline/preload.py), so that no setting pays for starting it. Prints, per setting and angle: the
+(pipeline/execution/preload.py), so that no setting pays for starting it. Prints, per setting and angle: the
 epochs run, the training loop's seconds (the stage's own "done ... in X s", without start-up, data
 loading or writing), the best validation loss (what early stopping and any choice of settings may
 look at), and the NRMSE (mean over axes, %) on the test split and on the external set's rows from
@@ -49,7 +49,15 @@ DONE = re.compile(r": done, .* in ([0-9.]+) s -> ")  # pipeline.modelling.train.
 
 def train(angle: str, params: Path, out: Path) -> float:
     """One angle's LSTM through the train stage's command; the seconds of its training loop."""
-    cmd = [sys.executable, "-m", "pipeline.run", "train", "lstm", str(DATA / angle), str(out / angle)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pipeline.execution.run",
+        "train",
+        "lstm",
+        str(DATA / angle),
+        str(out / angle),
+    ]
     run = [*cmd, "--choice", str(CHOICE), "--params", str(params)]
     done = subprocess.run(run, capture_output=True, text=True)
     found = DONE.search(done.stderr + done.stdout)

@@ -1,12 +1,12 @@
 """The pipeline's wall times: a cold `dvc repro` on the defaults stage by stage, its total per stage
 kind and per model kind, a no-op `dvc repro`, the scheduled retrain after one new tissue cast, and a
-cold `needlecue repro` (the same stages side by side on every core, `pipeline/repro.py`).
+cold `needlecue repro` (the same stages side by side on every core, `pipeline/execution/repro.py`).
 
 Run with `make bench` (or `.venv/bin/python benchmarks/bench_pipeline.py [--fresh]`). Everything runs
 in a throw-away copy of the project (code, dvc.yaml, params.yaml), with its own MLflow store. A
 stage's time is the wall time from DVC's "Running stage" line to the next one (DVC's own work for the
 stage included). `--fresh` also runs the cold pipeline with every stage in a fresh interpreter
-(`NEEDLECUE_PRELOAD=0`, pipeline/preload.py), beside the default, in the same run.
+(`NEEDLECUE_PRELOAD=0`, pipeline/execution/preload.py), beside the default, in the same run.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-from pipeline import repro
-from pipeline.workers import usable_cpus
+from pipeline.execution import repro
+from pipeline.execution.workers import usable_cpus
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""The warm interpreter (`pipeline/preload.py`): how soon a stage stops when its caller is killed
+"""The warm interpreter (`pipeline/execution/preload.py`): how soon a stage stops when its caller is killed
 outright, and what a stage costs to start warm against fresh.
 
 A light server (json preloaded only) serves a stage that ignores SIGTERM and sleeps; the caller is
@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline import preload
+from pipeline.execution import preload
 
 SLEEPER = """import os, signal, sys, time
 signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a stage that would not stop on a polite request
@@ -29,7 +29,7 @@ time.sleep(60)
 """
 QUICK = "import sys\n"
 CALLER = """import os, sys
-from pipeline import preload
+from pipeline.execution import preload
 status = preload.run_stage(sys.argv[1:], dict(os.environ))
 sys.exit(98 if status is None else status)
 """
@@ -82,7 +82,7 @@ def main() -> None:
             for mode, extra in (("warm", {}), ("fresh", {preload.OFF: "0"})):
                 start = time.monotonic()
                 done = subprocess.run([sys.executable, "-c", CALLER, "quick"], env={**env, **extra}, cwd=work)
-                if mode == "fresh":  # the launcher then runs the stage itself, as pipeline.run does
+                if mode == "fresh":  # the launcher then runs the stage itself, as pipeline.execution.run does
                     subprocess.run([sys.executable, "-m", "quick"], env=env, cwd=work, check=True)
                 else:
                     assert done.returncode == 0, "the server did not take the stage"

@@ -43,8 +43,8 @@ POLLERS, POLL_PROCESSES, POLL_S, POLL_FOR_S = 500, 20, 2.0, 60.0
 MOVES = 3
 ANGLE, NAME = 30, "needle-force-30"
 REGISTER = [
-    sys.executable, "-m", "pipeline.run", "register", "models", "data/processed", "data/predictions",
-    "data/calibration", "reports",
+    sys.executable, "-m", "pipeline.execution.run", "register", "models", "data/processed",
+    "data/predictions", "data/calibration", "reports",
 ]  # fmt: skip
 
 

@@ -88,8 +88,8 @@ def repro(
     """
     from dvc.exceptions import DvcException
 
-    from pipeline import repro as parallel
-    from pipeline.workers import usable_cpus
+    from pipeline.execution import repro as parallel
+    from pipeline.execution.workers import usable_cpus
 
     root = project.resolve()
     try:

@@ -75,11 +75,12 @@ def closure(path: Path) -> set[Path]:
     return seen
 
 
-LAUNCHER = f"{PACKAGE}.run"
+LAUNCHER = f"{PACKAGE}.execution.run"
 
 
 def stage_modules() -> dict[str, Path]:
-    """{dvc.yaml stage name: the file of the stage module its cmd runs (`python -m pipeline.run STAGE`)}."""
+    """{dvc.yaml stage name: the file of the stage module its cmd runs
+    (`python -m pipeline.execution.run STAGE`)}."""
     stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     out = {}
     for name, stage in stages.items():

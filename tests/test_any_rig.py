@@ -14,12 +14,12 @@ import yaml
 
 from pipeline.client import ForceClient
 from pipeline.config import SimulateParams
+from pipeline.frontend import declared
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.checkpoint import load_checkpoint
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.prediction_store import Predictions
 from pipeline.modelling.predictor import load_predictor
-from pipeline.rig.frontend import declared
 from pipeline.sim import rig, rigs
 from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models
 

@@ -1,4 +1,4 @@
-"""Stages in a warm interpreter (pipeline/preload.py): what a stage process sees and does is what a
+"""Stages in a warm interpreter (pipeline/execution/preload.py): what a stage process sees and does is what a
 fresh `python -m` would see and do, and nothing outlives its caller."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import preload
-from pipeline import run as launcher
+from pipeline.execution import preload
+from pipeline.execution import run as launcher
 from tests.projects import copy_project
 
 PROBE = """
@@ -34,7 +34,7 @@ if "--fail" in sys.argv:
 sys.exit(int(sys.argv[1]) if sys.argv[1:] and sys.argv[1].isdigit() else 0)
 """
 CLIENT = """import os, sys
-from pipeline import preload
+from pipeline.execution import preload
 status = preload.run_stage(sys.argv[1:], dict(os.environ))
 sys.exit(99 if status is None else status)  # 99: no server took it
 """
@@ -56,13 +56,13 @@ except PermissionError:
 print(json.dumps(out), flush=True)
 """
 LAUNCH = """import os, sys
-from pipeline import preload
-if preload.run_stage(sys.argv[1:], dict(os.environ)) is None:  # as pipeline.run: else fresh
+from pipeline.execution import preload
+if preload.run_stage(sys.argv[1:], dict(os.environ)) is None:  # as pipeline.execution.run: else fresh
     os.execv(sys.executable, [sys.executable, "-m", *sys.argv[1:]])
 """
 ASK = """import json, os, sys
 from pathlib import Path
-from pipeline import preload
+from pipeline.execution import preload
 print(json.dumps(preload.ask(Path(sys.argv[1]), sys.argv[2:], dict(os.environ))))
 """
 WITHOUT_DAC = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search", "--"]
@@ -107,7 +107,9 @@ def server_log(env: dict[str, str]) -> str:
 def warm(tmp_path: Path, sockets: str) -> dict[str, str]:
     """An environment with its own preload folder, and a server for it (light: json only) running."""
     env = dict(os.environ, NEEDLECUE_PRELOAD_DIR=sockets, NEEDLECUE_PRELOAD_MODULES="json")
-    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])  # the clients import pipeline.preload
+    env["PYTHONPATH"] = str(
+        Path(__file__).resolve().parents[1]
+    )  # the clients import pipeline.execution.preload
     assert preload.run_stage(["json.tool", "--help"], env) is None  # none yet: one is started
     wait_ready(env)
     (tmp_path / "probe_stage.py").write_text(PROBE)
@@ -262,7 +264,7 @@ def test_a_stage_writes_the_same_bytes_warm_and_fresh(tiny_built: Path, tmp_path
     # given: a copy of the small project and a server with the real preload list
     root, _ = copy_project(tiny_built, tmp_path / "project")
     env = launcher.pinned_env(dict(os.environ, NEEDLECUE_PRELOAD_DIR=sockets))
-    cmd = [sys.executable, "-m", "pipeline.run", "train", "fnn", "data/processed/15"]
+    cmd = [sys.executable, "-m", "pipeline.execution.run", "train", "fnn", "data/processed/15"]
     choice = ["--choice", "data/choices/fnn.json"]
     subprocess.run([*cmd, "fresh", *choice], cwd=root, env={**env, "NEEDLECUE_PRELOAD": "0"}, check=True)
     subprocess.run([*cmd, "first", *choice], cwd=root, env=env, check=True)  # starts the server

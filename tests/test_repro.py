@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline import repro
+from pipeline.execution import repro
 from tests.projects import make_repo, run
 
 # a diamond: a -> (b, c) -> d, and e on its own

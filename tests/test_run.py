@@ -1,4 +1,4 @@
-"""`python -m pipeline.run STAGE`: the numeric libraries pinned, so every machine writes the same
+"""`python -m pipeline.execution.run STAGE`: the numeric libraries pinned, so every machine writes the same
 bytes; proven here by emulating other machines' instruction sets on this one (tests/machines.py)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline import run as launcher
+from pipeline.execution import run as launcher
 from tests.machines import LEVELS, switchable_levels
 from tests.projects import copy_project, make_tiny_project, run
 
@@ -71,7 +71,7 @@ def test_a_process_started_with_the_pinned_env_runs_the_baseline_paths() -> None
 
 def test_an_unknown_stage_is_refused_with_the_list_of_stages() -> None:
     # when: the launcher is asked for a stage that does not exist
-    cmd = [sys.executable, "-m", "pipeline.run", "trian"]
+    cmd = [sys.executable, "-m", "pipeline.execution.run", "trian"]
     done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     # then: it says which ones exist, and runs nothing
     assert done.returncode == 1
@@ -135,7 +135,9 @@ def test_without_the_pin_the_emulated_machines_differ(tiny_built: Path, tmp_path
     for level in (levels[0], levels[-1]):
         root = copy_project(tiny_built, tmp_path / level)[0]
         dvc_yaml = root / "dvc.yaml"
-        unpinned = dvc_yaml.read_text().replace("python -m pipeline.run ", "python -m pipeline.stages.")
+        unpinned = dvc_yaml.read_text().replace(
+            "python -m pipeline.execution.run ", "python -m pipeline.stages."
+        )
         dvc_yaml.write_text(unpinned)
         # when: one network's training runs again on each (the data it reads: the build's own)
         run(root, "dvc", "repro", "--single-item", "--force", "train@15-fnn", env=LEVELS[level])

@@ -9,8 +9,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from pipeline.frontend import declared
 from pipeline.modelling.features import InputTransform
-from pipeline.rig.frontend import declared
 from pipeline.vocab import angle_name, format_problem
 
 FORMAT = "needlecue-unit/4"  # 4: a transform says its domain (conductance or the inputs)

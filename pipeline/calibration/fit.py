@@ -24,13 +24,13 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CalibrateParams
+from pipeline.execution.workers import ordered_map, workers_for
+from pipeline.frontend import Circuit, conductance_us, volts_of_conductance
 from pipeline.modelling.determinism import deterministic_torch, exact_lbfgs
 from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform, rest_reading
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.predictor import Predictor
-from pipeline.rig.frontend import Circuit, conductance_us, volts_of_conductance
 from pipeline.vocab import AXES, axes_of
-from pipeline.workers import ordered_map, workers_for
 
 WORTH_A_WORKER = 200_000  # rows through the models over all fits (fewer fit faster than a worker starts)
 MIN_FORCE_STD = 1e-3  # N: a flat reference force would otherwise weigh without bound

@@ -30,10 +30,10 @@ from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
 from pipeline.cues.tracker import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.predictor import Predictor
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, jsonable, sorted_angles
 
 

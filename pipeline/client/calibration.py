@@ -15,9 +15,9 @@ from pipeline.calibration.document import read_unit, transform_for
 from pipeline.client.cache import fetch_unit
 from pipeline.client.copies import ModelNotFound, read_version
 from pipeline.client.model import Model
+from pipeline.frontend import declared
 from pipeline.modelling.features import InputTransform
 from pipeline.registry import store
-from pipeline.rig.frontend import declared
 from pipeline.vocab import angle_name, file_sha256
 
 CALIBRATE_FIX = "record a calibration batch with the unit and run `needlecue calibrate BATCH_DIR`"

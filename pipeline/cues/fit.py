@@ -25,8 +25,8 @@ from pipeline.cues.reading import distances, log_scores, read_unit
 from pipeline.cues.tracker import FORMAT, REFERENCE, VERDICTS, cue_for_deviation
 from pipeline.cues.trials import Trial, run_evidence, trials_of, trials_rate_hz
 from pipeline.cues.unit_evidence import average_unit, evidence_of, trial_features
+from pipeline.frontend import Circuit, circuit_key
 from pipeline.logs import Log
-from pipeline.rig.frontend import Circuit, circuit_key
 from pipeline.vocab import AXES, angle_name, channels_of
 
 Circuits = Mapping[str, Circuit | None]  # {unit_id: its declared circuit (processed front_ends.json)}

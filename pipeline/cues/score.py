@@ -31,10 +31,10 @@ from pipeline.cues.tracker import (
     unit_evidence,
 )
 from pipeline.cues.trials import Trial, trials_of
+from pipeline.execution.workers import ordered_map, workers_for
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, TRIAL_KEY, angle_name
-from pipeline.workers import ordered_map, workers_for
 
 DEVIATION_GROUPS = ("0", "15", "30", ">=45")
 WORTH_A_WORKER = 300_000  # frames replayed: fewer take less than a worker process's start

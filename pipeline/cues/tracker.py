@@ -32,8 +32,8 @@ import numpy as np
 
 from pipeline.config import CuesParams
 from pipeline.cues.reading import Cell, UnitReading, distances, log_scores, outside, read_unit
+from pipeline.frontend import Circuit, conductance_us, conductance_us_of_frame, declared, legacy_divider
 from pipeline.modelling.features import MIN_CONDUCTANCE_US
-from pipeline.rig.frontend import Circuit, conductance_us, conductance_us_of_frame, declared, legacy_divider
 from pipeline.vocab import format_problem
 
 FORMAT = "needlecue-cues/5"  # 5: a unit's class means with their uncertainty (4: levels in the signal read)

@@ -11,7 +11,7 @@ import pandas as pd
 
 from pipeline.config import AUTO_EVIDENCE_LEVELS, CuesParams
 from pipeline.cues.tracker import MIN_VOLTS, Evidence, UnitMap
-from pipeline.rig.frontend import Circuit
+from pipeline.frontend import Circuit
 from pipeline.vocab import AXES, TRIAL_KEY, axes_of, rate_hz
 
 AUTO_REACH = 0.9  # "auto" evidence levels end at the loading this share of training trials reach

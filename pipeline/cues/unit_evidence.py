@@ -24,7 +24,7 @@ import pandas as pd
 from pipeline.config import CuesParams
 from pipeline.cues.tracker import UnitMap
 from pipeline.cues.trials import Trial, loading_levels, replay_evidence, stage_frames, trials_of
-from pipeline.rig.frontend import Circuit
+from pipeline.frontend import Circuit
 from pipeline.vocab import angle_name, channels_of
 
 ITERATIONS = 50  # alternating means converge in a few for the designs seen here; fixed for determinism

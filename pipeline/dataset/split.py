@@ -55,8 +55,8 @@ import pyarrow.parquet as pq
 from pipeline.config import SplitParams
 from pipeline.dataset.splits import FRONT_ENDS
 from pipeline.dataset.tables import columns_for, table_schema, write_table
+from pipeline.frontend import circuit_key, declared
 from pipeline.logs import Log
-from pipeline.rig.frontend import circuit_key, declared
 from pipeline.rig.repeats import SAMPLES_KEY, reason, repeats
 from pipeline.vocab import AXES, CALIBRATION, SPLITS, angle_name, axes_of, sorted_angles
 

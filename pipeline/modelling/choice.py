@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.frontend import Circuit
 from pipeline.modelling.features import INPUT_KINDS, ModelInputs
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes
 from pipeline.modelling.kinds.base import StandIn
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import axes_of
 
 FORMAT = "needlecue-inputs-choice/1"  # the choose stage's file: one model kind's choice

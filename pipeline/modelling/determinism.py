@@ -82,7 +82,7 @@ def deterministic_torch(seed: int | None = None, threads: int | None = None) -> 
     """Fixed thread count, deterministic algorithms, oneDNN off and (optionally) a seeded global RNG,
     all restored on exit so a caller's own torch state is untouched. oneDNN (torch's CPU LSTM) picks
     its kernels and blocking by the CPU it finds; without it, torch's own kernels and MKL run, whose
-    code paths `pipeline.run` pins, so the weights are the same bytes on any machine."""
+    code paths `pipeline.execution.run` pins, so the weights are the same bytes on any machine."""
     import torch
 
     prev_threads = torch.get_num_threads()

@@ -21,6 +21,7 @@ from typing import Any
 import pandas as pd
 
 from pipeline.config import FNNParams, LSParams, LSTMParams
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import FORMAT, data_sha256
 from pipeline.modelling.choice import Choice, choose_inputs
@@ -28,7 +29,6 @@ from pipeline.modelling.features import inputs_for
 from pipeline.modelling.inputs import trial_codes
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.predictor import Predictor
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, axes_of, channels_of, rate_hz
 
 LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"

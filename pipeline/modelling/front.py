@@ -3,7 +3,7 @@ calibration in, the model's inputs out, in torch so that it exports to ONNX with
 it (`pipeline.modelling.export`).
 
 It computes what `pipeline.modelling.features.features` computes, in float64 and with the same
-formulas (`pipeline.rig.frontend`), so that a simulator in any language feeds the graph nothing but
+formulas (`pipeline.frontend`), so that a simulator in any language feeds the graph nothing but
 what the estimator sends: its readings (counts or volts, `volts_per_count` scales them). The unit's
 calibration is data, not code: the three `unit_*` inputs that `features.unit_inputs` encodes
 (identity and no circuit: the model's own reading, uncalibrated).
@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pipeline.frontend import MAX_KOHM, MIN_KOHM
 from pipeline.modelling.features import (
     GROUND_DIVIDER,
     MIN_CONDUCTANCE_US,
@@ -26,7 +27,6 @@ from pipeline.modelling.features import (
     ModelInputs,
     encode_circuit,
 )
-from pipeline.rig.frontend import MAX_KOHM, MIN_KOHM
 
 if TYPE_CHECKING:
     import torch

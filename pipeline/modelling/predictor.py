@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.frontend import Circuit
 from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
 from pipeline.modelling.features import InputTransform, features, spec_of
 from pipeline.modelling.inputs import times_of, trial_codes
 from pipeline.modelling.kinds import kind_of
-from pipeline.rig.frontend import Circuit
 
 
 class Predictor:

@@ -13,6 +13,8 @@ import pandas as pd
 import pyarrow as pa
 
 from pipeline.dataset.splits import SplitFiles
+from pipeline.execution.workers import WORKERS, ordered_map, workers_for
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.choice import Choice
@@ -25,9 +27,7 @@ from pipeline.modelling.prediction_store import (
     write_predictions,
 )
 from pipeline.modelling.predictor import Predictor, load_predictor
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
-from pipeline.workers import WORKERS, ordered_map, workers_for
 
 WORTH_A_WORKER = 500_000  # rows predicted, over all models: fewer take less than a worker's start
 UnitTransforms = Mapping[str, InputTransform]  # {unit_id: its calibration for one model}

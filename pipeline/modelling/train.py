@@ -12,11 +12,11 @@ from typing import Any
 import pandas as pd
 
 from pipeline.dataset.splits import common_front_end, front_ends
+from pipeline.frontend import Circuit, circuit_key
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import save_model_dir
 from pipeline.modelling.choice import Choice, pool
 from pipeline.modelling.fit import ModelParams, choose, fit
-from pipeline.rig.frontend import Circuit, circuit_key
 from pipeline.vocab import angle_name, file_sha256
 
 

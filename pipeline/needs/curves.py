@@ -28,12 +28,12 @@ import pandas as pd
 from pipeline.calibration.rows import calibration_rows
 from pipeline.config import CuesParams, NeedsParams
 from pipeline.dataset.splits import SplitFiles, unit_roles
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.metrics.scores import mean_known
 from pipeline.needs.force import ForceModel, force_curve
 from pipeline.needs.scoring import SEEN, CueJob, CueScoring, Frames, score_cues
 from pipeline.needs.subsample import SUBSAMPLE, Key, Selection, ladder, spread_order, trials_in, units_of
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name
 
 FORMAT = "needlecue-needs/1"

@@ -15,6 +15,7 @@ import pandas as pd
 
 from pipeline.config import FNNParams, LSParams
 from pipeline.dataset.splits import common_front_end
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.metrics.scores import mean_known, nrmse_pct
 from pipeline.modelling.choice import load_choice, ridge, stand_in_basis  # the stand-in as choose scores
@@ -22,7 +23,6 @@ from pipeline.modelling.features import inputs_for
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import features_of, times_of, trial_codes
 from pipeline.needs.subsample import Selection, select
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import angle_name, axes_of, channels_of
 
 

@@ -2,7 +2,8 @@
 training trials, then scores the combined cue on test trials with `evaluate_cues` (the measured force
 standing in for the model: the combined cue reads the force only for its force-in-range check), a
 unit's calibration insertions read as its evidence where given. A tracker fed frame by frame is the
-slow part: the jobs run on the machine's cores (`pipeline.workers`), the same figures on any number."""
+slow part: the jobs run on the machine's cores (`pipeline.execution.workers`), the same figures on
+any number."""
 
 from __future__ import annotations
 
@@ -20,11 +21,11 @@ from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack, try_fit_angle_estimator
 from pipeline.cues.score import WORTH_A_WORKER, evaluate_cues
 from pipeline.cues.unit_evidence import evidence_of, trial_features
+from pipeline.execution.workers import WORKERS_ENV, ordered_imap, workers_for
+from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.needs.subsample import Key, Selection, select
-from pipeline.rig.frontend import Circuit
 from pipeline.vocab import axes_of, channels_of
-from pipeline.workers import WORKERS_ENV, ordered_imap, workers_for
 
 SEEN = ("wrong_final", "wrong_frames", "coverage_frames")  # what the trainee sees, of `seen`
 Frames = Mapping[str, Mapping[float, pd.DataFrame]]  # {split: {angle: rows}}

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from pipeline.frontend import Divider
 from pipeline.modelling.choice import Choice, pool
 from pipeline.modelling.features import INPUT_KINDS, ModelInputs
 from pipeline.modelling.prediction_store import ModelReads
 from pipeline.reporting.style import table
-from pipeline.rig.frontend import Divider
 from pipeline.vocab import kind_label, sorted_angles
 
 

@@ -11,9 +11,9 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from pipeline.frontend import CIRCUITS
 from pipeline.rig.csvfile import encoding_hint
 from pipeline.rig.format import BATCH_FILE, ID_PATTERN, BatchMeta, is_valid_id
-from pipeline.rig.frontend import CIRCUITS
 from pipeline.rig.problems import ProblemLog
 from pipeline.vocab import NON_CHANNELS
 

@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
-from pipeline.rig.frontend import FrontEnd
+from pipeline.frontend import FrontEnd
 from pipeline.vocab import AXES, ID_PATTERN, one_line
 
 FORMAT = "rig-log/1"
@@ -114,7 +114,7 @@ class SensorMeta(_Meta):
     units: Literal["counts", "volts"]
     adc_bits: int | None = Field(None, ge=1, le=32)
     vref_v: float | None = Field(None, gt=0)
-    # the circuit between each FSR and its channel (pipeline.rig.frontend); absent: not declared
+    # the circuit between each FSR and its channel (pipeline.frontend); absent: not declared
     front_end: FrontEnd | None = None
 
     @model_validator(mode="after")

@@ -47,6 +47,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from pipeline.config import IngestParams
+from pipeline.execution.workers import ordered_imap, workers_for
 from pipeline.logs import Log
 from pipeline.rig.expectations import Validator
 from pipeline.rig.format import (
@@ -62,7 +63,6 @@ from pipeline.rig.format import (
 from pipeline.rig.reader import ParsedBatch, parse_batch
 from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
 from pipeline.vocab import one_line
-from pipeline.workers import ordered_imap, workers_for
 
 FINGERPRINT = "fingerprint.json"
 PROBLEMS = "problems.json"

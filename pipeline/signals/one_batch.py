@@ -13,9 +13,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import IngestParams, ResampleParams
+from pipeline.frontend import is_declared
 from pipeline.rig.expectations import Validator
 from pipeline.rig.format import Problem
-from pipeline.rig.frontend import is_declared
 from pipeline.rig.ingest import fingerprint, write_batch
 from pipeline.rig.reader import ParsedBatch, parse_batch
 from pipeline.signals import resample

@@ -6,7 +6,7 @@ are read through and its document records) and `MODELS_DIR/<kind>/<angle>/model.
 `OUT_DIR/<unit_id>.json` per unit (`pipeline.calibration.unit`), which predict applies to that
 unit's rows and register stores in MLflow. A calibration batch never trains or scores the shared models.
 
-Usage: `python -m pipeline.run calibrate DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run calibrate DATA_DIR MODELS_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
 from pipeline.cues.unit_evidence import training_levels
 from pipeline.dataset.splits import SplitFiles, front_ends
+from pipeline.execution.workers import WORKERS
 from pipeline.logs import setup
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predictor import load_predictor
 from pipeline.vocab import CALIBRATION, angle_name
-from pipeline.workers import WORKERS
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

@@ -5,7 +5,7 @@ Input: `DATA_ROOT/<angle>/` (the split stage's folders) for each of `train.angle
 folds and the stand-in (the scores are logged; each train stage records its own angle's); the train
 stages read it. With a kind pinned in params nothing is scored and the file says so.
 
-Usage: `python -m pipeline.run choose {ls|fnn|lstm} DATA_ROOT OUT_FILE [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run choose {ls|fnn|lstm} DATA_ROOT OUT_FILE [--params params.yaml]`.
 """
 
 from __future__ import annotations

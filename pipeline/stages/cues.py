@@ -9,7 +9,7 @@ the cues are also scored per unit group, `by_unit_group`). Output in `OUT_DIR`:
 stage: what cannot be built or scored is left out and said, with why. It fails only on real
 errors: missing input folders, bad params, inconsistent channels.
 
-Usage: `python -m pipeline.run cues DATA_DIR PRED_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run cues DATA_DIR PRED_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

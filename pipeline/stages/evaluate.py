@@ -10,7 +10,7 @@ renders and the register stage logs; `METRICS_JSON`, about thirty headline figur
 (`pipeline.metrics.headline`).
 
 Usage:
-`python -m pipeline.run evaluate DATA_DIR PRED_DIR CAL_DIR CUES_EVAL EVALUATION_JSON METRICS_JSON
+`python -m pipeline.execution.run evaluate DATA_DIR PRED_DIR CAL_DIR CUES_EVAL EVALUATION_JSON METRICS_JSON
 [--params params.yaml]`.
 """
 

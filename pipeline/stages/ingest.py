@@ -6,7 +6,7 @@ has no batches). Anything that is not rig-log/1 (`docs/rig-log-format.md`) becom
 naming file, line and column; that trial (or the whole batch) is set aside and the rest goes on.
 Unchanged batches are reused, not parsed again. The input folders are only read.
 
-Usage: `python -m pipeline.run ingest RAW_DIR SIM_DIR OUT_DIR REPORT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run ingest RAW_DIR SIM_DIR OUT_DIR REPORT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from pathlib import Path
 import typer
 
 from pipeline.config import IngestParams, SimulateParams, load_section
+from pipeline.execution.workers import WORKERS
 from pipeline.logs import setup
 from pipeline.reporting.ingest import write_reports
 from pipeline.rig.ingest import ingest_batches
-from pipeline.workers import WORKERS
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

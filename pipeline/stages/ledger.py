@@ -5,7 +5,7 @@ Input: ingest's `batches.json` and `quarantine.json`, resample's `offsets.csv`, 
 `manifest.json` and the calibrate stage's `CAL_DIR/<unit>.json`. Output: `OUT_DIR/ledger.json`
 (`needlecue-ledger/1`) and `OUT_DIR/ledger.md`, which `needlecue retrain` reads.
 
-Usage: `python -m pipeline.run ledger BATCHES QUARANTINE OFFSETS MANIFEST CAL_DIR OUT_DIR
+Usage: `python -m pipeline.execution.run ledger BATCHES QUARANTINE OFFSETS MANIFEST CAL_DIR OUT_DIR
 [--params params.yaml]`.
 """
 

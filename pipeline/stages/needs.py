@@ -8,7 +8,7 @@ insertions per angle, the advice in words, what was not computed and why; `pipel
 `needs.png` (`pipeline.reporting.needs`). Small or odd data never stops the stage: what cannot be
 computed is left out and said. It fails only on real errors: no training trials, bad params.
 
-Usage: `python -m pipeline.run needs DATA_DIR CHOICES_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run needs DATA_DIR CHOICES_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

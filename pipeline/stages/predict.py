@@ -7,7 +7,7 @@ calibrate stage's): a calibrated unit's external rows are predicted through its 
 report and register read, and `OUT_DIR/inputs.json` (what each model reads and how that was
 chosen, for the report). A unit that declares its own circuit (`front_ends.json`) is read through it.
 
-Usage: `python -m pipeline.run predict DATA_DIR MODELS_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run predict DATA_DIR MODELS_DIR CAL_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

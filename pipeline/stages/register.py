@@ -14,7 +14,7 @@
 Scores come from the predict stage's `PRED_DIR`; the store is `$MLFLOW_TRACKING_URI` or the
 project's `mlflow.db` (`pipeline.registry.store`).
 
-Usage: `python -m pipeline.run register MODELS_DIR DATA_DIR PRED_DIR CAL_DIR REPORTS_DIR OUT_JSON
+Usage: `python -m pipeline.execution.run register MODELS_DIR DATA_DIR PRED_DIR CAL_DIR REPORTS_DIR OUT_JSON
 [--params params.yaml]`.
 """
 

@@ -9,7 +9,7 @@ Output in REPORTS_DIR: `report.md` (assembled from the section functions of
 angle-gap heatmap), `plots/{gap,profile}.csv` (DVC plots) and `cues/{summary.md, confusion.png,
 time_to_cue.png}`.
 
-Usage: `python -m pipeline.run report DATA_DIR PRED_DIR REPORTS_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run report DATA_DIR PRED_DIR REPORTS_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

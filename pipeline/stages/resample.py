@@ -5,7 +5,7 @@ Input: the ingest stage's accepted batches in IN_DIR. Output: `OUT_DIR/<batch_id
 `.json`, and `REPORT_DIR/{offsets.csv, summary.md, offsets.png, trials.png}`. A trial that
 cannot be aligned is set aside with its reason in offsets.csv.
 
-Usage: `python -m pipeline.run resample IN_DIR OUT_DIR REPORT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run resample IN_DIR OUT_DIR REPORT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """`simulate` stage: write the built-in simulator's rig-log/1 batches (`pipeline.sim.rig`) as
 configured in params.yaml's `simulate` section, standing in for a lab.
 
-Usage: `python -m pipeline.run simulate OUT_DIR [--params params.yaml]`. OUT_DIR must be new,
+Usage: `python -m pipeline.execution.run simulate OUT_DIR [--params params.yaml]`. OUT_DIR must be new,
 empty or written by the simulator before (it is then cleared).
 """
 

@@ -6,7 +6,7 @@ Input: the resample stage's `IN_DIR/<batch_id>.{parquet,json}`. Output: `OUT_DIR
 `purpose: calibration` batches, never in a split), `front_ends.json` next to them (each unit's
 declared circuit) and `OUT_DIR/manifest.json`.
 
-Usage: `python -m pipeline.run split IN_DIR OUT_DIR [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run split IN_DIR OUT_DIR [--params params.yaml]`.
 """
 
 from __future__ import annotations

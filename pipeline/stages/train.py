@@ -7,7 +7,8 @@ choose stage's `--choice` file (all angles'; without it, chosen on this angle al
 `model.pt` (see `pipeline.modelling.checkpoint`), `train_metrics.json`, `history.csv`.
 Only the kind's own params section is read, so editing `fnn` never retrains `lstm`.
 
-Usage: `python -m pipeline.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--choice FILE] [--params params.yaml]`.
+Usage: `python -m pipeline.execution.run train {ls|fnn|lstm} DATA_DIR OUT_DIR [--choice FILE]
+[--params params.yaml]`.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ from pipeline.calibration.unit import cue_evidence, cue_map_kind
 from pipeline.config import CuesParams
 from pipeline.cues.tracker import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.rig.frontend import Divider
+from pipeline.frontend import Divider
 from tests.cues.synthetic import CHANNELS, make_split
 
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.62)

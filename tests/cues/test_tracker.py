@@ -11,7 +11,7 @@ import pytest
 from pipeline.config import CuesParams
 from pipeline.cues.fit import build_cue_pack
 from pipeline.cues.tracker import CueTracker, Evidence, calibration_evidence, unit_readings
-from pipeline.rig.frontend import Circuit, Divider, volts_of
+from pipeline.frontend import Circuit, Divider, volts_of
 from tests.cues.synthetic import (
     CHANNELS,
     end_of_insertion,

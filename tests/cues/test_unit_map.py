@@ -17,7 +17,7 @@ from pipeline.cues.tracker import (
     unit_evidence,
 )
 from pipeline.cues.unit_evidence import trial_features
-from pipeline.rig.frontend import Divider, conductance_us, volts_of_conductance
+from pipeline.frontend import Divider, conductance_us, volts_of_conductance
 from tests.cues.synthetic import CHANNELS, NOMINAL, make_split, run_tracker
 
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.62)

@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 
 from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
+from pipeline.frontend import Divider, Transimpedance, volts_of
 from pipeline.modelling.choice import Choice, candidates, choose_inputs, load_choice, pool, save_choice
 from pipeline.modelling.fit import fit
 from pipeline.modelling.kinds import kind_of
-from pipeline.rig.frontend import Divider, Transimpedance, volts_of
 from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]

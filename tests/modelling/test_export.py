@@ -14,12 +14,12 @@ import pandas as pd
 import pytest
 
 from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
+from pipeline.frontend import Divider, Transimpedance
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
-from pipeline.rig.frontend import Divider, Transimpedance
 from pipeline.vocab import INPUT_NAMES, description_sha256
 from tests.modelling.frames import make_frame
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import EffectScales
+from pipeline.frontend import Divider, conductance_us, volts_of
 from pipeline.modelling.features import (
     InputTransform,
     ModelInputs,
@@ -14,7 +15,6 @@ from pipeline.modelling.features import (
     features_at,
     spec_of,
 )
-from pipeline.rig.frontend import Divider, conductance_us, volts_of
 from pipeline.sim import physics, rigs
 
 QUIET = EffectScales(

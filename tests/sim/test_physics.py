@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.config import EffectScales
-from pipeline.rig.frontend import resistance_of
+from pipeline.frontend import resistance_of
 from pipeline.sim import physics
 
 OFF = EffectScales(

@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from pipeline.config import EffectScales, IngestParams, ResampleParams, SimulateParams
+from pipeline.frontend import conductance_us, volts_of
 from pipeline.rig.format import BatchMeta
-from pipeline.rig.frontend import conductance_us, volts_of
 from pipeline.rig.ingest import ingest_batches
 from pipeline.signals import resample
 from pipeline.sim import physics, rig, rigs

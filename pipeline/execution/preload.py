@@ -3,12 +3,12 @@ process for each stage, so that a stage starts in a fraction of a second instead
 pandas, scipy, Great Expectations and MLflow afresh (6 to 20 s of CPU on the project's 2-core
 machines, for about 30 stages of a cold run).
 
-`pipeline.run` asks the server (`run_stage`) and falls back to starting the stage itself when there is
-none yet, starting one for the next stage. The stage process is the server's fork, given what a fresh
-one would have: the caller's stdin, stdout and stderr (passed over the socket), working directory,
-environment, CPU affinity and arguments, the project's own code imported afresh from its folder, and
-the default signal handlers; the caller waits for it, forwards Ctrl-C and exits with its status, and a
-stage whose caller dies is killed at once.
+`pipeline.execution.run` asks the server (`run_stage`) and falls back to starting the stage itself
+when there is none yet, starting one for the next stage. The stage process is the server's fork,
+given what a fresh one would have: the caller's stdin, stdout and stderr (passed over the socket),
+working directory, environment, CPU affinity and arguments, the project's own code imported afresh
+from its folder, and the default signal handlers; the caller waits for it, forwards Ctrl-C and exits
+with its status, and a stage whose caller dies is killed at once.
 
 A stage runs as its caller: the server serves only a caller with its own identity (user and group
 ids, groups, capabilities, no-new-privileges, seccomp, umask and resource limits, `identity`). That
@@ -207,7 +207,7 @@ def _wait(conn: socket.socket, pid: int) -> int:
     try:
         status = _read_line(conn)
     except (OSError, ConnectionError) as e:
-        print(f"pipeline.run: lost the stage process {pid}: {e}", file=sys.stderr)
+        print(f"pipeline.execution.run: lost the stage process {pid}: {e}", file=sys.stderr)
         return 1
     kind, _, value = status.partition(" ")
     return int(value) if kind == "exit" else 128 + int(value)
@@ -215,7 +215,7 @@ def _wait(conn: socket.socket, pid: int) -> int:
 
 def _start_server(path: Path, env: Mapping[str, str]) -> None:
     """Start a server for `path` in the background (it detaches itself at once); never fails."""
-    cmd = [sys.executable, "-m", "pipeline.preload", str(path)]
+    cmd = [sys.executable, "-m", "pipeline.execution.preload", str(path)]
     with contextlib.suppress(OSError, subprocess.SubprocessError):
         log_path = path.with_suffix(".log")
         big = log_path.is_file() and log_path.stat().st_size > MAX_LOG_BYTES

@@ -1,4 +1,4 @@
-"""Run one stage on pinned numeric code paths: `python -m pipeline.run STAGE ARGS...`.
+"""Run one stage on pinned numeric code paths: `python -m pipeline.execution.run STAGE ARGS...`.
 
 dvc.yaml runs every stage this way, so that the pipeline writes the same bytes, and `dvc.lock`
 the same hashes, on any x86-64 machine. numpy, glibc's libm, OpenBLAS, MKL, oneDNN and torch pick
@@ -8,7 +8,7 @@ different weights. This launcher sets the environment that makes each of them ta
 every supported machine has (x86-64-v2, numpy's baseline), with one thread each (a parallel
 reduction's order depends on the thread count), then replaces itself with
 `python -m pipeline.stages.STAGE ARGS...`, or runs it in a warm interpreter that loaded those
-libraries under the same environment (`pipeline.preload`). The environment is read when those
+libraries under the same environment (`pipeline.execution.preload`). The environment is read when those
 libraries load, which is why it is set here, before the stage's interpreter starts, and not from
 inside it.
 docs/reproducibility.md says what is guaranteed.
@@ -21,7 +21,7 @@ import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from pipeline import preload
+from pipeline.execution import preload
 
 # numpy 2.4's run-time dispatch targets above its x86-64-v2 baseline
 # (`numpy._core._multiarray_umath.__cpu_dispatch__`; tests/test_run.py checks the list is complete).
@@ -38,7 +38,7 @@ PINNED = {
     "MKL_NUM_THREADS": "1",
     "OMP_NUM_THREADS": "1",
 }
-STAGES = Path(__file__).parent / "stages"
+STAGES = Path(__file__).parents[1] / "stages"
 
 
 def _union(existing: Iterable[str], ours: Iterable[str]) -> list[str]:
@@ -69,7 +69,7 @@ def pinned_env(env: Mapping[str, str]) -> dict[str, str]:
 def main(argv: list[str]) -> None:
     if not argv or not (STAGES / f"{argv[0]}.py").is_file() or argv[0].startswith("_"):
         known = ", ".join(sorted(p.stem for p in STAGES.glob("[!_]*.py")))
-        sys.exit(f"usage: python -m pipeline.run STAGE [ARGS...]; STAGE is one of: {known}")
+        sys.exit(f"usage: python -m pipeline.execution.run STAGE [ARGS...]; STAGE is one of: {known}")
     stage, *args = argv
     env = pinned_env(os.environ)
     module = [f"pipeline.stages.{stage}", *args]

@@ -8,8 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.rig.format import SensorMeta
-from pipeline.rig.frontend import (
+from pipeline.frontend import (
     Divider,
     Transimpedance,
     Undeclared,
@@ -18,6 +17,7 @@ from pipeline.rig.frontend import (
     is_declared,
     volts_of,
 )
+from pipeline.rig.format import SensorMeta
 from tests.rig.batches import A, replace_in, run
 
 CIRCUITS = [
