@@ -5,15 +5,30 @@ BIN    := $(VENV)/bin
 # Stage commands in dvc.yaml call `python`: make it the venv's.
 export PATH := $(abspath $(BIN)):$(PATH)
 
-.PHONY: setup setup-system setup-node repro verify test test-team ci lint bench ui clean team-start team-stop team-status firmware
+.PHONY: setup lock setup-system setup-node repro verify test test-team ci lint bench ui clean team-start team-stop team-status firmware
 
 setup: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml constraints.txt
+# Installs from requirements.lock (every package pinned, with its sha256; `make lock` writes it) with
+# uv, in seconds. The lock names the CPU build of torch (2.13.0+cpu) by version and hash, not by place:
+# WHEELS is where that wheel is found (this machine's folder by default; a lab without it gives the
+# PyTorch CPU index, docs/reproducibility.md "Installing").
+UV_VERSION := 0.13.9
+WHEELS ?= $(if $(wildcard /opt/wheels/torch-*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
+UV := $(BIN)/uv
+$(VENV)/.installed: pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[dev,team]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
+	$(UV) pip install --quiet --python $(BIN)/python --require-hashes $(WHEELS) -r requirements.lock
+	$(UV) pip install --quiet --python $(BIN)/python --no-deps -e .
 	touch $@
+
+# Rewrites requirements.lock from pyproject.toml's dependencies and extras, keeping every pin the lock
+# already has unless pyproject.toml rules it out (`make lock UPGRADE=--upgrade` takes the newest).
+lock: $(VENV)/.installed
+	$(UV) pip compile --quiet pyproject.toml --extra dev --extra team --generate-hashes \
+	  --python-version 3.11 --python-platform x86_64-manylinux_2_28 $(WHEELS) $(UPGRADE) \
+	  --custom-compile-command "make lock" --output-file requirements.lock
 
 # PostgreSQL's server, for the team stack; Chromium, for the trainee page's browser test; the AVR
 # toolchain, the Arduino core and simavr, for the firmware and its emulated board (Debian's packages;
