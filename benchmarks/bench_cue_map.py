@@ -16,7 +16,7 @@ Each PROJECT is a project kept by `bench_family.py --keep DIR` or `bench_indepen
    gathered through the same map. Then, per evidence stage, how far its calibration insertions
    depart from a shift of the training layout over the distance between neighbouring angles
    (`pipeline.cues.reading.own_departure` / `neighbour_distance`; above 1: "outside"), and how the
-   pipeline's rule (`pipeline.cues.tracker.cue_reading`) reads it: as it is, or through the map of
+   pipeline's rule (`pipeline.cues.units.cue_reading`) reads it: as it is, or through the map of
    the kind that fits it best where that map removes a departure.
 2. **The angle from the force's direction**: exact-angle accuracy of a linear discriminant (shrunk,
    per level) on the unit direction of the force when its norm first reaches each of nine levels (up
@@ -41,11 +41,13 @@ import pandas as pd
 
 from pipeline.calibration.unit import cue_map_kind
 from pipeline.config import CuesParams, load_section
+from pipeline.cues.evidence import UnitMap
+from pipeline.cues.pack import AngleEstimator
 from pipeline.cues.reading import neighbour_distance, own_departure
 from pipeline.cues.score import evaluate_cues
-from pipeline.cues.tracker import UnitMap, cue_reading, unit_readings
 from pipeline.cues.trials import Trial, replay_evidence, run_evidence, trials_of
 from pipeline.cues.unit_evidence import evidence_of, trial_features
+from pipeline.cues.units import cue_reading, unit_readings
 from pipeline.dataset.splits import SplitFiles, front_ends, unit_roles
 from pipeline.modelling.prediction_store import Predictions
 from pipeline.vocab import CALIBRATION, angle_name, channels_of
@@ -130,7 +132,7 @@ def cues(project: Project, unit: str, unit_map: UnitMap | None, kind: str) -> di
 
 
 def pipeline_reads(project: Project, unit: str) -> str:
-    """How the pipeline's rule (`pipeline.cues.tracker.cue_reading`) reads the unit: "as it is" or
+    """How the pipeline's rule (`pipeline.cues.units.cue_reading`) reads the unit: "as it is" or
     "through <kind>'s map" (its calibration's `cues` section as `pipeline.calibration.unit` writes it
     now, whatever the kept project's code wrote)."""
     transforms = project.docs[unit]["transforms"]
@@ -338,7 +340,11 @@ def main() -> None:
                 ev = evidence(project, unit, unit_map)
                 est = project.estimator
                 away = [
-                    j for j, r in enumerate(unit_readings(est["stages"], est["classes_deg"], ev)) if r.departs
+                    j
+                    for j, r in enumerate(
+                        unit_readings(AngleEstimator.model_validate(est).stages, est["classes_deg"], ev)
+                    )
+                    if r.departs
                 ]
                 dep = " ".join(f"{d:.1f}" for d in departures(project, ev))
                 print(

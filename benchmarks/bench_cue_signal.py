@@ -9,7 +9,7 @@ which part of a design costs the signal. Each variant runs in a fresh copy of th
 pipeline (the variant appended to the copy's `pipeline/sim/rigs.py`) through simulate, ingest,
 resample and split on the default layout, then prints, per evidence stage of the angle estimator
 (rest reading, then the loading levels 1-9): its leave-one-batch-out accuracy on the training trials
-(`pipeline.cues.fit.fit_angle_estimator`), and the signal-to-scatter ratio of its newest features:
+(`pipeline.cues.estimator.fit_angle_estimator`), and the signal-to-scatter ratio of its newest features:
 the mean distance between the mean features of adjacent angles over the trials' scatter within one
 unit and angle.
 """
@@ -65,7 +65,7 @@ def measure(root: Path) -> dict[str, list[float | None]]:
     import numpy as np
 
     from pipeline.config import CuesParams, load_section
-    from pipeline.cues.fit import fit_angle_estimator
+    from pipeline.cues.estimator import fit_angle_estimator
     from pipeline.cues.unit_evidence import trial_features
     from pipeline.dataset.splits import SplitFiles
     from pipeline.vocab import channels_of

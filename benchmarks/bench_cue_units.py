@@ -21,7 +21,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams, load_section
-from pipeline.cues.fit import build_cue_pack, fit_angle_estimator
+from pipeline.cues.estimator import fit_angle_estimator
+from pipeline.cues.packs import build_cue_pack
 from pipeline.cues.score import evaluate_cues
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.dataset.splits import SplitFiles, unit_roles

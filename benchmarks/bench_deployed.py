@@ -13,7 +13,6 @@ Usage: `python benchmarks/bench_deployed.py` after `make repro`.
 
 from __future__ import annotations
 
-import json
 import sys
 import tempfile
 import time
@@ -30,9 +29,8 @@ PER_COUNT = 5.0 / 1023  # a 10-bit ADC on 5 V
 def main() -> int:
     import mlflow
 
-    from pipeline.calibration.document import transform_for
+    from pipeline.calibration.document import read_unit, transform_for
     from pipeline.client import ForceClient
-    from pipeline.frontend import declared
     from pipeline.modelling.checkpoint import ModelConfig
     from pipeline.modelling.export import graph_feed
     from pipeline.modelling.features import unit_inputs
@@ -47,9 +45,9 @@ def main() -> int:
         return 1
     worst = 0.0
     for doc_path in docs:
-        doc = json.loads(doc_path.read_text())
-        unit = doc["unit_id"]
-        for angle in [int(a) for a in doc["angles_used"]]:
+        doc = read_unit(doc_path)
+        unit = doc.unit_id
+        for angle in [int(a) for a in doc.angles_used]:
             ext = pd.read_parquet(root / "data" / "processed" / str(angle) / "external.parquet")
             ext = ext[ext["unit_id"] == unit]
             if ext.empty:
@@ -76,7 +74,7 @@ def main() -> int:
                     "config": config.to_dict(),
                     "inputs": client.metadata["inputs"],
                 }
-            fe = declared(doc.get("front_end"))
+            fe = doc.circuit
             unit_feed = unit_inputs(transform, fe, len(volts[0]))
             feed = graph_feed(checkpoint, volts, t, np.arange(len(volts)), unit_feed)
             model = mlflow.pyfunc.load_model(f"models:/needle-force-{angle}@champion")

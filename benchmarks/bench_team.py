@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.client import ForceClient, fetch, published  # noqa: E402
 from pipeline.client.cache import poll_alias  # noqa: E402
-from pipeline.registry import store  # noqa: E402
+from pipeline.registry import mlflow_env, store  # noqa: E402
 from pipeline.team.stack import Stack, free_base_port  # noqa: E402
 
 ROUNDS = 3
@@ -164,7 +164,7 @@ def moves(stack: Stack, source: str, tmp: Path) -> None:
             **{k: v for k, v in lab.items() if k.startswith("MLFLOW_")},
             "MLFLOW_REGISTRY_URI": stack.tracking_uri,
         }
-        with store.environment(env), store.writing(stack.tracking_uri) as w:
+        with mlflow_env.environment(env), store.writing(stack.tracking_uri) as w:
             champion = store.alias_version(w, NAME, store.CHAMPION)
             new = mlflow.register_model(champion.source, NAME, tags=champion.tags)
             w.set_registered_model_alias(NAME, store.CHAMPION, new.version)

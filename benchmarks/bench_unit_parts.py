@@ -34,9 +34,10 @@ from bench_cue_map import departure_ratios
 from bench_family import BIN, project, snapshot
 
 from pipeline.config import CuesParams, load_section
-from pipeline.cues.fit import fit_angle_estimator
-from pipeline.cues.tracker import unit_readings
+from pipeline.cues.estimator import fit_angle_estimator
+from pipeline.cues.pack import AngleEstimator
 from pipeline.cues.unit_evidence import evidence_of, trial_features
+from pipeline.cues.units import unit_readings
 from pipeline.dataset.splits import SplitFiles, front_ends
 from pipeline.vocab import CALIBRATION, channels_of
 
@@ -80,7 +81,13 @@ def departures(root: Path) -> tuple[list[int], list[float]]:
     found, _ = trial_features(cal, channels, p, front_ends(folder), est["levels"])
     ev = evidence_of(found, len(channels))[NEW]
     ratios = departure_ratios(est, ev)
-    away = [j for j, r in enumerate(unit_readings(est["stages"], est["classes_deg"], ev)) if r.departs]
+    away = [
+        j
+        for j, r in enumerate(
+            unit_readings(AngleEstimator.model_validate(est).stages, est["classes_deg"], ev)
+        )
+        if r.departs
+    ]
     return away, ratios
 
 

@@ -1,7 +1,8 @@
 """Typed views of `params.yaml`: one frozen, extra="forbid" model per section.
 
 A typo in params.yaml (an unknown key, a wrong type) fails loudly here, when the
-stage starts, instead of silently falling back to a default.
+stage starts, instead of silently falling back to a default. A model kind's own section
+(`ls`, ...) is a `Section` defined in its module, `pipeline.modelling.kinds.<name>`.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -17,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from pipeline.vocab import AXES, KINDS
 
 DEFAULT_PARAMS = Path("params.yaml")
-ModelKind = Literal[KINDS]  # type: ignore[valid-type]  # one of vocab.KINDS: a typo fails loudly
+KindName = Literal[KINDS]  # type: ignore[valid-type]  # a model kind's name, one of vocab.KINDS: a typo fails loudly
 
 
 class Section(BaseModel):
@@ -166,7 +167,7 @@ class TrainParams(Section):
     """`train`: the matrix of per-angle models (dvc.yaml: train@<angle>-<kind>)."""
 
     angles: tuple[float, ...] = (0, 15, 30, 45, 60, 75)
-    kinds: tuple[ModelKind, ...] = KINDS
+    kinds: tuple[KindName, ...] = KINDS
 
     @model_validator(mode="before")
     @classmethod
@@ -193,51 +194,13 @@ class InputParams(Section):
     rest_s: float = Field(0.5, gt=0, description="seconds at a trial's start that define its rest reading")
 
 
-class LSParams(Section):
-    """`ls`: the calibration matrix of eq. (1)-(2)."""
-
-    fit_intercept: bool = False  # the paper's F = C v has none; zero volts -> zero force
-    inputs: InputParams = InputParams()
-
-
-class FNNParams(Section):
-    """`fnn`: the paper's feed-forward network on the current voltages."""
-
-    hidden: tuple[Annotated[int, Field(ge=1)], ...] = (20, 20)
-    activation: Literal["tanh", "relu"] = "tanh"
-    lr: float = Field(0.003, gt=0)
-    weight_decay: float = Field(0.0, ge=0)
-    batch_size: int = Field(256, ge=1)
-    max_epochs: int = Field(300, ge=1)
-    patience: int = Field(25, ge=1, description="epochs without a better validation loss before stopping")
-    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
-    seed: int = 0
-    inputs: InputParams = InputParams()
-
-
-class LSTMParams(Section):
-    """`lstm`: an LSTM on a window of the estimator's own recent voltages."""
-
-    window: int = Field(15, ge=1, description="samples, including the current one")
-    hidden: int = Field(24, ge=1)
-    layers: int = Field(1, ge=1)
-    lr: float = Field(0.005, gt=0)
-    weight_decay: float = Field(0.0, ge=0)
-    batch_size: int = Field(128, ge=1)
-    max_epochs: int = Field(60, ge=1)
-    patience: int = Field(10, ge=1, description="epochs without a better validation loss before stopping")
-    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
-    seed: int = 0
-    inputs: InputParams = InputParams()
-
-
 AUTO_EVIDENCE_LEVELS = 9  # cues.evidence_levels: auto
 
 
 class CuesParams(Section):
     """`cues`: the simulator's angle cues (pipeline/cues/)."""
 
-    kinds: tuple[ModelKind, ...] = Field(KINDS, min_length=1)
+    kinds: tuple[KindName, ...] = Field(KINDS, min_length=1)
     # deviation bands: |angle - preset| below continue_below_deg -> continue, from stop_from_deg -> stop
     continue_below_deg: float = Field(7.5, gt=0)
     stop_from_deg: float = Field(22.5, gt=0)
@@ -255,7 +218,7 @@ class CuesParams(Section):
     calibrate_temperature: bool = True
     min_stage: int = Field(0, ge=0, description="evidence stage needed to leave wait (0: rest reading)")
     # P(deviation class) a cue needs: "auto" is the least that keeps the cross-validated share of
-    # insertion frames with a wrong cue at or under max_wrong (pipeline.cues.fit), or the number
+    # insertion frames with a wrong cue at or under max_wrong (pipeline.cues.confidence), or the number
     min_confidence: Literal["auto"] | float = "auto"
     max_wrong: float = Field(0.01, gt=0, lt=1, description="the wrong-cue frame share 'auto' aims at")
     switch_margin: float = Field(0.3, ge=0, le=1)
@@ -328,7 +291,7 @@ class NeedsParams(Section):
 class RegisterParams(Section):
     """`register`: which models may be deployed and how a champion is chosen."""
 
-    candidates: tuple[ModelKind, ...] = Field(KINDS, min_length=1)
+    candidates: tuple[KindName, ...] = Field(KINDS, min_length=1)
     min_improvement_pct: float = Field(
         0.0, ge=0, description="NRMSE points (mean of axes) a new version must beat the champion by"
     )

@@ -28,7 +28,6 @@ import fcntl
 import json
 import logging
 import os
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -37,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.config import DataParams, IngestParams, load_section
+from pipeline.execution.dvc_api import Busy, dvc_changed, dvc_repro
 from pipeline.ledger import USED, of_batches
 from pipeline.logs import Log
 from pipeline.metrics.document import EVALUATION_FILE, Evaluation, read_evaluation
@@ -49,10 +49,6 @@ REPORT_DIR = Path("reports/retrain")
 LEDGER = Path("reports/ledger/ledger.json")  # the ledger stage's output (dvc.yaml)
 MAX_LISTED = 50  # trials listed per batch in the report; the ledger has them all
 logger = logging.getLogger(__name__)
-
-
-class Busy(RuntimeError):
-    """Another retrain holds the lock."""
 
 
 @contextmanager
@@ -93,8 +89,9 @@ def pending_batches(
 ) -> list[Pending]:
     """New or changed batch folders of `raw_dir`, by the ingest stage's own fingerprints;
     `stage_raw_dir` is `raw_dir` as the stage names it (`data.raw_dir`, relative to the project)."""
+    from pipeline.rig.batch_store import FINGERPRINT
+    from pipeline.rig.fingerprint import fingerprint
     from pipeline.rig.format import batch_dirs
-    from pipeline.rig.ingest import FINGERPRINT, fingerprint
 
     out = []
     for batch in batch_dirs(raw_dir):
@@ -114,86 +111,12 @@ def pending_batches(
 
 def check_pending(pending: list[Pending], params: IngestParams) -> list[Pending]:
     """Each pending batch with the problems `needlecue check` finds in it (empty: fine)."""
-    from pipeline.rig.ingest import check_folders
+    from pipeline.rig.check import check_folders
 
     return [
         Pending(p.batch_id, p.path, p.status, [str(x) for x in check_folders([Path(p.path)], params)])
         for p in pending
     ]
-
-
-class _ToLog(logging.Handler):
-    """DVC's progress messages ("Running stage 'x':", the command) to the retrain's log."""
-
-    def __init__(self, log: Log) -> None:
-        super().__init__(logging.INFO)
-        self.log = log
-
-    def emit(self, record: logging.LogRecord) -> None:
-        message = record.getMessage()
-        if message.strip():
-            self.log(f"dvc: {message}")
-
-
-@contextmanager
-def _dvc(root: Path, log: Log) -> Iterator[Any]:
-    """The project's DVC repo, its log records shown on `log` while it is open.
-
-    DVC runs in this process, not as a `dvc` child: DVC's stage locks name the process holding them,
-    and a killed `dvc` child whose parent died too stays a zombie where nothing reaps orphans (a
-    container without an init), which DVC takes for a live holder and waits for. This process's
-    own parent (cron, systemd, a shell) reaps it."""
-    from dvc.lock import LockError
-    from dvc.repo import Repo
-
-    handler, dvc_log = _ToLog(log), logging.getLogger("dvc")
-    level = dvc_log.level
-    dvc_log.addHandler(handler)
-    dvc_log.setLevel(logging.INFO)
-    try:
-        with Repo(str(root)) as repo:
-            yield repo
-    except LockError as e:
-        raise Busy(
-            f"another DVC command is running in {root}: nothing done ({str(e).splitlines()[0]})"
-        ) from e
-    finally:
-        dvc_log.removeHandler(handler)
-        dvc_log.setLevel(level)
-
-
-def dvc_changed(root: Path, log: Log = logger.info) -> list[str]:
-    """Stages DVC reports as out of date (`dvc status`)."""
-    with _dvc(root, log) as repo:
-        return sorted(repo.status())
-
-
-def _stage_states(root: Path) -> dict[str, Any]:
-    """dvc.lock's record of every stage (what each last ran on and wrote)."""
-    import yaml
-
-    lock = root / "dvc.lock"
-    return (yaml.safe_load(lock.read_text()) or {}).get("stages", {}) if lock.is_file() else {}
-
-
-def dvc_repro(root: Path, log: Log) -> tuple[int, list[str], list[str]]:
-    """`dvc repro` (its progress and the stages' output on this process's): (exit code, stages run,
-    the error's lines). After a failure, the stages run are those whose dvc.lock record changed:
-    the ones that completed before it."""
-    from dvc.exceptions import DvcException
-
-    before = _stage_states(root)
-    python = {"PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
-    try:
-        with _dvc(root, log) as repo:
-            ran = repo.reproduce(run_env=python)  # stages call `python`: this interpreter's
-        return 0, [stage.addressing for stage in ran], []
-    except DvcException as e:
-        after = _stage_states(root)
-        done = [name for name, state in after.items() if before.get(name) != state]
-        lines = [str(e)] + ([f"caused by: {e.__cause__}"] if e.__cause__ else [])
-        log(f"dvc repro failed: {' '.join(lines)}")
-        return 1, done, lines
 
 
 def _read_json(path: Path) -> dict[str, Any]:

@@ -24,12 +24,13 @@ TRIAL_KEY = ("batch_id", "trial_id")  # a trial is unique by both
 ID_COLUMNS = ("batch_id", "unit_id", "trial_id", "angle_deg", "tissue_point", "t_s", "phase")
 PHASES = ("rest", "insertion", "dwell", "retraction")
 NON_CHANNELS = frozenset({*ID_COLUMNS, *AXES})  # every other column of a processed frame is a channel
-KINDS = ("ls", "fnn", "lstm")  # model kinds, simplest first (ties go to the simpler)
+# the model kinds params.yaml may name (config.KindName), simplest first (ties go to the simpler): the
+# names of `pipeline.modelling.kinds.TABLE` in its order (a test checks), which this light layer cannot load
+KINDS = ("ls", "fnn", "lstm")
 SPLITS = ("train", "val", "test", "external")
 CALIBRATION = "calibration"  # batch purpose, and the processed folder of its trials (never a split)
 # rig-log/1 batch, trial and unit ids (`docs/rig-log-format.md`, section 2; `pipeline.rig.format`)
 ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
-KIND_LABELS = {"ls": "LS", "fnn": "FNN", "lstm": "LSTM"}
 
 # The deployable model (pipeline.modelling.export writes it, pipeline.client reads it).
 # /2: the graph reads the model's inputs (`inputs` in the metadata says how they are computed from
@@ -61,11 +62,6 @@ def format_problem(found: Any, expected: str, what: str, redo: str) -> str | Non
 def angle_name(angle_deg: float | str) -> str:
     """Folder and key name of an angle: 30.0 -> "30", 22.5 -> "22.5", -0.0 -> "0"."""
     return f"{float(angle_deg) + 0.0:g}"
-
-
-def kind_label(kind: str) -> str:
-    """LS, FNN, LSTM; any other kind in capitals."""
-    return KIND_LABELS.get(kind, kind.upper())
 
 
 def sorted_angles(names: Iterable[str]) -> list[str]:

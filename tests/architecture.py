@@ -18,7 +18,7 @@ PACKAGE = "pipeline"
 
 
 def module_file(module: str) -> Path | None:
-    """The file of a project module (`pipeline.cues.fit` -> pipeline/cues/fit.py), None if not ours."""
+    """The file of a project module (`pipeline.cues.pack` -> pipeline/cues/pack.py), None if not ours."""
     parts = module.split(".")
     if parts[0] != PACKAGE:
         return None

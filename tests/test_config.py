@@ -7,15 +7,16 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from pipeline.config import CuesParams, TrainParams, load_section
+from pipeline.config import CuesParams, RegisterParams, TrainParams, load_section
 
 
 def test_bad_params_fail_loudly(tmp_path: Path) -> None:
     # given: a typo, a wrong value, and an inconsistent pair
     with pytest.raises(ValidationError, match="debounce"):
         CuesParams.model_validate({"debounce": 0.3})
-    with pytest.raises(ValidationError):
-        CuesParams.model_validate({"kinds": ["gru"]})
+    for section, key in ((CuesParams, "kinds"), (TrainParams, "kinds"), (RegisterParams, "candidates")):
+        with pytest.raises(ValidationError, match="'ls', 'fnn' or 'lstm'"):  # a model kind's name
+            section.model_validate({key: ["ls", "lsmt"]})
     with pytest.raises(ValidationError, match="increasing"):
         CuesParams(evidence_levels=(0.2, 0.1))
     with pytest.raises(ValidationError, match="stop_from_deg"):

@@ -15,6 +15,7 @@ from mlflow import MlflowClient
 
 from pipeline import retrain
 from pipeline.config import IngestParams
+from pipeline.execution.dvc_api import Busy
 from tests.helpers import tree_hash
 from tests.metrics.documents import evaluation
 from tests.projects import LAB_BATCH, copy_project, run
@@ -23,7 +24,7 @@ from tests.projects import LAB_BATCH, copy_project, run
 def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> None:
     # given: one holder of the lock
     path = tmp_path / "lock"
-    busy = pytest.raises(retrain.Busy, match=rf"another retrain is running \(pid {os.getpid()}, started")
+    busy = pytest.raises(Busy, match=rf"another retrain is running \(pid {os.getpid()}, started")
     # when: a second one tries (a second file descriptor, as another process would have)
     with retrain.lock(path), busy, retrain.lock(path):
         pass

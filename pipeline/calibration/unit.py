@@ -13,7 +13,7 @@ applies to those models only).
 
 `cues.mapped` is the same evidence gathered through the unit's map on its conductance (`cue_map_kind`
 says whose); the cues read the unit through it only where that removes a departure from the
-training units' layout (`pipeline.cues.tracker.cue_reading`).
+training units' layout (`pipeline.cues.units.cue_reading`).
 
 The stage and `needlecue calibrate` both build it here; `pipeline.calibration.document` reads it.
 """
@@ -28,7 +28,7 @@ import pandas as pd
 from pipeline.calibration.document import DIGITS, FORMAT
 from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
-from pipeline.cues.tracker import UnitMap
+from pipeline.cues.evidence import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.frontend import Circuit
 from pipeline.logs import Log

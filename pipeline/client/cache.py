@@ -33,7 +33,7 @@ from pipeline.client.verify import (
     unit_info,
     unit_problem,
 )
-from pipeline.registry import store
+from pipeline.registry import mlflow_env, store
 
 # A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
 # gets a short timeout and no retries (a failed poll is simply tried again at the next interval).
@@ -98,7 +98,7 @@ def poll_alias(name: str, alias: str, tracking_uri: str | None) -> Any:
     if published.is_published(uri):
         found, _ = published_manifest(uri, name, alias, hint)
         return PublishedVersion(found)
-    with store.environment(_POLL_HTTP_ENV):
+    with mlflow_env.environment(_POLL_HTTP_ENV):
         if uri.startswith(("http://", "https://")):
             try:
                 mv = MlflowClient(tracking_uri=uri, registry_uri=uri).get_model_version_by_alias(name, alias)
@@ -172,7 +172,7 @@ def _fetch_version(
             name, alias, target, cached, registry_uri, (file, sha_key), hint, light, problem
         )
     try:
-        with store.patience():
+        with mlflow_env.patience():
             mv = resolve(store.connect(registry_uri, must_exist=True), name, alias, registry_uri, hint)
     except store.RegistryUnreachable as e:
         return offline_copy(target, cached, uri, e, problem)
@@ -183,7 +183,7 @@ def _fetch_version(
     ):
         return target  # already that version, intact: no download
     try:
-        with store.patience():
+        with mlflow_env.patience():
             return download(mv, alias, target, registry_uri, describe, only)
     except (OSError, store.RegistryUnreachable) as e:  # the connection dropped mid-download
         return offline_copy(target, cached, uri, e, problem)

@@ -10,12 +10,10 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.calibration.document import FILE as UNIT_FILE
-from pipeline.calibration.document import FORMAT as UNIT_FORMAT
-from pipeline.calibration.document import read_unit, transform_for
+from pipeline.calibration.document import UnitCalibration, parse_unit, read_unit, transform_for
 from pipeline.client.cache import fetch_unit
 from pipeline.client.copies import ModelNotFound, read_version
 from pipeline.client.model import Model
-from pipeline.frontend import declared
 from pipeline.modelling.features import InputTransform
 from pipeline.registry import store
 from pipeline.vocab import angle_name, file_sha256
@@ -29,7 +27,7 @@ class Source:
     """A calibration document and where it came from (a version.json, or a file), or why there is
     none (`problem`)."""
 
-    doc: dict[str, Any] | None
+    doc: UnitCalibration | None
     info: dict[str, Any] | None
     problem: str | None = None
 
@@ -52,7 +50,7 @@ class Decision:
     reason: str | None
     circuit: Any
     calibration: dict[str, Any] | None
-    doc: Mapping[str, Any] | None
+    doc: UnitCalibration | None
 
     @property
     def calibrated(self) -> bool:
@@ -60,25 +58,27 @@ class Decision:
 
 
 def given(
-    calibration: Path | str | Mapping[str, Any] | None, unit_id: str | None
+    calibration: Path | str | Mapping[str, Any] | UnitCalibration | None, unit_id: str | None
 ) -> tuple[Source, str | None]:
     """The source of a calibration given to `from_dir` (a calibration.json path, read and checked, or
-    the document itself) and the client's unit (the document's; another `unit_id` is a ValueError)."""
+    the document itself, checked) and the client's unit (the document's; another `unit_id` is a
+    ValueError)."""
     if calibration is None:
         problem = NO_UNIT if unit_id is None else "no calibration document was given (calibration=...)"
         return Source(None, None, problem), unit_id
-    if isinstance(calibration, Mapping):
-        doc = dict(calibration)
-        if doc.get("format") != UNIT_FORMAT or not doc.get("unit_id"):
-            raise ValueError(f"not a {UNIT_FORMAT} calibration document (format {doc.get('format')!r})")
-        info = {"unit_id": doc["unit_id"]}
+    if isinstance(calibration, UnitCalibration):
+        doc = calibration
+        info: dict[str, Any] = {"unit_id": doc.unit_id}
+    elif isinstance(calibration, Mapping):
+        doc = parse_unit(dict(calibration), "the calibration document given")
+        info = {"unit_id": doc.unit_id}
     else:
         path = Path(calibration)
         doc = read_unit(path)
-        info = {"unit_id": doc.get("unit_id"), "path": str(path), "calibration_sha256": file_sha256([path])}
-    if unit_id is not None and doc.get("unit_id") != unit_id:
-        raise ValueError(f"the calibration given is of unit {doc.get('unit_id')!r}, not {unit_id!r}")
-    return Source(doc, info), str(doc["unit_id"])
+        info = {"unit_id": doc.unit_id, "path": str(path), "calibration_sha256": file_sha256([path])}
+    if unit_id is not None and doc.unit_id != unit_id:
+        raise ValueError(f"the calibration given is of unit {doc.unit_id!r}, not {unit_id!r}")
+    return Source(doc, info), doc.unit_id
 
 
 def registered(unit_id: str | None, fetch_kwargs: Mapping[str, Any]) -> Source:
@@ -103,18 +103,16 @@ def decide(model: Model, source: Source) -> Decision:
     if transform is None:
         return Decision(None, reason or "unknown", None, None, source.doc)
     # a calibrated unit that declared its circuit is read through it (else the model's)
-    return Decision(
-        transform, None, declared(source.doc.get("front_end")), dict(source.info or {}), source.doc
-    )
+    return Decision(transform, None, source.doc.circuit, dict(source.info or {}), source.doc)
 
 
-def transform_of(model: Model, doc: Mapping[str, Any]) -> tuple[InputTransform | None, str | None]:
+def transform_of(model: Model, doc: UnitCalibration) -> tuple[InputTransform | None, str | None]:
     """The unit's transform for `model`, or (None, why it does not apply)."""
     angle, sha = angle_name(model.angle_deg), str(model.metadata.get("checkpoint_sha256"))
     transform = transform_for(doc, model.kind, angle, sha)
     if transform is None:
-        transforms = doc.get("transforms") or {}
-        made = (transforms.get(model.kind) or {}).get("models") or {}
+        transforms = doc.transforms
+        made = transforms[model.kind].models if model.kind in transforms else {}
         if model.kind not in transforms:
             found = ", ".join(sorted(transforms)) or "none"
             return None, f"its calibration has no transform for {model.kind} models (it has {found})"

@@ -47,7 +47,7 @@ from pipeline.modelling.features import ModelInputs, RestReading, unit_inputs
 from pipeline.registry import store
 
 if TYPE_CHECKING:
-    from pipeline.cues.tracker import CueState
+    from pipeline.cues.states import CueState
 
 __all__ = [
     "CALIBRATE_FIX",
@@ -253,13 +253,15 @@ class ForceClient:
         self._feed.update(zip(names[3:], unit, strict=True))
         self._cues_on = self._tracker is not None and (decision.calibrated or self._cues_uncalibrated)
         if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
-            from pipeline.cues.tracker import cue_reading, reading_of, unit_evidence
+            from pipeline.cues.units import cue_reading, reading_of, unit_evidence
 
             self._tracker.use_front_end(decision.circuit)
             pack = self._model.cue_pack
             # its calibration insertions' evidence, and the map its conductance is read through, if any
             evidence, unit_map = (
-                cue_reading(pack, (decision.doc or {}).get("cues")) if decision.calibrated else (None, None)
+                cue_reading(pack, decision.doc.cue_section())
+                if decision.calibrated and decision.doc
+                else (None, None)
             )
             self._tracker.use_unit_map(unit_map)
             self._tracker.set_unit(

@@ -9,12 +9,12 @@ from typing import Any
 
 from pipeline.client.copies import ModelNotFound, staging, write_version
 from pipeline.client.verify import Describe, model_info
-from pipeline.registry import store
+from pipeline.registry import mlflow_env, store
 
 
 def _quiet_downloads() -> contextlib.AbstractContextManager[None]:
     """No tqdm progress bar per download (it would spam a simulator's console); env restored after."""
-    return store.environment({"MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"})
+    return mlflow_env.environment({"MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false"})
 
 
 def resolve(client: Any, name: str, alias: str, registry_uri: str, hint: str) -> Any:
@@ -52,7 +52,7 @@ def download(
     from mlflow.exceptions import MlflowException
 
     with staging(target, alias) as tmp:
-        with _quiet_downloads(), store.fluent(registry_uri):  # models:/ URIs resolve in the registry
+        with _quiet_downloads(), mlflow_env.fluent(registry_uri):  # models:/ URIs resolve in the registry
             # by version, not alias: the alias may move between resolving it and downloading
             try:
                 if only is None:

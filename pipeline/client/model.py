@@ -122,30 +122,32 @@ class Model:
         pack = self.cue_pack
         if pack is None:
             return None
-        from pipeline.cues.tracker import CueTracker, pack_format_problem
+        from pipeline.cues.pack import as_pack, pack_format_problem
+        from pipeline.cues.tracker import CueTracker
 
         problem = pack_format_problem(pack)
         if problem:
             log.warning("%s: no cues: %s", self.model_dir, problem)
             return None
+        typed = as_pack(pack, f"{self.model_dir}: its cue pack")  # a missing or renamed field fails here
         # the pack's standard profile is compared with `step`'s force: the same axes, in the same order
-        axes = (pack.get("standard_profile") or {}).get("axes")
-        if axes is not None and list(axes) != list(self.targets):
+        profile = typed.standard_profile
+        if profile is not None and list(profile.axes) != list(self.targets):
             log.warning(
                 "%s: no cues: the cue pack's standard profile is of %s, the model gives %s",
                 self.model_dir,
-                list(axes),
+                list(profile.axes),
                 list(self.targets),
             )
             return None
-        if list(pack.get("channels", self.channels)) != list(self.channels):
+        if list(typed.channels) != list(self.channels):
             raise ValueError(
-                f"{self.model_dir}: the cue pack reads channels {pack.get('channels')}, "
+                f"{self.model_dir}: the cue pack reads channels {typed.channels}, "
                 f"the model {list(self.channels)}"
             )
         # the paper-method thresholds were calibrated per model kind: use this model's if there
-        kinds = (pack.get("thresholds") or {}).get("profile") or {}
-        return CueTracker(pack, self.angle_deg, model_kind=self.kind if self.kind in kinds else None)
+        kinds = typed.thresholds.profile
+        return CueTracker(typed, self.angle_deg, model_kind=self.kind if self.kind in kinds else None)
 
     def check_stream(self, channels: Sequence[str], rate_hz: float | None, rel_tol: float = 0.05) -> None:
         """Raise `StreamMismatch` unless the stream delivers the model's channels (same order) at its

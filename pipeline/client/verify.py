@@ -67,8 +67,8 @@ def unit_problem(name: str, unit_id: str) -> Verify:
             doc = read_unit(folder / UNIT_FILE)
         except (OSError, ValueError) as e:
             return f"its calibration document is unusable ({e})"
-        if doc.get("unit_id") != unit_id or info.get("unit_id") != unit_id:
-            return f"it holds the calibration of unit {doc.get('unit_id')!r}, not {unit_id!r}"
+        if doc.unit_id != unit_id or info.get("unit_id") != unit_id:
+            return f"it holds the calibration of unit {doc.unit_id!r}, not {unit_id!r}"
         return None
 
     return problem
@@ -114,10 +114,8 @@ def unit_info(unit_id: str) -> Describe:
                 "`needlecue calibrate`"
             )
         doc = read_unit(path)
-        if doc.get("unit_id") != unit_id:
-            raise ValueError(
-                f"{mv.name} version {mv.version} holds the calibration of unit {doc.get('unit_id')!r}"
-            )
+        if doc.unit_id != unit_id:
+            raise ValueError(f"{mv.name} version {mv.version} holds the calibration of unit {doc.unit_id!r}")
         return {"unit_id": unit_id, "calibration_sha256": sha}
 
     return info

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import AUTO_EVIDENCE_LEVELS, CuesParams
-from pipeline.cues.tracker import MIN_VOLTS, Evidence, UnitMap
+from pipeline.cues.evidence import MIN_VOLTS, Evidence, UnitMap
 from pipeline.frontend import Circuit
 from pipeline.vocab import AXES, TRIAL_KEY, axes_of, rate_hz
 

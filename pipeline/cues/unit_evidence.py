@@ -1,7 +1,7 @@
 """Estimator units in the angle estimator. Units differ (part-to-part gain, cast-in preload, placement,
 connector alignment: docs/physics.md §4) by more than the needle's weight and the loading direction
 move the volts from one angle to the next, so the estimator reads every unit through its own class
-means (`pipeline.cues.tracker.unit_means`).
+means (`pipeline.cues.units.unit_readings`).
 
 Per evidence stage, a trial's features (`Evidence.features`) are modelled as the angle's mean for the
 average unit, plus the unit's offset, plus the unit's own departure at that angle, plus the trial's
@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.tracker import UnitMap
+from pipeline.cues.evidence import UnitMap
 from pipeline.cues.trials import Trial, loading_levels, replay_evidence, stage_frames, trials_of
 from pipeline.frontend import Circuit
 from pipeline.vocab import angle_name, channels_of

@@ -113,7 +113,7 @@ def dvc_graph(root: Path) -> tuple[list[str], dict[str, set[str]]]:
 def _graph(repo: Any, root: Path) -> tuple[list[str], dict[str, set[str]], dict[str, str]]:
     """(stages in order, their dependencies, {DVC's address: our name}) from DVC's stage graph: its
     internal `index.graph` (no public API gives it), checked against `dvc dag` by tests/test_repro.py
-    on the DVC that constraints.txt pins."""
+    on the DVC that requirements.lock pins."""
     # DVC names a stage relative to this process's folder: name it as `dvc repro` in root would
     name = {stage.addressing: _name(stage, root) for stage in repo.index.stages}
     order = list(name.values())

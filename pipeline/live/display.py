@@ -18,7 +18,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import IO, Any
 
-from pipeline.cues.tracker import NO_CUE_REASONS
+from pipeline.cues.pack import NO_CUE_REASONS
 from pipeline.vocab import AXES
 
 KEEPALIVE_S = 5.0

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.calibration.document import UnitCalibration
 from pipeline.metrics.evaluation import EvalSet
 from pipeline.metrics.scores import mean_known, mean_over_axes, nrmse_of, shared_scores
 from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
@@ -138,22 +139,18 @@ def champions_by_angle(within: Mapping[str, Mapping[str, Any]], kinds: Sequence[
     return {a: v[2] for a, v in best.items()}
 
 
-def calibration_summary(units: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+def calibration_summary(units: Mapping[str, UnitCalibration]) -> dict[str, Any]:
     """unit -> what its calibration used and did (from the calibrate stage's documents)."""
     return {
         unit: {
-            "batches": doc.get("batches", []),
-            "n_trials": len(doc.get("trials", [])),
-            "angles_used": doc.get("angles_used", []),
-            "angles_missing": doc.get("angles_missing", []),
-            "set_aside": [f"{s['file']}: {s['reason']}" for s in doc.get("set_aside", [])],
+            "batches": doc.batches,
+            "n_trials": len(doc.trials),
+            "angles_used": doc.angles_used,
+            "angles_missing": doc.angles_missing,
+            "set_aside": [f"{s.file}: {s.reason}" for s in doc.set_aside],
             "loss": {
-                kind: {
-                    "before": t.get("loss_before"),
-                    "after": t.get("loss_after"),
-                    "identity_kept": t.get("identity_kept"),
-                }
-                for kind, t in sorted((doc.get("transforms") or {}).items())
+                kind: {"before": t.loss_before, "after": t.loss_after, "identity_kept": t.identity_kept}
+                for kind, t in sorted(doc.transforms.items())
             },
         }
         for unit, doc in sorted(units.items())

@@ -17,12 +17,16 @@ import csv
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
+from pydantic import Field, TypeAdapter, ValidationError
+
+from pipeline.documents import Document
 
 FORMAT = "needlecue-model/1"
 CHECKPOINT_FILE = "model.pt"
@@ -53,22 +57,56 @@ class ModelConfig:
         return cls(**{**d, "hidden": tuple(d["hidden"])})
 
 
-def check_checkpoint(checkpoint: dict[str, Any], what: str = "use") -> None:
-    """Raise ValueError unless `checkpoint` is a needlecue-model/1 dict naming its kind (whether the
-    kind is known is `pipeline.modelling.kinds.kind_of`'s to say)."""
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != FORMAT:
-        fmt = checkpoint.get("format") if isinstance(checkpoint, dict) else type(checkpoint).__name__
-        raise ValueError(f"not a {FORMAT} checkpoint (format {fmt!r}): cannot {what} it")
-    if not isinstance(checkpoint.get("kind"), str) or not checkpoint["kind"]:
-        raise ValueError(
-            f"the checkpoint names no model kind (kind {checkpoint.get('kind')!r}): cannot {what} it"
-        )
+TENSORS = ("state_dict", "preprocessing")  # the checkpoint's groups of tensors; the rest is `CheckpointMeta`
+
+
+class CheckpointMeta(Document):
+    """What a checkpoint says of itself besides its tensors (the module docstring lists each field)."""
+
+    format: Literal["needlecue-model/1"]
+    kind: str = Field(min_length=1)  # whether it is known is `pipeline.modelling.kinds.kind_of`'s to say
+    config: ModelConfig
+    channels: list[str]
+    inputs: dict[str, Any] | None = None  # `config.InputParams`; absent in older checkpoints: raw volts
+    inputs_choice: dict[str, Any] | None = None  # `Choice.to_dict()`; None: pinned in params
+    targets: list[str]
+    rate_hz: float  # NaN: not estimated (no times)
+    angle_deg: float
+    train_data_sha256: str
+    params: dict[str, Any]  # the kind's params section it was trained with
+    torch_version: str
+
+
+_META: TypeAdapter[CheckpointMeta] = TypeAdapter(CheckpointMeta)
+
+
+def checkpoint_meta(checkpoint: Mapping[str, Any], where: str = "the checkpoint") -> CheckpointMeta:
+    """The metadata of `checkpoint`, checked: ValueError naming `where` and the field (another format,
+    a missing or renamed field, a missing group of tensors)."""
+    if not isinstance(checkpoint, Mapping) or checkpoint.get("format") != FORMAT:
+        fmt = checkpoint.get("format") if isinstance(checkpoint, Mapping) else type(checkpoint).__name__
+        raise ValueError(f"{where}: not a {FORMAT} checkpoint (format {fmt!r})")
+    missing = [g for g in TENSORS if not isinstance(checkpoint.get(g), Mapping)]
+    if missing:
+        raise ValueError(f"{where}: a {FORMAT} checkpoint without its {' and '.join(missing)}")
+    try:
+        return _META.validate_python({k: v for k, v in checkpoint.items() if k not in TENSORS})
+    except ValidationError as e:
+        raise ValueError(f"{where}: not a checkpoint this needlecue reads (train it again): {e}") from e
+
+
+def check_checkpoint(checkpoint: dict[str, Any], what: str = "use") -> CheckpointMeta:
+    """`checkpoint`'s metadata; ValueError unless it is a whole needlecue-model/1 checkpoint naming its
+    kind (whether the kind is known is `pipeline.modelling.kinds.kind_of`'s to say)."""
+    return checkpoint_meta(checkpoint, f"cannot {what} the checkpoint")
 
 
 def save_checkpoint(checkpoint: dict[str, Any], path: Path) -> None:
-    """`torch.save` of the plain dict (loadable with weights_only=True)."""
+    """`torch.save` of the plain dict (loadable with weights_only=True), once `checkpoint_meta` has
+    checked it (ValueError naming the field, and nothing written)."""
     import torch
 
+    checkpoint_meta(checkpoint, f"{path} (being written)")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     torch.save(checkpoint, path)
 
@@ -103,7 +141,8 @@ def read_train_metrics(model_dir: Path) -> dict[str, Any]:
 
 
 def load_checkpoint(model_dir_or_file: Path) -> dict[str, Any]:
-    """The checkpoint dict of a model folder (its `model.pt`) or file, loaded with weights_only=True."""
+    """The checkpoint dict of a model folder (its `model.pt`) or file, loaded with weights_only=True
+    and checked (`checkpoint_meta`: ValueError naming the file and the field)."""
     import torch
 
     path = Path(model_dir_or_file)
@@ -111,7 +150,9 @@ def load_checkpoint(model_dir_or_file: Path) -> dict[str, Any]:
         path = path / CHECKPOINT_FILE
     if not path.is_file():
         raise FileNotFoundError(f"no model checkpoint at {path}")
-    return torch.load(path, map_location="cpu", weights_only=True)
+    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    checkpoint_meta(checkpoint, str(path))
+    return checkpoint
 
 
 def data_sha256(*frames: pd.DataFrame) -> str:
@@ -129,6 +170,7 @@ def checkpoint_sha256(checkpoint: dict[str, Any]) -> str:
     for equal models. A checkpoint without `inputs` (raw volts) hashes as before they were recorded."""
     check_checkpoint(checkpoint, "hash")
     h = hashlib.sha256()
+    # the stored values, not the typed ones: every registered checkpoint's hash stays
     keys = ("kind", "config", "channels", "targets") + (("inputs",) if "inputs" in checkpoint else ())
     head = {k: checkpoint[k] for k in keys}
     h.update(json.dumps(head, sort_keys=True).encode())

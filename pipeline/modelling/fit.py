@@ -20,7 +20,6 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.config import FNNParams, LSParams, LSTMParams
 from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import FORMAT, data_sha256
@@ -28,11 +27,11 @@ from pipeline.modelling.choice import Choice, choose_inputs
 from pipeline.modelling.features import inputs_for
 from pipeline.modelling.inputs import trial_codes
 from pipeline.modelling.kinds import kind_of
+from pipeline.modelling.kinds.base import KindParams
 from pipeline.modelling.predictor import Predictor
 from pipeline.vocab import AXES, axes_of, channels_of, rate_hz
 
 LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"
-ModelParams = LSParams | FNNParams | LSTMParams  # the built-in kinds' sections; a kind's own: `kind.params`
 
 
 def _angle_deg(frame: pd.DataFrame) -> float:
@@ -59,7 +58,7 @@ class TrainResult:
 
 def fit(
     kind: str,
-    params: ModelParams,
+    params: KindParams,
     train: pd.DataFrame,
     val: pd.DataFrame | None = None,
     *,
@@ -154,7 +153,7 @@ def fit(
 
 def choose(
     kind: str,
-    params: ModelParams,
+    params: KindParams,
     train: pd.DataFrame,
     val: pd.DataFrame,
     front_end: Circuit | None,

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.frontend import Circuit
-from pipeline.modelling.checkpoint import FORMAT, ModelConfig, load_checkpoint
+from pipeline.modelling.checkpoint import checkpoint_meta, load_checkpoint
 from pipeline.modelling.features import InputTransform, features, spec_of
 from pipeline.modelling.inputs import times_of, trial_codes
 from pipeline.modelling.kinds import kind_of
@@ -30,17 +30,16 @@ class Predictor:
     """
 
     def __init__(self, checkpoint: dict[str, Any]) -> None:
-        if checkpoint.get("format") != FORMAT:
-            raise ValueError(f"not a {FORMAT} checkpoint (format {checkpoint.get('format')!r})")
+        meta = checkpoint_meta(checkpoint)
         self.checkpoint = checkpoint
-        self.kind: str = checkpoint["kind"]
+        self.kind: str = meta.kind
         self.model_kind = kind_of(self.kind, "run")
-        self.config = ModelConfig.from_dict(checkpoint["config"])
-        self.channels: tuple[str, ...] = tuple(checkpoint["channels"])
-        self.inputs = spec_of(checkpoint.get("inputs"))
-        self.targets: tuple[str, ...] = tuple(checkpoint["targets"])
-        self.rate_hz: float = float(checkpoint["rate_hz"])
-        self.angle_deg: float = float(checkpoint["angle_deg"])
+        self.config = meta.config
+        self.channels: tuple[str, ...] = tuple(meta.channels)
+        self.inputs = spec_of(meta.inputs)
+        self.targets: tuple[str, ...] = tuple(meta.targets)
+        self.rate_hz: float = meta.rate_hz
+        self.angle_deg: float = meta.angle_deg
         self.window: int = self.model_kind.window(self.config)
         self.sequence: bool = self.model_kind.sequence  # reads a window of samples per row
         self._model = self.model_kind.load(self.config, checkpoint["state_dict"], checkpoint["preprocessing"])

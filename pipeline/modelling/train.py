@@ -16,7 +16,8 @@ from pipeline.frontend import Circuit, circuit_key
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import save_model_dir
 from pipeline.modelling.choice import Choice, pool
-from pipeline.modelling.fit import ModelParams, choose, fit
+from pipeline.modelling.fit import choose, fit
+from pipeline.modelling.kinds.base import KindParams
 from pipeline.vocab import angle_name, file_sha256
 
 
@@ -52,7 +53,7 @@ def load_angle(data_dir: Path) -> AngleData:
 
 
 def choose_folders(
-    kind: str, params: ModelParams, data_root: Path, angles: Sequence[float | str], log: Log
+    kind: str, params: KindParams, data_root: Path, angles: Sequence[float | str], log: Log
 ) -> Choice:
     """The inputs of `kind` (`inputs.kind: auto`) chosen once for all `angles`: each angle's choice
     (`data_root/<angle>`) pooled by the mean score (pipeline.modelling.choice.pool)."""
@@ -68,7 +69,7 @@ def choose_folders(
 
 
 def train_folder(
-    kind: str, params: ModelParams, data_dir: Path, out_dir: Path, log: Log, decided: Choice | None = None
+    kind: str, params: KindParams, data_dir: Path, out_dir: Path, log: Log, decided: Choice | None = None
 ) -> dict[str, Any]:
     """Fit `kind` on `data_dir/train.parquet`, early-stopping on `val.parquet` (may be empty or
     absent), reading through the circuit its units declare (`data_dir/front_ends.json`) and, with

@@ -1,17 +1,27 @@
 """What to record next, in words: sentences computed from the needs curves (`pipeline.needs.curves`),
-every number and every recommendation taken from them. Pure functions of the needs document."""
+every number and every recommendation taken from them. Pure functions of the needs document's curves
+(`pipeline.needs.document.Curves`)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import TypeVar
+
+from pipeline.modelling.kinds import kind_label
+from pipeline.needs.document import CueScores, CueUnscored, Curves, MeanScores, force_kind, networks
 
 FLAT_REL = 0.05  # the force curve has flattened where all further data lowers its NRMSE by less than this
-FORCE_LABELS = {
-    "ls": "LS",
-    "fnn_stand_in": "the networks' stand-in (a ridge regression, not the trained FNN or LSTM)",
-}
 Point = tuple[int, float]  # (insertions per angle, figure)
+S = TypeVar("S")  # a point of a curve: a ladder step, a calibration step
+
+
+def force_label(name: str, names: Sequence[str]) -> str:
+    """How the advice names the force curve `name` among the document's force curves `names`."""
+    kind, stand_in = force_kind(name)
+    if not stand_in:
+        return kind_label(kind)
+    fitted = [k for k, s in map(force_kind, names) if not s]
+    return f"the networks' stand-in (a ridge regression, not the trained {networks(fitted)})"
 
 
 def _pct(fraction: float) -> str:
@@ -158,67 +168,60 @@ def new_unit_sentence(unit: str, points: Sequence[Point], fewest: int, asked: Se
     return f"{sentence}."
 
 
-def _points(steps: Sequence[Mapping[str, Any]], x: str, get: Any) -> list[Point]:
-    out = []
-    for s in steps:
-        v = get(s)
-        if v is not None:
-            out.append((int(s[x]), float(v)))
-    return out
+def _points(steps: Sequence[S], x: Callable[[S], int], get: Callable[[S], float | None]) -> list[Point]:
+    """(x, figure) of the steps that have the figure."""
+    return [(int(x(s)), float(v)) for s in steps if (v := get(s)) is not None]
 
 
-def sentences(needs: Mapping[str, Any]) -> list[str]:
+def _balanced(figures: object) -> float | None:
+    """The balanced accuracy of scored cue figures (None: not scored)."""
+    return figures.balanced_within_s if isinstance(figures, CueScores | MeanScores) else None
+
+
+def sentences(needs: Curves) -> list[str]:
     """The advice of a needs document, in the order: cues, force, calibration."""
-    p, training = needs["params"], needs["training"]
-    target, within = float(p["cue_target_pct"]), float(needs["cue_within_s"])
-    have = have_text(training["have_per_angle"])
-    steps = training["steps"]
+    p, training = needs.params, needs.training
+    target, within = float(p.cue_target_pct), float(needs.cue_within_s)
+    have = have_text(training.have_per_angle)
+    steps = training.steps
     out = [
-        cue_sentence(
-            _points(steps, "per_angle", lambda s: (s.get("cues") or {}).get("balanced_within_s")),
-            have,
-            target,
-            within,
-        )
+        cue_sentence(_points(steps, lambda s: s.per_angle, lambda s: _balanced(s.cues)), have, target, within)
     ]
-    unscored = [s for s in steps if "unavailable" in (s.get("cues") or {})]
+    unscored = [(s.per_angle, s.cues.unavailable) for s in steps if isinstance(s.cues, CueUnscored)]
     if unscored:
-        counts = ", ".join(str(s["per_angle"]) for s in unscored)
-        why = unscored[0]["cues"]["unavailable"]
-        out.append(f"With {counts} insertions per angle the cues could not be scored: {why}.")
-    for name in (m["name"] for m in training.get("force_models") or []):
-        label = FORCE_LABELS.get(name, name)
+        counts = ", ".join(str(n) for n, _ in unscored)
+        out.append(f"With {counts} insertions per angle the cues could not be scored: {unscored[0][1]}.")
+    names = [m.name for m in training.force_models]
+    for name in names:
         figure = _points(
-            steps, "per_angle", lambda s, n=name: ((s.get("force") or {}).get(n) or {}).get("mean_nrmse_pct")
+            steps,
+            lambda s: s.per_angle,
+            lambda s, n=name: f.mean_nrmse_pct if (f := s.force.get(n)) is not None else None,
         )
-        out.append(force_sentence(label, figure, have))
+        out.append(force_sentence(force_label(name, names), figure, have))
 
-    calibration = needs["calibration"]
-    new = calibration.get("new_units") or {}
-    fewest = {u: min(e["calibration_insertions"].values()) for u, e in new.items()}
+    calibration = needs.calibration
+    new = calibration.new_units
+    fewest = {u: min(e.calibration_insertions.values()) for u, e in new.items()}
     new_lines = [
         new_unit_sentence(
             u,
-            _points(e["steps"], "k", lambda s: s.get("balanced_within_s")),
+            _points(e.steps, lambda s: s.k, _balanced),
             fewest[u],
-            p["calibration_insertions"],
+            list(p.calibration_insertions),
         )
         for u, e in sorted(new.items())
     ]
-    loo = calibration.get("leave_one_unit_out")
+    loo = calibration.leave_one_unit_out
     if loo is None:
-        units = training.get("units") or []
+        units = training.units
         one = f"one training unit ({units[0]})" if len(units) == 1 else "fewer than two training units"
         shown = [s for s in new_lines if s]
         tail = "; ".join(shown) if shown else "no new unit's calibration batch shows the curve either"
         out.append(f"Leave-one-unit-out is not possible with {one}: {tail.rstrip('.')}.")
     else:
-        mean = loo.get("mean") or []
-        units = max((m.get("units", 0) for m in mean), default=0)
-        out.append(
-            left_out_sentence(
-                _points(mean, "k", lambda m: m.get("balanced_within_s")), units, target, within, fewest
-            )
-        )
+        mean = loo.mean
+        units = max((m.units for m in mean), default=0)
+        out.append(left_out_sentence(_points(mean, lambda m: m.k, _balanced), units, target, within, fewest))
         out += new_lines
     return [s for s in out if s]

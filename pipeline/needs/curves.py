@@ -3,9 +3,9 @@
 Training insertions per angle: a ladder of counts (`pipeline.needs.subsample.ladder`); at each, a
 subsample of every angle's training trials spread over the units and their batches (a count's
 subsample holds those of the smaller counts, so that two steps differ by the data added, not by another
-draw). On each: the force of LS and the networks' stand-in refitted per angle (`pipeline.needs.force`),
-and the cues of the angle estimator and packs refitted (`pipeline.needs.scoring`), both scored on the
-training units' external trials.
+draw). On each: the force of each model kind (LS itself, the networks' stand-in) refitted per angle
+(`pipeline.needs.force`), and the cues of the angle estimator and packs refitted (`pipeline.needs.scoring`),
+both scored on the training units' external trials.
 
 Calibration insertions per angle, cues only (force would need the models retrained without the unit):
 each new unit's first k calibration insertions per angle (by batch and trial id) as its evidence,
@@ -31,12 +31,11 @@ from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.metrics.scores import mean_known
+from pipeline.needs.document import FORMAT
 from pipeline.needs.force import ForceModel, force_curve
 from pipeline.needs.scoring import SEEN, CueJob, CueScoring, Frames, score_cues
 from pipeline.needs.subsample import SUBSAMPLE, Key, Selection, ladder, spread_order, trials_in, units_of
 from pipeline.vocab import angle_name
-
-FORMAT = "needlecue-needs/1"
 
 
 def note(what: str, why: str) -> dict[str, str]:
@@ -196,10 +195,17 @@ def _calibration_figures(
 
 
 def needs_curves(
-    data: LabData, p: NeedsParams, cues: CuesParams, models: Mapping[str, ForceModel], log: Log
+    data: LabData,
+    p: NeedsParams,
+    cues: CuesParams,
+    models: Mapping[str, ForceModel],
+    cue_kind: str,
+    log: Log,
 ) -> dict[str, Any]:
-    """The needs document (without its advice): the ladder with force and cue figures per step, the
-    calibration curves, and what was not computed and why. ValueError without training trials."""
+    """The needs document (without its advice, `pipeline.needs.document.Curves`): the ladder with force
+    and cue figures per step, the calibration curves, and what was not computed and why. The cues are
+    scored as for `cue_kind`'s pack, the measured force standing in for its model. ValueError without
+    training trials."""
     train = {a: f for a, f in sorted(data.frames.get("train", {}).items()) if len(f)}
     if not train:
         raise ValueError("no training trials (no <angle>/train.parquet with rows)")
@@ -230,7 +236,7 @@ def needs_curves(
         notes.append(
             note("cues", f"one trained angle ({angle_name(next(iter(train)))}°): nothing to tell apart")
         )
-    scored_params = cues.model_copy(update={"kinds": ("ls",)})
+    scored_params = cues.model_copy(update={"kinds": (cue_kind,)})
     found = score_cues(plan.jobs(), frames, data.circuits, scored_params, log) if plan.fits else {}
 
     ladder_out = [

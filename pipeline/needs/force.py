@@ -1,7 +1,8 @@
-"""Force against the training insertions per angle: LS and the networks' stand-in (the ridge regression
-that `pipeline.modelling.choice` scores inputs with), refitted per angle on a subsample and scored on
-that angle's external trials of the training units, NRMSE % (eq. 3-4). Not the trained networks: an
-LSTM per subsample would cost minutes each."""
+"""Force against the training insertions per angle, per model kind the stage passes: the kind itself
+where its inputs-choice stand-in is linear (LS), else the networks' stand-in (the ridge regression that
+`pipeline.modelling.choice` scores inputs with: the kind's `stand_in`), refitted per angle on a
+subsample and scored on that angle's external trials of the training units, NRMSE % (eq. 3-4). Not
+the trained networks: an LSTM per subsample would cost minutes each."""
 
 from __future__ import annotations
 
@@ -13,7 +14,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.config import FNNParams, LSParams
 from pipeline.dataset.splits import common_front_end
 from pipeline.frontend import Circuit
 from pipeline.logs import Log
@@ -22,6 +22,9 @@ from pipeline.modelling.choice import load_choice, ridge, stand_in_basis  # the 
 from pipeline.modelling.features import inputs_for
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import features_of, times_of, trial_codes
+from pipeline.modelling.kinds import kind_label, kind_of
+from pipeline.modelling.kinds.base import StandIn
+from pipeline.needs.document import force_name, networks
 from pipeline.needs.subsample import Selection, select
 from pipeline.vocab import angle_name, axes_of, channels_of
 
@@ -34,7 +37,7 @@ class ForceModel:
     predict: Callable[[pd.DataFrame, pd.DataFrame], np.ndarray]
 
 
-def chosen_kind(model: str, section: LSParams | FNNParams, choices_dir: Path) -> str:
+def chosen_kind(model: str, section: Any, choices_dir: Path) -> str:
     """The inputs the train stage gives `model`: pinned in params, else the choose stage's decision
     (ValueError naming the file when there is none)."""
     if section.inputs.kind != "auto":
@@ -48,56 +51,70 @@ def chosen_kind(model: str, section: LSParams | FNNParams, choices_dir: Path) ->
     return choice.chosen
 
 
-def ls_model(params: LSParams, kind: str, front_end: Circuit | None) -> ForceModel:
-    """LS (the paper's calibration matrix) on the inputs `kind`, as the train stage fits it."""
-    inputs_for(kind, params.inputs.rest_s, front_end)  # a kind needing an undeclared circuit fails here
-    pinned = params.model_copy(update={"inputs": params.inputs.model_copy(update={"kind": kind})})
+def fitted_model(kind: str, params: Any, inputs: str, front_end: Circuit | None) -> ForceModel:
+    """The model `kind` itself (one whose stand-in is linear: least squares, the paper's calibration
+    matrix) on the inputs `inputs`, as the train stage fits it."""
+    inputs_for(inputs, params.inputs.rest_s, front_end)  # a kind needing an undeclared circuit fails here
+    pinned = params.model_copy(update={"inputs": params.inputs.model_copy(update={"kind": inputs})})
 
     def predict(train: pd.DataFrame, rows: pd.DataFrame) -> np.ndarray:
-        found = fit("ls", pinned, train, train_data_sha256="subsample", front_end=front_end)
+        found = fit(kind, pinned, train, train_data_sha256="subsample", front_end=front_end)
         return found.predictor.predict(rows.drop(columns=list(axes_of(rows.columns))))
 
-    return ForceModel(f"LS (the paper's calibration matrix) on {kind}", predict)
+    return ForceModel(f"{kind_label(kind)} (the paper's calibration matrix) on {inputs}", predict)
 
 
-def stand_in_model(params: FNNParams, kind: str, front_end: Circuit | None) -> ForceModel:
-    """The networks' stand-in of the inputs choice: ridge on the FNN's inputs, their squares and
-    pairwise products. Not a trained network."""
-    spec = inputs_for(kind, params.inputs.rest_s, front_end)
+def stand_in_model(
+    kind: str, stand_in: StandIn, params: Any, inputs: str, front_end: Circuit | None, others: str
+) -> ForceModel:
+    """The networks' stand-in of the inputs choice for `kind` (`stand_in`): ridge on its inputs, their
+    squares and pairwise products (and lags, for a kind with memory). Not a trained network (`others`:
+    the kinds it is not, in words)."""
+    spec = inputs_for(inputs, params.inputs.rest_s, front_end)
 
     def predict(train: pd.DataFrame, rows: pd.DataFrame) -> np.ndarray:
         # one basis over both, standardised over both, as the inputs choice builds it for its folds
         both = pd.concat([train, rows.drop(columns=list(axes_of(rows.columns)))], ignore_index=True)
         x = features_of(both, channels_of(train), spec)
-        basis = stand_in_basis(x, False, True, [], trial_codes(both), times_of(both))
+        basis = stand_in_basis(
+            x, stand_in.linear, stand_in.intercept, list(stand_in.lags), trial_codes(both), times_of(both)
+        )
         weights = ridge(basis[: len(train)], train[list(axes_of(train.columns))].to_numpy(np.float64))
         return basis[len(train) :] @ weights
 
-    about = f"the networks' stand-in (ridge on the FNN's inputs {kind}, their squares and pairwise products)"
-    return ForceModel(about + ", not a trained FNN or LSTM", predict)
+    lags = f", lags {list(stand_in.lags)} samples" if stand_in.lags else ""
+    about = (
+        f"the networks' stand-in (ridge on the {kind_label(kind)}'s inputs {inputs}, their squares and "
+        f"pairwise products{lags})"
+    )
+    return ForceModel(f"{about}, not a trained {others}", predict)
 
 
 def force_models(
-    ls: LSParams,
-    fnn: FNNParams,
+    kinds: Sequence[tuple[str, Any]],
     choices_dir: Path,
     circuits: Mapping[str, Circuit | None],
     units: Sequence[str],
 ) -> tuple[dict[str, ForceModel], list[dict[str, str]]]:
-    """LS and the networks' stand-in on the inputs the train stage gives LS and the FNN, read through
-    the circuit the training `units` share; what cannot be built is said instead."""
+    """Per model kind of `kinds` ((kind, its params section)), in order: the kind itself where its
+    inputs-choice stand-in is linear (the model is), else the networks' stand-in, named by
+    `pipeline.needs.document.force_name`; on the inputs the train stage gives the kind, read through
+    the circuit the training `units` share. What cannot be built is said instead."""
     try:
         front_end = common_front_end(dict(circuits), units)
     except ValueError as e:
         return {}, [{"what": "force against training insertions", "why": str(e)}]
-    builders: dict[str, Callable[[], ForceModel]] = {
-        "ls": lambda: ls_model(ls, chosen_kind("ls", ls, choices_dir), front_end),
-        "fnn_stand_in": lambda: stand_in_model(fnn, chosen_kind("fnn", fnn, choices_dir), front_end),
-    }
+    stand_ins = [(kind, params, kind_of(kind, "refit").stand_in(params)) for kind, params in kinds]
+    others = networks(kind for kind, _, s in stand_ins if s.linear)
     models, notes = {}, []
-    for name, build in builders.items():
+    for kind, params, s in stand_ins:
+        name = force_name(kind, not s.linear)
         try:
-            models[name] = build()
+            inputs = chosen_kind(kind, params, choices_dir)
+            if s.linear:
+                models[name] = fitted_model(kind, params, inputs, front_end)
+            else:
+                models[name] = stand_in_model(kind, s, params, inputs, front_end, others)
         except ValueError as e:
             notes.append({"what": f"force of {name}", "why": str(e)})
     return models, notes

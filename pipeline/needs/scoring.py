@@ -18,7 +18,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack, try_fit_angle_estimator
+from pipeline.cues.estimator import try_fit_angle_estimator
+from pipeline.cues.packs import build_cue_pack
 from pipeline.cues.score import WORTH_A_WORKER, evaluate_cues
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.execution.workers import WORKERS_ENV, ordered_imap, workers_for

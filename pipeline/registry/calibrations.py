@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.calibration.document import FILE, read_unit, transform_for
+from pipeline.calibration.document import FILE, UnitCalibration, read_unit, transform_for, unit_text
 from pipeline.logs import Log
 from pipeline.registry.store import (
     CALIBRATION_SHA_TAG,
@@ -50,7 +50,7 @@ FORCE_PREFIX = "needle-force-"
 
 def document_bytes(doc: Mapping[str, Any]) -> bytes:
     """A document as `write_unit` writes it (the bytes whose sha256 names it)."""
-    return (json.dumps(doc, indent=2, sort_keys=True) + "\n").encode()
+    return unit_text(doc).encode()
 
 
 def sha256_of(data: bytes) -> str:
@@ -127,7 +127,7 @@ def _mlmodel_metadata(client: MlflowClient, name: str, version: str) -> dict[str
             return f"its MLmodel: {e}"
 
 
-def uncovered_angles(doc: Mapping[str, Any], champions: Mapping[str, Mapping[str, Any]]) -> list[str]:
+def uncovered_angles(doc: UnitCalibration, champions: Mapping[str, Mapping[str, Any]]) -> list[str]:
     """The champions' angles whose model the unit's document does not calibrate (made with other
     models, or with no transform for the champion's kind)."""
     return [
@@ -191,35 +191,32 @@ def _describe(name: str, unit_id: str) -> str:
     )
 
 
-def _log_run(client: MlflowClient, exp_id: str, doc: Mapping[str, Any], data: bytes, sha: str) -> Any:
+def _log_run(client: MlflowClient, exp_id: str, doc: UnitCalibration, data: bytes, sha: str) -> Any:
     """One run of `needle-units`: params, loss metrics, tags, and the document as an artifact."""
     from mlflow.entities import Metric, Param, RunTag
 
-    unit_id = str(doc["unit_id"])
+    unit_id = doc.unit_id
     tags = {
         "unit_id": unit_id,
-        "batches": ",".join(doc.get("batches") or []),
-        "angles_used": ",".join(doc.get("angles_used") or []),
-        "angles_missing": ",".join(doc.get("angles_missing") or []),
-        "kinds": ",".join(sorted(doc.get("transforms") or {})),
+        "batches": ",".join(doc.batches),
+        "angles_used": ",".join(doc.angles_used),
+        "angles_missing": ",".join(doc.angles_missing),
+        "kinds": ",".join(sorted(doc.transforms)),
         SHA_TAG: sha,
         "mlflow.note.content": (
-            f"Calibration of estimator unit {unit_id} from {len(doc.get('trials') or [])} trial(s) at "
-            f"{', '.join(doc.get('angles_used') or []) or 'no'}°."
+            f"Calibration of estimator unit {unit_id} from {len(doc.trials)} trial(s) at "
+            f"{', '.join(doc.angles_used) or 'no'}°."
         ),
     }
     run = client.create_run(exp_id, run_name=f"unit {unit_id}", tags=tags)
     run_id = run.info.run_id
     try:
-        params = [
-            Param(k, v if isinstance(v, str) else json.dumps(v))
-            for k, v in sorted((doc.get("params") or {}).items())
-        ]
+        params = [Param(k, v if isinstance(v, str) else json.dumps(v)) for k, v in sorted(doc.params.items())]
         metrics = [
-            Metric(f"{kind}_{key}", float(t[key]), 0, 0)
-            for kind, t in sorted((doc.get("transforms") or {}).items())
-            for key in ("loss_before", "loss_after")
-            if isinstance(t.get(key), int | float)
+            Metric(f"{kind}_{key}", value, 0, 0)
+            for kind, t in sorted(doc.transforms.items())
+            for key, value in (("loss_before", t.loss_before), ("loss_after", t.loss_after))
+            if value is not None
         ]
         client.log_batch(run_id, metrics=metrics, params=params, tags=[RunTag(k, v) for k, v in tags.items()])
         with tempfile.TemporaryDirectory() as tmp:
@@ -233,14 +230,14 @@ def _log_run(client: MlflowClient, exp_id: str, doc: Mapping[str, Any], data: by
     return client.get_run(run_id)
 
 
-def register_unit(client: MlflowClient, doc: Mapping[str, Any], data: bytes, log: Log) -> dict[str, Any]:
+def register_unit(client: MlflowClient, doc: UnitCalibration, data: bytes, log: Log) -> dict[str, Any]:
     """Register the document `doc` (whose file bytes are `data`) as a version of
     `needle-unit-<unit_id>` and move `@current` to it; registry.json's entry {version, action, aliases}.
 
     Already a version (same sha256): not registered again; `@current` is set to it only when it has
     none or points to an older version (a registration interrupted before the alias), never moved
     back from a newer calibration."""
-    unit_id = str(doc["unit_id"])
+    unit_id = doc.unit_id
     name = unit_model_name(unit_id)
     sha = sha256_of(data)
     known = versions(client, name)
@@ -261,16 +258,16 @@ def register_unit(client: MlflowClient, doc: Mapping[str, Any], data: bytes, log
     exp_id = experiment_id(client, UNIT_EXPERIMENT, UNIT_ABOUT)
     run = finished_run(client, exp_id, SHA_TAG, sha) or _log_run(client, exp_id, doc, data, sha)
     losses = ", ".join(
-        f"{kind} {t['loss_before']:.4g} -> {t['loss_after']:.4g}"
-        for kind, t in sorted((doc.get("transforms") or {}).items())
-        if isinstance(t.get("loss_before"), int | float) and isinstance(t.get("loss_after"), int | float)
+        f"{kind} {t.loss_before:.4g} -> {t.loss_after:.4g}"
+        for kind, t in sorted(doc.transforms.items())
+        if t.loss_before is not None and t.loss_after is not None
     )
     mv = client.create_model_version(
         name,
         source=f"{run.info.artifact_uri}/{ARTIFACT_DIR}",
         run_id=run.info.run_id,
-        tags={SHA_TAG: sha, "unit_id": unit_id, "angles_used": ",".join(doc.get("angles_used") or [])},
-        description=f"calibration of {unit_id} at {', '.join(doc.get('angles_used') or []) or 'no'}°"
+        tags={SHA_TAG: sha, "unit_id": unit_id, "angles_used": ",".join(doc.angles_used)},
+        description=f"calibration of {unit_id} at {', '.join(doc.angles_used) or 'no'}°"
         + (f"; loss {losses}" if losses else ""),
     )
     client.set_registered_model_alias(name, UNIT_ALIAS, str(mv.version))
@@ -278,7 +275,7 @@ def register_unit(client: MlflowClient, doc: Mapping[str, Any], data: bytes, log
     return {"version": int(mv.version), "action": "registered", "aliases": [UNIT_ALIAS]}
 
 
-def load_documents(cal_dir: Path) -> list[tuple[dict[str, Any], bytes]]:
+def load_documents(cal_dir: Path) -> list[tuple[UnitCalibration, bytes]]:
     """Every `cal_dir/<unit_id>.json` as (document, its bytes), checked (ValueError naming a bad
     file); none if the folder does not exist."""
     cal_dir = Path(cal_dir)
@@ -288,7 +285,7 @@ def load_documents(cal_dir: Path) -> list[tuple[dict[str, Any], bytes]]:
 
 def register_units(
     client: MlflowClient,
-    documents: list[tuple[dict[str, Any], bytes]],
+    documents: list[tuple[UnitCalibration, bytes]],
     angles: Iterable[str] | None,
     log: Log,
 ) -> dict[str, Any]:
@@ -300,7 +297,7 @@ def register_units(
     stale: dict[str, Any] = {}
     champions = champion_models(client, angles, log) if documents else {}
     for doc, data in documents:
-        unit_id = str(doc["unit_id"])
+        unit_id = doc.unit_id
         units[unit_id] = register_unit(client, doc, data, log)
         missing = uncovered_angles(doc, champions)
         if missing:

@@ -22,7 +22,7 @@ from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.metrics.document import Evaluation
 from pipeline.metrics.scores import gap_of
-from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE
+from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE, checkpoint_meta
 from pipeline.registry.candidates import Trained
 from pipeline.registry.store import TAG, finished_run
 from pipeline.reporting.loss import loss_curve_png
@@ -71,25 +71,24 @@ def axes_words(targets: Sequence[str]) -> str:
 
 
 def run_params(t: Trained) -> dict[str, str]:
-    ck = t.checkpoint
-    params = {
-        f"{t.kind}.{k}": json.dumps(v) if isinstance(v, list) else str(v) for k, v in ck["params"].items()
-    }
+    ck = checkpoint_meta(t.checkpoint, f"the {t.kind} checkpoint at {t.angle}°")
+    params = {f"{t.kind}.{k}": json.dumps(v) if isinstance(v, list) else str(v) for k, v in ck.params.items()}
+    inputs, choice = ck.inputs or {}, ck.inputs_choice or {}
     return {
         **params,
         "kind": t.kind,
         "angle_deg": t.angle,
-        "channels": ",".join(ck["channels"]),
-        "rate_hz": f"{ck['rate_hz']:g}",
-        "window": str(ck["config"].get("window", 1)),
+        "channels": ",".join(ck.channels),
+        "rate_hz": f"{ck.rate_hz:g}",
+        "window": str(ck.config.window),
         "n_train": str(t.train_metrics.get("n_train", "")),
         "n_val": str(t.train_metrics.get("n_val", "")),
         # what it reads, and how that was chosen (pinned in params, or by validation: the scores)
-        "inputs": str((ck.get("inputs") or {}).get("kind", "volts")),
-        "inputs_chosen_by": "params" if not ck.get("inputs_choice") else str(ck["inputs_choice"]["folds"]),
+        "inputs": str(inputs.get("kind", "volts")),
+        "inputs_chosen_by": "params" if not choice else str(choice["folds"]),
         **{
             f"inputs_score_{k}": "n/a" if v is None else f"{v:g}"
-            for k, v in ((ck.get("inputs_choice") or {}).get("scores") or {}).items()
+            for k, v in (choice.get("scores") or {}).items()
         },
     }
 

@@ -1,133 +1,25 @@
-"""The angle cues in the report: the `## Angle cues` section, the confusion matrices and the
-time-to-cue curves, rendered from the cues stage's evaluation (`pipeline.cues.document`) and packs."""
+"""The angle cues in the report: the `## Angle cues` section, written from the cues stage's evaluation
+(`pipeline.cues.document`) and packs (`pipeline.cues.pack`); its figures: `pipeline.reporting.cue_figures`."""
 
 from __future__ import annotations
 
 import json
-import textwrap
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from pipeline.cues.document import AngleMatrix, CueEvaluation, MethodResult, Results, ScoredCues, SkippedCues
-from pipeline.cues.score import DEVIATION_GROUPS
-from pipeline.cues.tracker import CUES, METHODS, REFERENCE, VERDICTS
-from pipeline.reporting.style import save_png
+from pipeline.cues.pack import (
+    CUES,
+    DEVIATION_GROUPS,
+    METHODS,
+    REFERENCE,
+    VERDICTS,
+    AngleEstimator,
+    CuePack,
+    as_pack,
+)
+from pipeline.reporting.cue_figures import method_label, scored_kinds
 from pipeline.vocab import angle_name
-
-
-def _label(method: str) -> str:
-    return {"combined": "angle estimate + force check (ours)", "paper": "profile comparison (paper)"}[method]
-
-
-def _no_results(evaluation: CueEvaluation) -> str | None:
-    """Why there is nothing to plot (None if there is)."""
-    if isinstance(evaluation, SkippedCues):
-        return f"Cue evaluation skipped: {evaluation.skipped}"
-    if not _kinds(evaluation):
-        return "No model's cues were scored"
-    return None
-
-
-def _kinds(evaluation: CueEvaluation) -> list[str]:
-    """The model kinds with results, in the evaluation's order."""
-    return [k for k in evaluation.kinds if k in evaluation.results]
-
-
-def _placeholder(message: str, path: Path) -> None:
-    """A small figure that only says why there is no plot (deterministic bytes)."""
-
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(6, 2))
-    fig.text(0.5, 0.5, textwrap.fill(message, 70), ha="center", va="center", fontsize=9, wrap=True)
-    save_png(fig, path)
-
-
-def plot_confusion(evaluation: CueEvaluation, path: Path) -> None:
-    from matplotlib.figure import Figure
-
-    if (why := _no_results(evaluation)) is not None:
-        _placeholder(why, path)
-        return
-    res, kinds = evaluation.results, _kinds(evaluation)
-    methods = [m for m in METHODS if any(m in res[k] for k in kinds)]
-    rows = max(len(kinds), 1)
-    fig = Figure(figsize=(5 * len(methods), 3.2 * rows))
-    axes = fig.subplots(rows, len(methods), squeeze=False)
-    for r, kind in enumerate(kinds):
-        for c, method in enumerate(methods):
-            if method not in res[kind]:
-                axes[r][c].set_axis_off()
-                continue
-            ax = axes[r][c]
-            m = np.asarray(res[kind][method].confusion_final.counts)
-            share = m / np.maximum(m.sum(axis=1, keepdims=True), 1)
-            ax.imshow(share, cmap="Blues", vmin=0, vmax=1, aspect="auto")
-            for i in range(m.shape[0]):
-                for j in range(m.shape[1]):
-                    ax.text(
-                        j,
-                        i,
-                        str(m[i, j]),
-                        ha="center",
-                        va="center",
-                        color="white" if share[i, j] > 0.6 else "black",
-                        fontsize=10,
-                    )
-            ax.set_xticks(range(len(CUES)), CUES)
-            ax.set_yticks(range(len(VERDICTS)), VERDICTS)
-            acc = res[kind][method].accuracy_final
-            ax.set_title(f"{kind.upper()}: {_label(method)}\naccuracy {100 * (acc or 0):.1f} %", fontsize=9)
-            ax.set_xlabel("cue at the end of the insertion")
-            ax.set_ylabel("true cue")
-    fig.tight_layout()
-    save_png(fig, path)
-
-
-def plot_time_to_cue(evaluation: CueEvaluation, path: Path) -> None:
-    """ECDF of the seconds into the insertion until the cue is right (and stays right)."""
-    from matplotlib.figure import Figure
-
-    if (why := _no_results(evaluation)) is not None:
-        _placeholder(why, path)
-        return
-    res, kinds = evaluation.results, _kinds(evaluation)
-    cols = max(len(kinds), 1)
-    fig = Figure(figsize=(4.2 * cols, 3.6))
-    axes = fig.subplots(1, cols, squeeze=False)[0]
-    colors = {"0": "tab:green", "15": "tab:orange", "30": "tab:red", ">=45": "tab:purple"}
-    for ax, kind in zip(axes, kinds, strict=False):
-        for method, style in (("combined", "-"), ("paper", "--")):
-            if method not in res[kind]:
-                continue
-            for g in DEVIATION_GROUPS:
-                d = res[kind][method].time_to_cue[g]
-                if not d.trials:
-                    continue
-                right = np.asarray(d.seconds, dtype=float)
-                x = np.concatenate([[0.0], right, [12.0]])
-                y = np.concatenate([[0.0], np.arange(1, len(right) + 1), [len(right)]]) / d.trials
-                ax.step(
-                    x,
-                    y,
-                    where="post",
-                    color=colors[g],
-                    ls=style,
-                    lw=1.3,
-                    label=f"{g}° {'ours' if method == 'combined' else 'paper'}",
-                )
-        ax.set_xlim(0, 12)
-        ax.set_ylim(0, 1.02)
-        ax.set_title(kind.upper(), fontsize=10)
-        ax.set_xlabel("seconds into the insertion")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("share of trials with the right cue to the end")
-    axes[-1].legend(fontsize=7, loc="lower right", ncol=2)
-    fig.tight_layout()
-    save_png(fig, path)
 
 
 def _f(x: float | None, spec: str = ".1f") -> str:
@@ -138,11 +30,11 @@ def _pct(x: float | None, spec: str = ".1f") -> str:
     return "–" if x is None else f"{100 * x:{spec}} %"
 
 
-def _confidence(pack: Mapping[str, Any]) -> str:
+def _confidence(pack: CuePack) -> str:
     """The P a cue needs, per way the estimator knows a unit, and how it was chosen."""
-    chosen = (pack.get("angle_estimator") or {}).get("confidence") or {}
+    chosen = pack.angle_estimator.confidence if pack.angle_estimator is not None else {}
     if not chosen:
-        return f"{pack['params']['min_confidence']}"
+        return f"{pack.params['min_confidence']}"
     how = {
         "training": "a training unit",
         "calibrated-1": "a new unit calibrated from 1 insertion per angle",
@@ -151,9 +43,9 @@ def _confidence(pack: Mapping[str, Any]) -> str:
         "uncalibrated": "an uncalibrated one",
     }
     parts = [
-        f"{c['min_confidence']:g} for {how.get(reading, reading)} (cross-validated: a wrong cue in "
-        f"{_pct(c['cv_wrong_frames'], '.2f')} of insertion frames, a cue in {_pct(c['cv_coverage'])}; "
-        f"chosen: {c['chosen_by']})"
+        f"{c.min_confidence:g} for {how.get(reading, reading)} (cross-validated: a wrong cue in "
+        f"{_pct(c.cv_wrong_frames, '.2f')} of insertion frames, a cue in {_pct(c.cv_coverage)}; "
+        f"chosen: {c.chosen_by})"
         for reading, c in sorted(chosen.items(), key=lambda rc: rc[0] != "training")  # training first
     ]
     return "; ".join(parts)
@@ -174,7 +66,7 @@ def seen_table(res: Results, kinds: Sequence[str], within_s: float) -> list[str]
     for _kind, method, label, r in _rows(res, kinds):
         seen = r.seen
         lines.append(
-            f"| {label} | {_label(method)} | {_pct(r.balanced_within_s)} | "
+            f"| {label} | {method_label(method)} | {_pct(r.balanced_within_s)} | "
             f"{_pct(seen.wrong_final)} | {_pct(seen.wrong_ever)} | "
             f"{_pct(seen.wrong_frames)} | {_pct(seen.coverage_frames)} |"
         )
@@ -189,16 +81,17 @@ def _rows(res: Results, kinds: Sequence[str]) -> list[tuple[str, str, str, Metho
     return out
 
 
-def angle_cues(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any]]) -> str:
+def angle_cues(evaluation: CueEvaluation, packs: Mapping[float, CuePack | Mapping[str, Any]]) -> str:
     """The `## Angle cues` section of the report (image links relative to `reports/`). What the stage
     could not build or score is listed, with why, right under the description."""
+    packs = {a: as_pack(p, f"the {angle_name(a)}° cue pack") for a, p in packs.items()}
     not_done = _not_done(evaluation, packs)
     if not isinstance(evaluation, ScoredCues) or not packs:
         return _render_built_only(packs, not_done)
-    res, kinds = evaluation.results, _kinds(evaluation)
+    res, kinds = evaluation.results, scored_kinds(evaluation)
     ae = evaluation.angle_estimate_at_insertion_end
     some = next(iter(packs.values()))
-    pp = some["params"]
+    pp = some.params
     n_trials = sorted(set(evaluation.external_trials.values()))
     lines = [
         "## Angle cues",
@@ -238,7 +131,7 @@ def angle_cues(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any
         rec = " / ".join(_f(None if v is None else 100 * v, ".0f") for v in r.recall_final.values())
         alarms = "–" if r.force_alarm_trials is None else f"{r.force_alarm_trials} trials"
         lines.append(
-            f"| {label} | {_label(method)} | {_f(100 * (r.accuracy_final or 0))} % | "
+            f"| {label} | {method_label(method)} | {_f(100 * (r.accuracy_final or 0))} % | "
             f"{_f(100 * (r.accuracy_frames or 0))} % | {rec} % | {alarms} |"
         )
     lines += [
@@ -255,15 +148,17 @@ def angle_cues(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any
         for g in DEVIATION_GROUPS:
             d = r.time_to_cue[g]
             cells.append(f"{_f(d.median_s)} / {_f(d.p90_s)} s; wrong {d.never_right}/{d.trials}")
-        lines.append(f"| {label} | {_label(method)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {label} | {method_label(method)} | " + " | ".join(cells) + " |")
     lines += ["", "Confusion at the end of the insertion (rows: true cue; columns: cue shown):", ""]
     header = "| model | method | true cue | " + " | ".join(CUES) + " |"
     lines += [header, "|---|---|---|" + "---|" * len(CUES)]
     for _kind, method, label, r in _rows(res, kinds):
         for name, row in zip(VERDICTS, r.confusion_final.counts, strict=True):
-            lines.append(f"| {label} | {_label(method)} | {name} | " + " | ".join(str(v) for v in row) + " |")
-    if ae is not None and some.get("angle_estimator"):
-        lines += _angle_estimate_lines(ae, some["angle_estimator"])
+            lines.append(
+                f"| {label} | {method_label(method)} | {name} | " + " | ".join(str(v) for v in row) + " |"
+            )
+    if ae is not None and some.angle_estimator is not None:
+        lines += _angle_estimate_lines(ae, some.angle_estimator)
     lines += [
         "",
         *_findings(res, kinds),
@@ -279,10 +174,10 @@ def angle_cues(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any
 _NOT_DONE_HEAD = ["What this stage could not do, and why:", ""]
 
 
-def _not_done(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any]]) -> list[str]:
+def _not_done(evaluation: CueEvaluation, packs: Mapping[float, CuePack]) -> list[str]:
     """Bullet lines: what is missing from the packs or the evaluation, and why (empty if nothing)."""
     out = []
-    missing = {a: p.get("unavailable") or {} for a, p in sorted(packs.items())}
+    missing = {a: p.unavailable or {} for a, p in sorted(packs.items())}
     reasons = sorted({m["angle_estimator"] for m in missing.values() if "angle_estimator" in m})
     if reasons:
         out.append(
@@ -310,25 +205,25 @@ def _not_done(evaluation: CueEvaluation, packs: Mapping[float, Mapping[str, Any]
     return out
 
 
-def _render_built_only(packs: Mapping[float, Mapping[str, Any]], not_done: Sequence[str]) -> str:
+def _render_built_only(packs: Mapping[float, CuePack], not_done: Sequence[str]) -> str:
     """The section when the cues could not be scored: what was built, what was not, and why."""
     built = []
     if packs:
         some = next(iter(packs.values()))
-        per_angle = some["training"]["trials_per_angle"]
-        with_profile = [a for a, p in sorted(packs.items()) if p.get("standard_profile")]
+        per_angle = some.training.trials_per_angle
+        with_profile = [a for a, p in sorted(packs.items()) if p.standard_profile is not None]
         if with_profile:
             built.append(
                 f"the standard force profile of {', '.join(f'{angle_name(a)}°' for a in with_profile)}"
             )
-        kinds = sorted({k for p in packs.values() for k in p["thresholds"]["profile"]})
+        kinds = sorted({k for p in packs.values() for k in p.thresholds.profile})
         if kinds:
             built.append(f"paper-method thresholds ({', '.join(kinds)})")
-        est = some.get("angle_estimator")
-        if est:
+        est = some.angle_estimator
+        if est is not None:
             built.append(
-                f"an angle estimator over {', '.join(f'{a:g}°' for a in est['classes_deg'])} "
-                f"({len(est['stages'])} evidence stage(s))"
+                f"an angle estimator over {', '.join(f'{a:g}°' for a in est.classes_deg)} "
+                f"({len(est.stages)} evidence stage(s))"
             )
         text = (
             "Simulator cues (continue / correct / stop from the preset angle's standard force profile and "
@@ -343,8 +238,8 @@ def _render_built_only(packs: Mapping[float, Mapping[str, Any]], not_done: Seque
     return "\n".join(["## Angle cues", "", text, "", *_NOT_DONE_HEAD, *not_done, ""])
 
 
-def _angle_estimate_lines(ae: AngleMatrix, estimator: Mapping[str, Any]) -> list[str]:
-    stages = estimator["stages"]
+def _angle_estimate_lines(ae: AngleMatrix, estimator: AngleEstimator) -> list[str]:
+    stages = estimator.stages
     est_cols = ae.cols_estimated_deg
     lines = [
         "",
@@ -360,10 +255,10 @@ def _angle_estimate_lines(ae: AngleMatrix, estimator: Mapping[str, Any]) -> list
         "",
         f"Exact in {_f(100 * (ae.exact or 0))} % of the held-out trials, within 15° in "
         f"{_f(100 * (ae.within_15 or 0))} %. Cross-validated accuracy on the training splits "
-        f"({estimator['cv']}) per evidence stage: "
+        f"({estimator.cv}) per evidence stage: "
         + ", ".join(
             f"{'rest' if i == 0 else f'level {i}'} "
-            f"{_f(None if s['cv_accuracy'] is None else 100 * s['cv_accuracy'], '.0f')} %"
+            f"{_f(None if s.cv_accuracy is None else 100 * s.cv_accuracy, '.0f')} %"
             for i, s in enumerate(stages)
         )
         + ".",

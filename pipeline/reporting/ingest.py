@@ -10,8 +10,9 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from pipeline.rig.batch_store import write_json
 from pipeline.rig.datadocs import write_data_docs
-from pipeline.rig.ingest import IngestResult, write_json
+from pipeline.rig.ingest import IngestResult
 
 
 def summary_md(result: IngestResult) -> str:

@@ -9,9 +9,10 @@ from collections.abc import Mapping
 from pipeline.frontend import Divider
 from pipeline.modelling.choice import Choice, pool
 from pipeline.modelling.features import INPUT_KINDS, ModelInputs
+from pipeline.modelling.kinds import kind_label
 from pipeline.modelling.prediction_store import ModelReads
 from pipeline.reporting.style import table
-from pipeline.vocab import kind_label, sorted_angles
+from pipeline.vocab import sorted_angles
 
 
 def _circuit(inputs: ModelInputs) -> str:

@@ -1,5 +1,5 @@
-"""Shared look of the reports: model labels and colours, number formats, Markdown tables, PNGs
-without a version string (equal plots, equal bytes)."""
+"""Shared look of the reports: colours (each model kind's from its table entry), number formats,
+Markdown tables, PNGs without a version string (equal plots, equal bytes)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,10 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-COLORS = {"reference": "black", "ls": "tab:red", "fnn": "tab:blue", "lstm": "tab:green"}
+from pipeline.modelling.kinds import TABLE
+
+# the reference, then each model kind that names a colour (`ModelKind.color`); any other: matplotlib's next
+COLORS = {"reference": "black", **{name: kind.color for name, kind in TABLE.items() if kind.color}}
 PNG_METADATA: dict[str, Any] = {"Software": None}  # no version string: equal plots, equal bytes
 
 

@@ -9,8 +9,8 @@ from collections.abc import Mapping
 from pipeline.cues.document import CueEvaluation, GroupResult, Seen, UnitGroup
 from pipeline.metrics.document import CalibrationSummary, Evaluation, TransferRow, UnitScores
 from pipeline.metrics.scores import mean_known, mean_over_axes
+from pipeline.modelling.kinds import kind_label
 from pipeline.reporting.style import fmt, table
-from pipeline.vocab import kind_label
 
 # Targets for a new unit after one short calibration (issue 12), measured on the data at hand.
 NEW_UNIT_RATIO = 1.2  # champion NRMSE on the calibrated new unit / on the training units

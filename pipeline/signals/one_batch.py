@@ -14,11 +14,12 @@ import pandas as pd
 
 from pipeline.config import IngestParams, ResampleParams
 from pipeline.frontend import is_declared
+from pipeline.rig.batch_store import write_batch
 from pipeline.rig.expectations import Validator
+from pipeline.rig.fingerprint import fingerprint
 from pipeline.rig.format import Problem
-from pipeline.rig.ingest import fingerprint, write_batch
 from pipeline.rig.reader import ParsedBatch, parse_batch
-from pipeline.signals import resample
+from pipeline.signals import resample, trial
 from pipeline.signals.filters import SetAside
 from pipeline.signals.scaling import to_volts
 
@@ -70,7 +71,7 @@ def read_batch(batch_dir: Path, ingest: IngestParams, params: ResampleParams) ->
 
 
 def _estimator_only(parsed: ParsedBatch, trial_ids: list[str], params: ResampleParams) -> pd.DataFrame:
-    """The estimator streams of `trial_ids` alone on the common grid (resample.estimator_only)."""
+    """The estimator streams of `trial_ids` alone on the common grid (trial.estimator_only)."""
     if not trial_ids or parsed.fsr is None or parsed.trials is None or parsed.meta is None:
         return pd.DataFrame()
     sensor = parsed.meta.sensor
@@ -81,7 +82,7 @@ def _estimator_only(parsed: ParsedBatch, trial_ids: list[str], params: ResampleP
         fs = parsed.fsr[parsed.fsr["trial_id"].astype(str) == tid].sort_values("t_ms", kind="stable")
         volts = to_volts(fs[channels].to_numpy(np.float64), sensor.units, sensor.adc_bits, sensor.vref_v)
         try:
-            t_s, v = resample.estimator_only(fs["t_ms"].to_numpy(np.float64) / 1000.0, volts, params)
+            t_s, v = trial.estimator_only(fs["t_ms"].to_numpy(np.float64) / 1000.0, volts, params)
         except SetAside:
             continue
         frame = pd.DataFrame({"t_s": t_s, **{c: v[:, j] for j, c in enumerate(channels)}})

@@ -1,8 +1,7 @@
-"""Resampling ingested trials and batches: per trial, units are converted, the clocks aligned
-(`pipeline.signals.clock`), both streams put on one uniform grid at `resample.rate_hz` over their
-overlap (`pipeline.signals.filters`) and every grid sample given a phase
-(`pipeline.signals.phases`); per batch, the trials are assembled into one table
-(`pipeline.dataset.tables`).
+"""Resampling ingested batches, from their files to the resampled tables: per trial, units are
+converted, then its two streams aligned and put on the common grid (`pipeline.signals.trial`), once
+the batch's trials are checked against each other (`pipeline.signals.cross_check`); per batch, the
+trials are assembled into one table (`pipeline.dataset.tables`).
 
 Input: the ingest stage's accepted batches, `IN_DIR/<batch_id>/{batch.json, trials.parquet,
 fsr.parquet, ref.parquet}` (folders without `trials.parquet` were set aside by ingest and are
@@ -15,11 +14,8 @@ with its reason in that row.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,14 +28,14 @@ from pipeline.config import ResampleParams
 from pipeline.dataset.tables import table_schema, write_table
 from pipeline.logs import Log
 from pipeline.rig.repeats import SAMPLES_KEY
-from pipeline.signals import pairing
-from pipeline.signals.clock import OffsetEstimate, estimate_offset
-from pipeline.signals.filters import SetAside, gap_mask, median_rate, resample_stream
-from pipeline.signals.phases import label_phases, phase_durations
+from pipeline.signals.clock import OffsetEstimate
+from pipeline.signals.cross_check import copied_streams, judge_pairings
+from pipeline.signals.filters import SetAside
+from pipeline.signals.phases import phase_durations
 from pipeline.signals.scaling import to_newtons, to_volts
+from pipeline.signals.trial import Streams, align, check_response, clean_time, on_grid
 from pipeline.vocab import AXES, PHASES, angle_name
 
-WIDE_STEP_S = 0.02  # offsets tried when a trial's own reference is searched wider (see wider)
 TRUTH_COLUMN = "sim_clock_offset_s"  # written by the simulator only; a lab's data has no truth
 OFFSET_CSV_COLUMNS = (
     "batch_id",
@@ -57,179 +53,7 @@ OFFSET_CSV_COLUMNS = (
     "status",
     "flag",  # kept, but looked at: why (a low alignment quality, pipeline.signals.pairing)
 )
-
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class ResampledTrial:
-    """One trial on the common grid (host time base; `t_s` starts at 0)."""
-
-    offset: OffsetEstimate
-    t0_host_s: float  # host time of grid point t_s = 0
-    t_s: np.ndarray
-    volts: np.ndarray  # (n, channels)
-    force_n: np.ndarray  # (n, axes): the batch's recorded axes (BatchInfo.axes)
-    phase: np.ndarray
-    n_dropped_gap: int
-
-
-@dataclass(frozen=True)
-class Streams:
-    """One trial's two streams, in s, V and N, each strictly increasing in time."""
-
-    t_fsr_s: np.ndarray
-    volts: np.ndarray  # (n, channels)
-    t_ref_s: np.ndarray
-    force_n: np.ndarray  # (m, axes): the axes the reference records, one to three
-
-
-# An estimator that moves less than this (about two counts of a 10-bit, 5 V ADC) while the reference
-# force spans more than this has not recorded the insertion: stuck, dead or unpowered. Any design
-# that can sense a needle moves its volts far more over an insertion.
-STILL_V = 0.01
-MOVED_N = 0.2
-
-
-def check_response(streams: Streams, channels: tuple[str, ...] | None = None) -> None:
-    """SetAside, with that reason, when the estimator, or one of its channels, did not respond to an
-    insertion the reference recorded: before the clock alignment, which would blame the clocks. A
-    channel is stuck when it moves less than STILL_V while another moves ten times that."""
-    if streams.volts.size == 0 or streams.force_n.size == 0:
-        return
-    moved = np.ptp(streams.volts, axis=0)
-    span_n = float(np.max(np.ptp(streams.force_n, axis=0)))
-    if span_n < MOVED_N:
-        return
-    if float(moved.max()) < STILL_V:
-        raise SetAside(
-            f"the estimator does not respond: its channels move at most {1000 * moved.max():.1f} mV "
-            f"while the reference force spans {span_n:.2f} N (stuck at rest, dead or unpowered?)"
-        )
-    names = channels or tuple(f"channel {k + 1}" for k in range(len(moved)))
-    still = moved < STILL_V
-    if still.any() and moved.max() >= 10 * STILL_V:
-        stuck = [n for n, s in zip(names, still, strict=True) if s]
-        raise SetAside(
-            f"{', '.join(stuck)} does not respond: moves at most {1000 * moved[still].max():.1f} mV while "
-            f"another channel moves {1000 * moved.max():.0f} mV and the reference force spans "
-            f"{span_n:.2f} N (a stuck channel)"
-        )
-
-
-def align(fsr: Streams, ref: Streams, p: ResampleParams, *, shared_clock: bool = False) -> OffsetEstimate:
-    """The clock offset between `fsr`'s estimator stream and `ref`'s reference stream (usually one
-    trial's; another trial's when checking a pairing). Raises SetAside when they cannot be aligned;
-    the quality is judged by the caller."""
-    if fsr.t_fsr_s.size < 2 or ref.t_ref_s.size < 2:
-        raise SetAside("a stream has fewer than two samples")
-    if not (np.all(np.isfinite(fsr.volts)) and np.all(np.isfinite(ref.force_n))):
-        raise SetAside("missing (NaN) or infinite values in a stream")
-    est = estimate_offset(
-        fsr.t_fsr_s,
-        fsr.volts,
-        ref.t_ref_s,
-        ref.force_n,
-        p.max_offset_s,
-        p.offset_step_s,
-        p.lowpass_order,
-        shared_clock=shared_clock,
-    )
-    if est.on_edge:
-        shift = wider(Streams(fsr.t_fsr_s, fsr.volts, ref.t_ref_s, ref.force_n), p)
-        if shift is not None and pairing.is_shift(shift):
-            raise SetAside(pairing.shifted(shift, shared=shared_clock))
-        raise SetAside(
-            f"clock offset at the edge of the ±{p.max_offset_s:g} s search window "
-            f"(quality {est.quality:.2f}): the true offset is probably outside it"
-        )
-    return est
-
-
-def _judged(
-    streams: Streams,
-    est: OffsetEstimate,
-    peers: dict[str, float],
-    p: ResampleParams,
-    shared_clock: bool,
-    others: list[tuple[tuple[float, float], tuple[float, float]]] | None = None,
-) -> pairing.Verdict:
-    """The verdict on a low-quality trial (pipeline.signals.pairing): on one clock, its stamps against
-    the batch's other trials' (`others`, their (estimator, reference) first and last stamps); then
-    the peers' references and its own reference searched wider."""
-    if shared_clock and others:
-        reason = pairing.stamps_shifted(_ends(streams), others)
-        if reason is not None:
-            return pairing.Verdict(reason, max(peers.values(), default=None))
-    return pairing.judge(est.quality, peers, p.min_quality, wider(streams, p), shared=shared_clock)
-
-
-def wider(streams: Streams, p: ResampleParams) -> pairing.Shift | None:
-    """A trial's own reference tried at offsets up to `pairing.WIDE_FACTOR` times the search window,
-    every `WIDE_STEP_S`, each scored on the samples the two streams share at that offset (at least
-    half the estimator's): the best quality inside the window and outside it. None: no offset
-    outside the window leaves enough overlap."""
-    window = pairing.WIDE_FACTOR * p.max_offset_s
-    lags = np.arange(-window, window + WIDE_STEP_S / 2, WIDE_STEP_S)
-    scores = np.full(lags.size, np.nan)
-    t_fsr = streams.t_fsr_s
-    for i, lag in enumerate(lags):
-        t_ref = streams.t_ref_s + lag
-        if np.mean((t_fsr >= t_ref[0]) & (t_fsr <= t_ref[-1])) < 0.5:
-            continue
-        try:
-            scores[i] = estimate_offset(
-                t_fsr,
-                streams.volts,
-                t_ref,
-                streams.force_n,
-                0.0,
-                p.offset_step_s,
-                p.lowpass_order,
-                shared_clock=True,
-            ).quality
-        except SetAside:
-            continue
-    inner = np.abs(lags) <= p.max_offset_s + 1e-9
-    if np.all(np.isnan(scores[~inner])) or np.all(np.isnan(scores[inner])):
-        return None
-    best = int(np.nanargmax(np.where(inner, np.nan, scores)))
-    return pairing.Shift(
-        float(lags[best]), float(scores[best]), float(np.nanmax(scores[inner])), p.max_offset_s
-    )
-
-
-def on_grid(streams: Streams, est: OffsetEstimate, p: ResampleParams) -> ResampledTrial:
-    """One aligned trial put on the common grid and labelled. Raises SetAside."""
-    t_fsr_s, volts, t_ref_s, force_n = streams.t_fsr_s, streams.volts, streams.t_ref_s, streams.force_n
-    t_ref_host = t_ref_s + est.offset_s
-    lo, hi = max(t_fsr_s[0], t_ref_host[0]), min(t_fsr_s[-1], t_ref_host[-1])
-    # The grid is anchored to the estimator's own uniform grid, so that at equal rates its
-    # (quantised, noisy) samples are copied, not blurred by interpolation.
-    fsr_rate = median_rate(t_fsr_s)
-    k0 = math.ceil((lo - t_fsr_s[0]) * fsr_rate - 1e-6)
-    t0 = t_fsr_s[0] + k0 / fsr_rate
-    n = math.floor((hi - t0) * p.rate_hz + 1e-6) + 1 if hi >= t0 else 0
-    if n < 10:
-        raise SetAside(f"streams overlap for only {max(hi - lo, 0):.2f} s after clock alignment")
-    k = np.arange(n)
-    grid = t0 + k / p.rate_hz
-    v = resample_stream(t_fsr_s, volts, grid, p.rate_hz, p.lowpass_order)
-    f = resample_stream(t_ref_host, force_n, grid, p.rate_hz, p.lowpass_order)
-    # Phases on the full grid (uniform spacing is what the smoothing assumes), gaps dropped after.
-    phase = label_phases(f, p.rate_hz)
-    keep = ~(gap_mask(t_fsr_s, grid, p.max_gap_s) | gap_mask(t_ref_host, grid, p.max_gap_s))
-    if keep.sum() < 10:
-        raise SetAside("fewer than 10 grid points left outside gaps")
-    return ResampledTrial(
-        offset=est,
-        t0_host_s=float(t0),
-        t_s=k[keep] / p.rate_hz,
-        volts=v[keep],
-        force_n=f[keep],
-        phase=phase[keep],
-        n_dropped_gap=int((~keep).sum()),
-    )
 
 
 @dataclass(frozen=True)
@@ -288,27 +112,6 @@ def _by_trial(df: pd.DataFrame, time_col: str) -> dict[str, pd.DataFrame]:
     return {str(k): g for k, g in df.groupby("trial_id", sort=True)}
 
 
-def estimator_only(
-    t_fsr_s: np.ndarray, volts: np.ndarray, p: ResampleParams
-) -> tuple[np.ndarray, np.ndarray]:
-    """An estimator stream alone on the common grid (t_s from 0 at its first sample, gaps dropped):
-    what a trial whose reference cannot be aligned still gives to a replay. Raises SetAside."""
-    t, v = _clean_time(np.asarray(t_fsr_s, dtype=np.float64), np.asarray(volts, dtype=np.float64))
-    if t.size < 2 or not np.all(np.isfinite(v)):
-        raise SetAside("the estimator stream has fewer than two samples or missing values")
-    n = math.floor((t[-1] - t[0]) * p.rate_hz + 1e-6) + 1
-    grid = t[0] + np.arange(n) / p.rate_hz
-    keep = ~gap_mask(t, grid, p.max_gap_s)
-    return np.arange(n)[keep] / p.rate_hz, resample_stream(t, v, grid, p.rate_hz, p.lowpass_order)[keep]
-
-
-def _clean_time(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Drop repeated time stamps (keep the first), so every stream is strictly increasing."""
-    keep = np.ones(t.size, dtype=bool)
-    keep[1:] = np.diff(t) > 0
-    return (t[keep], *(a[keep] for a in arrays))
-
-
 def _num(x: float | None, fmt: str = ".6f") -> str:
     return "" if x is None or not np.isfinite(x) else format(x, fmt)
 
@@ -352,13 +155,13 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
                 raise SetAside("no estimator or no reference samples for this trial")
             fs, rf = fsr[tid], ref[tid]
             row["n_fsr"], row["n_ref"] = len(fs), len(rf)
-            t_fsr, volts = _clean_time(
+            t_fsr, volts = clean_time(
                 fs["t_ms"].to_numpy(np.float64) / 1000.0,
                 to_volts(
                     fs[list(info.channels)].to_numpy(np.float64), info.units, info.adc_bits, info.vref_v
                 ),
             )
-            t_ref, force = _clean_time(
+            t_ref, force = clean_time(
                 rf["t_s"].to_numpy(np.float64),
                 to_newtons(rf[list(info.axes)].to_numpy(np.float64), info.ref_units),
             )
@@ -381,7 +184,7 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
                 aligned[tid] = e
         return aligned[tid]
 
-    copies = _copied_streams(built, own)
+    copies = copied_streams(built, own)
     usable: dict[str, tuple[Streams, OffsetEstimate]] = {}
     for trial, row in zip(records, rows, strict=True):
         tid = str(trial["trial_id"])
@@ -395,8 +198,8 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
             row["status"] = f"set aside: {est}"
         else:
             usable[tid] = built[tid], est
-    verdicts = _judge_pairings(
-        usable, {str(t["trial_id"]): angle_name(t["angle_deg"]) for t in records}, info, p
+    verdicts = judge_pairings(
+        usable, {str(t["trial_id"]): angle_name(t["angle_deg"]) for t in records}, info.shared_clock, p
     )
     for trial, row in zip(records, rows, strict=True):
         tid = str(trial["trial_id"])
@@ -435,123 +238,6 @@ def process_batch(batch_dir: Path, p: ResampleParams) -> tuple[BatchInfo, pa.Tab
         pa.array(np.concatenate(columns[f.name]) if columns[f.name] else [], type=f.type) for f in schema
     ]
     return info, pa.Table.from_arrays(arrays, schema=schema), rows
-
-
-def _judge_pairings(
-    usable: dict[str, tuple[Streams, OffsetEstimate]],
-    angles: dict[str, str],
-    info: BatchInfo,
-    p: ResampleParams,
-) -> dict[str, pairing.Verdict]:
-    """The batch's verdicts on its trials' pairings (pipeline.signals.pairing), copies already set
-    aside (`_copied_streams`): per trial below `min_quality`, its estimator stream aligned with
-    the references of up to MAX_PEERS other usable trials and with its own reference over a wider
-    window, its stamps against the batch's on one clock, and last a swap seen from both sides."""
-    out: dict[str, pairing.Verdict] = {}
-    usable_angles = {t: angles[t] for t in usable}
-    ends = {t: _ends(streams) for t, (streams, _) in usable.items()}
-    lags = _best_lags(usable, p) if info.shared_clock else {}
-    peers_of: dict[str, dict[str, float]] = {}
-    for tid, (streams, est) in usable.items():
-        if est.quality >= p.min_quality or tid in out:
-            continue
-        peers: dict[str, float] = {}
-        for other in pairing.peers_of(tid, usable_angles):
-            try:
-                peers[other] = align(streams, usable[other][0], p, shared_clock=info.shared_clock).quality
-            except SetAside:  # too little overlap or an edge: that reference explains nothing here
-                peers[other] = 0.0
-        peers_of[tid] = peers
-        others = [e for t, e in ends.items() if t != tid] if info.shared_clock else None
-        off = None  # on one clock: its own reference fits at a lag none of the batch's other trials do
-        if tid in lags:
-            other_lags = [lag for t, (lag, _) in lags.items() if t != tid]
-            off = pairing.lag_off_the_batch(lags[tid][0], lags[tid][1], est.quality, other_lags)
-        if off is not None and lags[tid][1] > max(peers.values(), default=0.0):  # the better explanation
-            out[tid] = pairing.Verdict(off, max(peers.values(), default=None))
-        else:
-            out[tid] = _judged(streams, est, peers, p, info.shared_clock, others)
-    for tid, partner in pairing.mutual_swaps(out, peers_of, {t: e.quality for t, (_, e) in usable.items()}):
-        theirs = peers_of[tid][partner]
-        reason = pairing.swapped(partner, theirs, usable[tid][1].quality)
-        out[tid] = pairing.Verdict(reason, max(peers_of[tid].values()), swapped_with=partner)
-    return out
-
-
-def _best_lags(
-    usable: dict[str, tuple[Streams, OffsetEstimate]], p: ResampleParams
-) -> dict[str, tuple[float, float]]:
-    """On one clock: each trial's (lag, quality) where its reference fits best within the window, as if
-    the clocks were separate (a sensor's own lag is the batch's; one trial's apart is its stamps')."""
-    out = {}
-    for tid, (s, _) in usable.items():
-        try:
-            est = estimate_offset(
-                s.t_fsr_s, s.volts, s.t_ref_s, s.force_n, p.max_offset_s, p.offset_step_s, p.lowpass_order
-            )
-        except SetAside:
-            continue
-        out[tid] = (est.offset_s, est.quality)
-    return out
-
-
-def _ends(streams: Streams) -> tuple[tuple[float, float], tuple[float, float]]:
-    """(first, last) stamp of the estimator stream and of the reference."""
-    fsr, ref = streams.t_fsr_s, streams.t_ref_s
-    return (float(fsr[0]), float(fsr[-1])), (float(ref[0]), float(ref[-1]))
-
-
-def _copied_streams(
-    built: dict[str, Streams], own: Callable[[str], OffsetEstimate | SetAside]
-) -> dict[str, str]:
-    """{trial: why} for the trials one of whose streams is another trial's (the same values in order,
-    whatever their stamps: the same, shifted or re-timed) while the other stream differs. Of the
-    trials sharing a stream, the one its own files fit best (`own`: its alignment, or why it has
-    none) keeps it; every other is set aside naming it, whatever `resample.max_offset_s` is. (Both
-    streams another's is a copied trial: the split stage names it, `pipeline.rig.repeats`.)"""
-    out: dict[str, str] = {}
-    digests = {t: (_digest(s.volts), _digest(s.force_n)) for t, s in built.items()}
-    for which, what in enumerate(("estimator stream", "reference")):
-        groups: dict[str, list[str]] = {}
-        for tid, both in digests.items():
-            groups.setdefault(both[which], []).append(tid)
-        for group in groups.values():
-            if len(group) < 2 or len({digests[t] for t in group}) < 2:
-                continue
-            best = max(group, key=lambda t: (_quality(own(t)), t))
-            for tid in group:
-                if tid != best and tid not in out:
-                    out[tid] = pairing.copied(
-                        what,
-                        tid,
-                        best,
-                        _stamped(built[tid], built[best], which),
-                        _quality(own(best)),
-                        _quality(own(tid)),
-                    )
-    return out
-
-
-def _quality(est: OffsetEstimate | SetAside) -> float:
-    """A trial's alignment quality on its own files; -1 where they cannot be aligned."""
-    return est.quality if isinstance(est, OffsetEstimate) else -1.0
-
-
-def _stamped(copy: Streams, original: Streams, which: int) -> str:
-    """How the copied stream's stamps relate to the original's: the same, shifted, or other."""
-    a, b = (copy.t_fsr_s, original.t_fsr_s) if which == 0 else (copy.t_ref_s, original.t_ref_s)
-    if a.size != b.size:
-        return "stamped otherwise"
-    shift = a - b
-    if np.all(shift == 0):
-        return "with the same stamps"
-    if float(np.ptp(shift)) <= 1e-6 * max(1.0, float(np.max(np.abs(b)))):
-        return f"stamped {float(np.median(shift)):+.2f} s from it"
-    return "stamped otherwise"
-
-
-def _digest(values: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(values).tobytes()).hexdigest()
 
 
 def _truth(value: Any) -> float | None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import typer
 
-from pipeline.calibration.document import write_unit
+from pipeline.calibration.document import read_unit, write_unit
 from pipeline.calibration.rows import calibration_rows
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
@@ -62,15 +62,15 @@ def main(data_dir: Path, models_dir: Path, out_dir: Path, params: Path = Path("p
         doc = calibrate_unit(
             unit_id, rows, models, angles, p, _log, cues, circuits.get(unit_id), levels, workers=WORKERS
         )
-        written.add(write_unit(doc, out_dir).name)
+        path = write_unit(doc, out_dir)
+        written.add(path.name)
+        unit = read_unit(path)  # what was written, as every reader reads it
         missing = (
-            f"; no calibration insertion at {', '.join(doc['angles_missing'])}°"
-            if doc["angles_missing"]
-            else ""
+            f"; no calibration insertion at {', '.join(unit.angles_missing)}°" if unit.angles_missing else ""
         )
-        _log(f"{unit_id}: {len(doc['trials'])} trial(s) at {', '.join(doc['angles_used']) or 'no'}°{missing}")
-        for s in doc["set_aside"]:
-            _log(f"{unit_id}: set aside {s['file']}: {s['reason']}")
+        _log(f"{unit_id}: {len(unit.trials)} trial(s) at {', '.join(unit.angles_used) or 'no'}°{missing}")
+        for s in unit.set_aside:
+            _log(f"{unit_id}: set aside {s.file}: {s.reason}")
     for stale in sorted(out_dir.glob("*.json")):
         if stale.name not in written:
             stale.unlink()

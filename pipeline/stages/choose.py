@@ -19,8 +19,8 @@ import typer
 from pipeline.config import TrainParams, load_section
 from pipeline.logs import setup
 from pipeline.modelling.choice import save_choice
-from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.kinds import TABLE
+from pipeline.modelling.kinds.base import KindParams
 from pipeline.modelling.train import choose_folders
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
@@ -32,7 +32,7 @@ def main(kind: str, data_root: Path, out_file: Path, params: Path = Path("params
     if kind not in TABLE:
         raise typer.BadParameter(f"unknown model kind {kind!r}; expected one of {', '.join(TABLE)}")
     try:
-        section = cast("ModelParams", load_section(TABLE[kind].params, kind, params))
+        section = cast("KindParams", load_section(TABLE[kind].params, kind, params))
         if section.inputs.kind != "auto":
             _log(f"{kind}: inputs pinned in params ({section.inputs.kind}), nothing to choose")
             save_choice(out_file, kind, None, pinned=section.inputs.kind)

@@ -3,7 +3,7 @@
 Input: `DATA_DIR/<angle>/{train,external}.parquet`, the predict stage's `PRED_DIR` (every
 model's forces on those frames) and the units' calibrations in `CAL_DIR` (which new units have one:
 the cues are also scored per unit group, `by_unit_group`). Output in `OUT_DIR`:
-`packs/<angle>.json` (shipped with each angle's registered model; see `pipeline.cues.fit`) and
+`packs/<angle>.json` (shipped with each angle's registered model; see `pipeline.cues.packs`) and
 `evaluation.json` (see
 `pipeline.cues.score`); the report stage renders them. Small or unusual data never stops the
 stage: what cannot be built or scored is left out and said, with why. It fails only on real
@@ -23,9 +23,12 @@ import typer
 from pipeline.calibration.document import calibrated_units, read_units
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.document import write_cue_evaluation
-from pipeline.cues.fit import Predicted, build_packs, pack_json
-from pipeline.cues.score import cue_document, evaluate_unit_groups, skipped_evaluation, track_external
-from pipeline.cues.tracker import cue_reading, departing_levels
+from pipeline.cues.pack import write_pack
+from pipeline.cues.packs import build_packs
+from pipeline.cues.score import cue_document, skipped_evaluation, track_external
+from pipeline.cues.thresholds import Predicted
+from pipeline.cues.unit_groups import evaluate_unit_groups
+from pipeline.cues.units import cue_reading, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
 from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
@@ -75,8 +78,8 @@ def main(
             docs = read_units(cal_dir)
             # what each calibrated unit's calibration insertions tell the angle estimator
             pack = next(iter(packs.values()), {})  # every preset's estimator has the same levels
-            readings = {u: cue_reading(pack, d.get("cues")) for u, d in docs.items()}
-            gathered = {u for u, d in docs.items() if (d.get("cues") or {}).get("evidence")}
+            readings = {u: cue_reading(pack, d.cue_section()) for u, d in docs.items()}
+            gathered = {u for u, d in docs.items() if d.cues is not None and d.cues.evidence}
             for u in sorted(u for u, (e, _) in readings.items() if e is None and u in gathered):
                 _log(f"warning: {u}: its calibration's cue evidence is at other loading levels, not used")
             units = {u: e for u, (e, _) in readings.items() if e}
@@ -84,7 +87,7 @@ def main(
             for u in sorted(maps):
                 _log(
                     f"{u}: its calibration insertions depart from the training units' layout as they "
-                    f"are and nowhere through its {docs[u]['cues']['mapped']['kind']} map on the "
+                    f"are and nowhere through its {docs[u].cues.mapped.kind} map on the "
                     "conductance: the cues read it through that map (docs/units.md)"
                 )
             for u, e in sorted(units.items()):
@@ -133,7 +136,7 @@ def main(
     for stale in (out_dir / "packs").glob("*.json"):  # a pack of an angle no longer trained
         stale.unlink()
     for preset, pack in packs.items():
-        (out_dir / "packs" / f"{angle_name(preset)}.json").write_text(pack_json(pack))
+        write_pack(out_dir / "packs" / f"{angle_name(preset)}.json", pack)
     write_cue_evaluation(out_dir / "evaluation.json", evaluation)
     _log(f"done in {time.perf_counter() - started:.1f} s -> {out_dir}")
 

@@ -22,11 +22,13 @@ import typer
 
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.cues.document import read_cue_evaluation
+from pipeline.cues.pack import read_pack
 from pipeline.logs import setup
 from pipeline.metrics.document import EVALUATION_FILE, read_evaluation
 from pipeline.metrics.evaluation import gather, load_eval_sets
 from pipeline.modelling.prediction_store import Predictions, read_inputs
-from pipeline.reporting import cues, figures, report, unit_transfer
+from pipeline.needs.document import read_needs
+from pipeline.reporting import cue_figures, cues, figures, report, unit_transfer
 from pipeline.reporting.inputs import inputs_section
 from pipeline.reporting.needs import how_much_data_you_need
 from pipeline.vocab import angle_name
@@ -52,9 +54,9 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     evaluation = None
     if (cues_dir / "evaluation.json").is_file():
         evaluation = read_cue_evaluation(cues_dir / "evaluation.json")
-        packs = {float(p.stem): json.loads(p.read_text()) for p in (cues_dir / "packs").glob("*.json")}
-        cues.plot_confusion(evaluation, cues_dir / "confusion.png")
-        cues.plot_time_to_cue(evaluation, cues_dir / "time_to_cue.png")
+        packs = {float(p.stem): read_pack(p) for p in (cues_dir / "packs").glob("*.json")}
+        cue_figures.plot_confusion(evaluation, cues_dir / "confusion.png")
+        cue_figures.plot_time_to_cue(evaluation, cues_dir / "time_to_cue.png")
         cue_sections.append(cues.angle_cues(evaluation, dict(sorted(packs.items()))))
         (cues_dir / "summary.md").write_text(cue_sections[0])
     else:
@@ -71,7 +73,7 @@ def main(data_dir: Path, pred_dir: Path, reports_dir: Path, params: Path = Path(
     unit_section = inputs_section(read_inputs(pred_dir)) + unit_transfer.estimator_units(metrics, evaluation)
     needs_file = reports_dir / "needs" / "needs.json"
     if needs_file.is_file():  # the needs stage drew its figure; the report links it
-        unit_section += "\n\n" + how_much_data_you_need(json.loads(needs_file.read_text()), "needs/needs.png")
+        unit_section += "\n\n" + how_much_data_you_need(read_needs(needs_file), "needs/needs.png")
     else:
         _log(f"warning: no {needs_file} (run the needs stage): no data-needs section")
     ledger_file = reports_dir / "ledger" / "ledger.json"

@@ -22,8 +22,8 @@ import typer
 from pipeline.config import load_section
 from pipeline.logs import setup
 from pipeline.modelling.choice import load_choice
-from pipeline.modelling.fit import ModelParams
 from pipeline.modelling.kinds import TABLE
+from pipeline.modelling.kinds.base import KindParams
 from pipeline.modelling.train import train_folder
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
@@ -37,7 +37,7 @@ def main(
     if kind not in TABLE:
         raise typer.BadParameter(f"unknown model kind {kind!r}; expected one of {', '.join(TABLE)}")
     try:
-        section = cast("ModelParams", load_section(TABLE[kind].params, kind, params))
+        section = cast("KindParams", load_section(TABLE[kind].params, kind, params))
         chosen = load_choice(choice, kind) if choice is not None and section.inputs.kind == "auto" else None
         train_folder(kind, section, data_dir, out_dir, _log, chosen)
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, not a traceback

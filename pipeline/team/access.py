@@ -17,7 +17,7 @@ import secrets
 from collections.abc import Iterator
 from typing import Any, Protocol
 
-from pipeline.registry.store import environment
+from pipeline.registry.mlflow_env import environment
 
 
 class Server(Protocol):

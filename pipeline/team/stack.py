@@ -221,10 +221,10 @@ class Stack:
         """A block in which MLflow calls go to this stack's server as the lab (its tracking
         credentials in the environment, restored afterwards): how the stack's own tools read the
         registry."""
-        from pipeline.registry import store
+        from pipeline.registry import mlflow_env
 
         lab = self.role_env("lab")
-        return store.environment({k: v for k, v in lab.items() if k.startswith("MLFLOW_TRACKING_")})
+        return mlflow_env.environment({k: v for k, v in lab.items() if k.startswith("MLFLOW_TRACKING_")})
 
     def role_env(self, role: str) -> dict[str, str]:
         """The environment a user of `role` works with: MLflow's URI and credentials, and for the lab

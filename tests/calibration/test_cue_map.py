@@ -8,7 +8,7 @@ import numpy as np
 
 from pipeline.calibration.unit import cue_evidence, cue_map_kind
 from pipeline.config import CuesParams
-from pipeline.cues.tracker import UnitMap
+from pipeline.cues.evidence import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.frontend import Divider
 from tests.cues.synthetic import CHANNELS, make_split

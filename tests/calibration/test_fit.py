@@ -8,8 +8,10 @@ import pandas as pd
 from pipeline.calibration import fit as calibration_fit
 from pipeline.calibration.fit import AngleData, fit_transform
 from pipeline.calibration.unit import calibrate_unit
-from pipeline.config import CalibrateParams, FNNParams, LSParams
+from pipeline.config import CalibrateParams
 from pipeline.modelling.fit import fit
+from pipeline.modelling.kinds.fnn import FNNParams
+from pipeline.modelling.kinds.ls import LSParams
 from tests.modelling.frames import CHANNELS, make_frame
 
 P = CalibrateParams()

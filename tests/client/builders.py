@@ -11,11 +11,15 @@ import numpy as np
 import pandas as pd
 
 from pipeline.calibration.document import FORMAT as UNIT_FORMAT
-from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
+from pipeline.calibration.document import parse_unit
+from pipeline.config import InputParams
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, save_checkpoint
+from pipeline.modelling.kinds.fnn import FNNParams
+from pipeline.modelling.kinds.ls import LSParams
+from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import calibrations, store
+from pipeline.registry import calibrations, mlflow_env, store
 from pipeline.vocab import AXES, angle_name
 
 UNREACHABLE = "http://127.0.0.1:9"  # the discard port: connection refused at once
@@ -143,7 +147,7 @@ def register(
 
     client = store.connect(uri)
     name = store.model_name(angle)
-    with store.fluent(client.tracking_uri):
+    with mlflow_env.fluent(client.tracking_uri):
         exp = mlflow.get_experiment_by_name(store.EXPERIMENT)
         exp_id = (
             exp.experiment_id
@@ -179,6 +183,7 @@ def unit_document(
             {
                 "matrix": matrix or np.eye(n).tolist(),
                 "offset": offset or [0.0] * n,
+                "domain": "inputs",
                 "fitted_through": [],
                 "models": {},
                 "loss_before": 1.0,
@@ -198,6 +203,7 @@ def unit_document(
         "set_aside": [],
         "transforms": transforms,
         "params": {"transform": "full", "ridge": 0.01},
+        "front_end": None,
         **({"cues": cues} if cues is not None else {}),
     }
 
@@ -206,6 +212,9 @@ def register_unit(uri: str, doc: dict) -> int:
     """Register `doc` in store `uri` as the register stage does: its version number (`@current`)."""
     return int(
         calibrations.register_unit(
-            store.connect(uri), doc, calibrations.document_bytes(doc), lambda _m: None
+            store.connect(uri),
+            parse_unit(doc, "a test document"),
+            calibrations.document_bytes(doc),
+            lambda _m: None,
         )["version"]
     )

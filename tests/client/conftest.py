@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.client import fetch, follow
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit
 from pipeline.registry import store
 from pipeline.vocab import AXES

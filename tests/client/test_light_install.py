@@ -22,13 +22,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.calibration.document import parse_unit
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling import export
 from pipeline.modelling.features import InputTransform
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import calibrations, store
+from pipeline.registry import calibrations, mlflow_env, store
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
 from tests.helpers import stop_group
 
@@ -130,13 +131,14 @@ def _register_through(uri: str) -> tuple[dict, dict, str]:
     client = store.connect(uri)
     exp_id = store.experiment_id(client)  # over HTTP the server picks the location: its artifact proxy
     name = store.model_name(30)
-    with store.fluent(client.tracking_uri):
+    with mlflow_env.fluent(client.tracking_uri):
         with mlflow.start_run(experiment_id=exp_id):
             info = export.log_onnx_model(checkpoint, pack)
         version = mlflow.register_model(info.model_uri, name).version
     client.set_registered_model_alias(name, store.CHAMPION, version)
     doc = unit_document(UNIT, {30: checkpoint}, MIX)
-    calibrations.register_unit(client, doc, calibrations.document_bytes(doc), lambda _m: None)
+    unit = parse_unit(doc, "a test document")
+    calibrations.register_unit(client, unit, calibrations.document_bytes(doc), lambda _m: None)
     return checkpoint, doc, client.get_experiment(exp_id).artifact_location
 
 

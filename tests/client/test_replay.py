@@ -11,7 +11,7 @@ import pytest
 from pipeline import client as fc
 from pipeline.client.replay import cue_changes, replay, rmse
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit
 from tests.client.builders import BENCH_UNIT, TINY, cue_predictions, cue_trials, register
 

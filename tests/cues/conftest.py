@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from tests.cues.synthetic import ANGLES, make_split
 
 

@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pandas as pd
 
-from pipeline.cues.tracker import CueTracker, unit_evidence
+from pipeline.cues.pack import FORMAT
+from pipeline.cues.tracker import CueTracker
+from pipeline.cues.units import unit_evidence
 
 RATE = 30.0
 NOMINAL = "nominal"  # the unit that records `make_trial`'s trials unless told otherwise
@@ -140,3 +142,47 @@ def write_processed(root, train_by_angle: dict[float, pd.DataFrame], external_pe
             folder / "external.parquet", index=False
         )
     return root
+
+
+def whole_pack(estimator: dict | None = None, preset: float = 30.0) -> dict:
+    """A whole cue pack (every field the typed document requires) around a hand-made angle
+    estimator: its stages and the estimator completed with neutral values where not given."""
+    if estimator is not None:
+        stage = {
+            "template_weight": None,
+            "offset_spread": None,
+            "temperature": 1.0,
+            "temperatures": {},
+            "outside_limit": None,
+            "n_train": 0,
+            "cv_accuracy": None,
+        }
+        estimator = {
+            "method": "hand-made",
+            "features": "hand-made",
+            "classes_deg": [],
+            "levels": [],
+            "units": {},
+            "cv": "none",
+            "confidence": {},
+            **estimator,
+            "stages": [{**stage, **s} for s in estimator.get("stages", [])],
+        }
+    return {
+        "format": FORMAT,
+        "preset_angle_deg": preset,
+        "angles": [float(a) for a in ANGLES],
+        "channels": list(CHANNELS),
+        "rate_hz": RATE,
+        "standard_profile": None,
+        "angle_estimator": estimator,
+        "thresholds": {
+            "profile": {},
+            "force_limit_n": None,
+            "continue_below_deg": 7.5,
+            "stop_from_deg": 22.5,
+        },
+        "training": {"trials_per_angle": {}, "batches": []},
+        "params": {},
+        "front_end": None,
+    }

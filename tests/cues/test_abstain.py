@@ -11,17 +11,13 @@ import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import CONFIDENCE_GRID, build_cue_pack, reading_confidence
-from pipeline.cues.tracker import (
-    NO_CUE_REASONS,
-    CueTracker,
-    departing_levels,
-    reading_of,
-    unit_evidence,
-    validated_reading,
-)
+from pipeline.cues.confidence import CONFIDENCE_GRID, reading_confidence
+from pipeline.cues.pack import NO_CUE_REASONS
+from pipeline.cues.packs import build_cue_pack
+from pipeline.cues.tracker import CueTracker
 from pipeline.cues.trials import replay_evidence, stage_frames, trials_of
 from pipeline.cues.unit_evidence import evidence_of, trial_features
+from pipeline.cues.units import departing_levels, reading_of, unit_evidence, validated_reading
 from tests.cues.synthetic import ANGLES, CHANNELS, make_trial, make_unit_split, run_tracker
 
 PARAMS = CuesParams(kinds=("ls",), evidence_levels=(0.05, 0.1, 0.2))

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.document import ScoredCues, SkippedCues, read_cue_evaluation, write_cue_evaluation
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from pipeline.cues.score import evaluate_cues, skipped_evaluation
 from tests.cues.synthetic import external_split, zero_forces
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.cues.fit import outside_limit
+from pipeline.cues.discriminant import outside_limit
 from pipeline.cues.reading import (
     departs,
     distances,

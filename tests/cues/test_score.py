@@ -10,15 +10,11 @@ import pytest
 
 from pipeline.config import CuesParams
 from pipeline.cues.document import write_cue_evaluation
-from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.score import (
-    Run,
-    evaluate_cues,
-    evaluate_unit_groups,
-    summarise_runs,
-    time_to_cue,
-    track_external,
-)
+from pipeline.cues.packs import build_cue_pack
+from pipeline.cues.score import evaluate_cues, track_external
+from pipeline.cues.summary import Run, summarise_runs, time_to_cue
+from pipeline.cues.unit_groups import evaluate_unit_groups
+from pipeline.reporting import cue_figures
 from pipeline.reporting import cues as cue_report
 from pipeline.vocab import angle_name
 from tests.cues.synthetic import (
@@ -134,8 +130,8 @@ def test_evaluation_without_an_estimator_scores_the_paper_method_only(
     written = write_cue_evaluation(tmp_path / "evaluation.json", ev)  # as the stage writes it
     summary = cue_report.angle_cues(written, {30.0: pack})
     assert "**No angle estimator** (a reason)" in summary and "| LS | profile comparison (paper) |" in summary
-    cue_report.plot_confusion(written, tmp_path / "c.png")
-    cue_report.plot_time_to_cue(written, tmp_path / "t.png")
+    cue_figures.plot_confusion(written, tmp_path / "c.png")
+    cue_figures.plot_time_to_cue(written, tmp_path / "t.png")
 
 
 def test_unit_groups_from_the_evaluations_runs_equal_the_groups_scored_again(

@@ -9,8 +9,11 @@ import numpy as np
 import pytest
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker, Evidence, calibration_evidence, unit_readings
+from pipeline.cues.evidence import Evidence
+from pipeline.cues.pack import EstimatorStage
+from pipeline.cues.packs import build_cue_pack
+from pipeline.cues.tracker import CueTracker
+from pipeline.cues.units import calibration_evidence, unit_readings
 from pipeline.frontend import Circuit, Divider, volts_of
 from tests.cues.synthetic import (
     CHANNELS,
@@ -200,9 +203,19 @@ def test_a_calibrations_evidence_counts_only_at_the_estimators_own_levels(pack30
     assert calibration_evidence(pack30, None) is None
 
 
-def _stage(n_features: int) -> dict:
+def _stage(n_features: int) -> EstimatorStage:
     """An evidence stage of six classes a step of 1 apart in every (whitened) feature."""
-    return {"means": [[float(c)] * n_features for c in range(6)], "precision": np.eye(n_features).tolist()}
+    return EstimatorStage(
+        means=[[float(c)] * n_features for c in range(6)],
+        precision=np.eye(n_features).tolist(),
+        template_weight=None,
+        offset_spread=None,
+        temperature=1.0,
+        temperatures={},
+        outside_limit=None,
+        n_train=6,
+        cv_accuracy=None,
+    )
 
 
 def _evidence(means_by_stage: list[list[list[float] | None]]) -> dict:

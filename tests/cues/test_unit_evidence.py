@@ -8,15 +8,16 @@ import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import CueTracker, unit_evidence
+from pipeline.cues.packs import build_cue_pack
+from pipeline.cues.tracker import CueTracker
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from tests.cues.synthetic import ANGLES, CHANNELS, make_unit_split, run_tracker
+from pipeline.cues.units import unit_evidence
+from tests.cues.synthetic import ANGLES, CHANNELS, make_unit_split, run_tracker, whole_pack
 
 
 def test_a_calibration_comes_before_the_pack_s_own_record_of_a_unit() -> None:
     # given: a pack that knows the training unit "a"
-    pack = {"angle_estimator": {"units": {"a": {"0": {"n": [1], "means": [[0.0]]}}}}}
+    pack = whole_pack({"units": {"a": {"0": {"n": [1], "means": [[0.0]]}}}})
     mine = {"0": {"n": [1], "means": [[1.0]]}}
     # when / then
     assert unit_evidence(pack, "a") == pack["angle_estimator"]["units"]["a"]

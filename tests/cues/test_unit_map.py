@@ -7,18 +7,13 @@ import numpy as np
 import pandas as pd
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
-from pipeline.cues.tracker import (
-    CueTracker,
-    Evidence,
-    UnitMap,
-    cue_reading,
-    departing_levels,
-    unit_evidence,
-)
+from pipeline.cues.evidence import Evidence, UnitMap
+from pipeline.cues.packs import build_cue_pack
+from pipeline.cues.tracker import CueTracker
 from pipeline.cues.unit_evidence import trial_features
+from pipeline.cues.units import cue_reading, departing_levels, unit_evidence
 from pipeline.frontend import Divider, conductance_us, volts_of_conductance
-from tests.cues.synthetic import CHANNELS, NOMINAL, make_split, run_tracker
+from tests.cues.synthetic import CHANNELS, NOMINAL, make_split, run_tracker, whole_pack
 
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.62)
 MIX = UnitMap(np.array([[1.1, 0.2, 0.0], [0.0, 0.9, 0.1], [0.05, 0.0, 1.0]]), np.zeros(3))
@@ -64,13 +59,7 @@ def _stage(width: int) -> dict:
     return {"means": [[float(c)] * width for c in range(6)], "precision": np.eye(width).tolist()}
 
 
-PACK = {
-    "angle_estimator": {
-        "levels": [0.1],
-        "stages": [_stage(2), _stage(4)],
-        "classes_deg": [0, 15, 30, 45, 60, 75],
-    }
-}
+PACK = whole_pack({"levels": [0.1], "stages": [_stage(2), _stage(4)], "classes_deg": [0, 15, 30, 45, 60, 75]})
 
 
 def _evidence(off: float, rest_off: float = 0.0) -> dict:

@@ -10,8 +10,10 @@ import pytest
 
 from pipeline.config import SplitParams
 from pipeline.dataset import split as sp
+from pipeline.dataset import split_plan
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.dataset.tables import write_table
+from pipeline.dataset.trials import Trial
 from pipeline.vocab import AXES, CALIBRATION, ID_COLUMNS, SPLITS
 from tests.dataset.resampled import CHANNELS, files_of, make_input, trials_in, write_resampled
 
@@ -121,11 +123,11 @@ def test_a_trial_repeated_under_another_id_is_set_aside():
     # Given two trials with the same samples (ingest's hash of them) under different ids, and a third
     table = pa.table({"fsr1": [1.0, 2.0, 3.0]})
     t1, t2, t3 = (
-        sp.Trial("b", t, "30", ("fsr1",), table, samples_sha256=h)
+        Trial("b", t, "30", ("fsr1",), table, samples_sha256=h)
         for t, h in [("t1", "h"), ("t2", "h"), ("t3", "k")]
     )
     # When repeats are dropped
-    kept, aside = sp.drop_repeats([t3, t2, t1])
+    kept, aside = split_plan.drop_repeats([t3, t2, t1])
     # Then the first in (batch, trial) order stays
     assert [t.trial_id for t in kept] == ["t1", "t3"]
     assert [(s["trial_id"], s["reason"].split(":")[0]) for s in aside] == [("t2", "the same samples as b/t1")]
@@ -171,7 +173,7 @@ def test_empty_splits_are_written_with_the_schema(tmp_path):
 )
 def test_split_sizes_round_and_keep_one_in_val_and_test_from_three_trials(n, expected):
     # Given n internal trials and the paper's 5 % / 10 %, then the counts are as documented
-    assert sp.split_sizes(n, 0.05, 0.10) == expected
+    assert split_plan.split_sizes(n, 0.05, 0.10) == expected
 
 
 def test_the_split_of_an_angle_depends_on_seed_and_angle_only():
@@ -179,8 +181,10 @@ def test_the_split_of_an_angle_depends_on_seed_and_angle_only():
     keys = [("b1", f"t{k}") for k in range(12)]
     p = SplitParams()
     # Then the assignment is the same; another angle name shuffles differently
-    assert sp.assign(keys, "30", p) == sp.assign(list(reversed(keys)), "30", p)
-    assert any(sp.assign(keys, "30", p)[s] != sp.assign(keys, "45", p)[s] for s in ("train", "test"))
+    assert split_plan.assign(keys, "30", p) == split_plan.assign(list(reversed(keys)), "30", p)
+    assert any(
+        split_plan.assign(keys, "30", p)[s] != split_plan.assign(keys, "45", p)[s] for s in ("train", "test")
+    )
 
 
 def _calibration(src, batch_id: str = "sim-calib-u-new", angles: tuple[float, ...] = (30.0, 45.0)) -> None:

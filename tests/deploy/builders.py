@@ -11,11 +11,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.client import ForceClient
-from pipeline.config import InputParams, LSTMParams
+from pipeline.config import InputParams
 from pipeline.frontend import Divider
 from pipeline.modelling import export
 from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
+from pipeline.modelling.kinds.lstm import LSTMParams
 from tests.client.builders import cue_trials, keep_axes, register, register_unit, unit_document
 
 CIRCUIT = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.5)

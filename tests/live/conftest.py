@@ -13,7 +13,7 @@ import yaml
 
 from pipeline.client import fetch
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit
 from tests.client.builders import (
     CHANNELS,

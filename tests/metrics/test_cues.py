@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from pipeline.cues.document import FORMAT, ScoredCues, SkippedCues
-from pipeline.cues.tracker import CUES, VERDICTS
+from pipeline.cues.pack import CUES, VERDICTS
 from pipeline.metrics.cues import cue_headline
 
 

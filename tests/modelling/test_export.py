@@ -13,12 +13,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
+from pipeline.config import InputParams
 from pipeline.frontend import Divider, Transimpedance
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import load_checkpoint, save_checkpoint
 from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
+from pipeline.modelling.kinds.fnn import FNNParams
+from pipeline.modelling.kinds.ls import LSParams
+from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.modelling.predictor import Predictor
 from pipeline.vocab import INPUT_NAMES, description_sha256
 from tests.modelling.frames import make_frame

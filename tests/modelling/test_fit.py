@@ -9,10 +9,13 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.config import FNNParams, InputParams, LSParams, LSTMParams
+from pipeline.config import InputParams
 from pipeline.modelling.checkpoint import ModelConfig, save_checkpoint
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import sequence_order, window_index
+from pipeline.modelling.kinds.fnn import FNNParams
+from pipeline.modelling.kinds.ls import LSParams
+from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.modelling.predictor import load_predictor
 from pipeline.vocab import KINDS
 from tests.modelling.frames import CHANNELS, make_frame

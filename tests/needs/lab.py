@@ -5,6 +5,7 @@ tests' synthetic estimator, `tests.cues.synthetic`)."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -66,8 +67,8 @@ def write_lab(root: Path, frames: Frames) -> Path:
     return root
 
 
-def write_choices(folder: Path, kind: str = "rest_volts") -> Path:
-    """The choose stage's files for LS and the FNN, both choosing `kind`."""
-    for model in ("ls", "fnn"):
+def write_choices(folder: Path, kind: str = "rest_volts", models: Sequence[str] = ("ls", "fnn")) -> Path:
+    """The choose stage's files for `models` (LS and the FNN), each choosing `kind`."""
+    for model in models:
         save_choice(folder / f"{model}.json", model, Choice(kind, {}, "leave-one-unit-out", "stand-in"))
     return folder

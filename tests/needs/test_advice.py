@@ -7,6 +7,7 @@ from typing import Any
 from pipeline.needs.advice import (
     cue_sentence,
     flattens,
+    force_label,
     force_sentence,
     have_text,
     left_out_sentence,
@@ -14,6 +15,8 @@ from pipeline.needs.advice import (
     reached,
     sentences,
 )
+from pipeline.needs.document import Curves, stored_curves
+from tests.needs.docs import cues, needs_doc, step
 
 
 def test_the_cues_reaching_the_target_name_where_and_what_the_lab_has() -> None:
@@ -109,38 +112,36 @@ def test_what_the_lab_has_is_one_number_or_a_range() -> None:
 WHY = "evidence stage 0: the trials fitted hold one per unit and angle"
 
 
-def doc(loo: dict[str, Any] | None, units: list[str]) -> dict[str, Any]:
-    """A needs document: three ladder steps (the first not scored), one new unit."""
-    steps = [
-        {"per_angle": 3, "cues": {"unavailable": f"no angle estimator could be fitted ({WHY})"}},
-        {"per_angle": 6, "cues": {"balanced_within_s": 0.8}, "force": {"ls": {"mean_nrmse_pct": 8.0}}},
-        {"per_angle": 12, "cues": {"balanced_within_s": 0.9}, "force": {"ls": {"mean_nrmse_pct": 7.9}}},
-    ]
-    return {
-        "params": {"cue_target_pct": 95.0, "calibration_insertions": [1, 2]},
-        "cue_within_s": 3.0,
-        "training": {
-            "have_per_angle": {"0": 12},
-            "units": units,
-            "steps": steps,
-            "force_models": [{"name": "ls", "about": "LS"}],
-        },
-        "calibration": {
-            "new_units": {
-                "N": {"calibration_insertions": {"0": 1}, "steps": [{"k": 1, "balanced_within_s": 0.9}]}
-            },
-            "leave_one_unit_out": loo,
-        },
-    }
+def doc(loo: dict[str, Any] | None, units: list[str]) -> Curves:
+    """A needs document's curves: three ladder steps (the first not scored), one new unit."""
+    whole = needs_doc()
+    whole["training"].update(
+        have_per_angle={"0": 12},
+        units=units,
+        force_models=[{"name": "ls", "about": "LS"}],
+        steps=[
+            step(3, {"unavailable": f"no angle estimator could be fitted ({WHY})"}, {}),
+            step(6, cues(0.8, 0.8), {"ls": 8.0}),
+            step(12, cues(0.9, 0.8), {"ls": 7.9}),
+        ],
+    )
+    whole["calibration"].update(
+        new_units={"N": {"calibration_insertions": {"0": 1}, "steps": [{"k": 1, **cues(0.9, 0.8)}]}},
+        leave_one_unit_out=loo,
+    )
+    del whole["advice"]
+    return stored_curves(whole)
 
 
 def test_the_advice_of_a_document_covers_cues_force_and_calibration_in_order() -> None:
     # given: a document with a leave-one-unit-out curve
+    seen = cues(0, 0)["seen"]
     loo = {
+        "units": {},
         "mean": [
-            {"k": 1, "units": 2, "balanced_within_s": 0.7},
-            {"k": 2, "units": 2, "balanced_within_s": 0.8},
-        ]
+            {"k": 1, "units": 2, "balanced_within_s": 0.7, "seen": seen},
+            {"k": 2, "units": 2, "balanced_within_s": 0.8, "seen": seen},
+        ],
     }
     # when
     found = sentences(doc(loo, ["A", "B"]))
@@ -167,4 +168,14 @@ def test_with_one_training_unit_the_advice_says_why_there_is_no_left_out_curve()
         "Leave-one-unit-out is not possible with one training unit (A): N's own calibration batch "
         "(1 per angle at the fewest) gives 90.0 % with 1 per angle on its held-out trials; 2 per angle need "
         "a larger calibration batch."
+    )
+
+
+def test_the_force_curves_are_named_after_their_kinds() -> None:
+    # given: the curves of LS itself and of the FNN's stand-in / when / then: the kind's label, and the
+    # stand-in named with the kinds it is not (every kind not fitted as it is)
+    names = ["ls", "fnn_stand_in"]
+    assert force_label("ls", names) == "LS"
+    assert force_label("fnn_stand_in", names) == (
+        "the networks' stand-in (a ridge regression, not the trained FNN or LSTM)"
     )

@@ -4,32 +4,41 @@ what cannot be computed said."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from pipeline.config import CuesParams, FNNParams, LSParams, NeedsParams
+from pipeline.config import CuesParams, NeedsParams
+from pipeline.modelling.kinds.fnn import FNNParams
+from pipeline.modelling.kinds.ls import LSParams
 from pipeline.needs.curves import needs_curves
-from pipeline.needs.force import ForceModel, ls_model, stand_in_model
-from tests.needs.lab import ANGLES, NEW_UNIT, TRAINING_UNITS, lab_data, lab_frames
+from pipeline.needs.force import ForceModel, force_models
+from tests.needs.lab import ANGLES, NEW_UNIT, TRAINING_UNITS, lab_data, lab_frames, write_choices
 
 CUES = CuesParams(kinds=("ls",), evidence_levels=(0.05, 0.1, 0.2))
 
 
-def models() -> dict[str, ForceModel]:
-    return {
-        "ls": ls_model(LSParams(), "rest_volts", None),
-        "fnn_stand_in": stand_in_model(FNNParams(), "rest_volts", None),
-    }
+def models(tmp_path: Path) -> dict[str, ForceModel]:
+    """LS and the networks' stand-in on rest volts, as the stage builds them."""
+    found, _ = force_models([("ls", LSParams()), ("fnn", FNNParams())], write_choices(tmp_path), {}, [])
+    return found
 
 
 @pytest.fixture(scope="module")
-def needs() -> dict[str, Any]:
+def needs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """The curves of the lab: 3 units x 2 batches x 2 insertions (12 per angle), the auto ladder."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("NEEDLECUE_WORKERS", "1")  # in-process: the stage test checks the worker processes
-        return needs_curves(lab_data(lab_frames()), NeedsParams(), CUES, models(), lambda _m: None)
+        return needs_curves(
+            lab_data(lab_frames()),
+            NeedsParams(),
+            CUES,
+            models(tmp_path_factory.mktemp("choices")),
+            "ls",
+            lambda _m: None,
+        )
 
 
 def test_the_ladder_steps_are_spread_over_the_units(needs: dict[str, Any]) -> None:
@@ -103,6 +112,7 @@ def test_with_one_training_unit_leave_one_unit_out_is_said_not_possible() -> Non
             NeedsParams(training_insertions=(6,), calibration_insertions=(1,)),
             CUES,
             {},
+            "ls",
             lambda _m: None,
         )
     # then: no leave-one-unit-out curve, and why; the new unit's own batch still scored

@@ -1,5 +1,6 @@
-"""Force against the training insertions per angle: LS and the networks' stand-in refitted per angle,
-scored on the training units' held-out trials; what cannot be built or scored is said."""
+"""Force against the training insertions per angle: per model kind given, the kind itself (LS) or the
+networks' stand-in refitted per angle, scored on the training units' held-out trials; what cannot be
+built or scored is said."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.config import FNNParams, LSParams
+from pipeline.modelling.kinds.fnn import FNNParams
+from pipeline.modelling.kinds.ls import LSParams
+from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.needs.force import ForceModel, chosen_kind, force_curve, force_models
 from pipeline.needs.subsample import spread_order, trials_in
 from tests.needs.lab import ANGLES, NEW_UNIT, lab_frames, write_choices
@@ -17,7 +20,8 @@ from tests.needs.lab import ANGLES, NEW_UNIT, lab_frames, write_choices
 
 def models(tmp_path: Path) -> dict[str, ForceModel]:
     """LS and the stand-in as the stage builds them: on the inputs the choose stage chose."""
-    found, notes = force_models(LSParams(), FNNParams(), write_choices(tmp_path / "choices"), {}, ["A"])
+    kinds = [("ls", LSParams()), ("fnn", FNNParams())]
+    found, notes = force_models(kinds, write_choices(tmp_path / "choices"), {}, ["A"])
     assert notes == []
     return found
 
@@ -68,7 +72,27 @@ def test_models_that_need_a_circuit_the_units_do_not_share_are_said(tmp_path: Pa
     pinned = LSParams.model_validate({"inputs": {"kind": "conductance"}})
     choices = write_choices(tmp_path / "choices")
     # when
-    found, notes = force_models(pinned, FNNParams(), choices, {"A": None}, ["A"])
+    found, notes = force_models([("ls", pinned), ("fnn", FNNParams())], choices, {"A": None}, ["A"])
     # then: the stand-in is built, LS is not, and why
     assert list(found) == ["fnn_stand_in"]
     assert notes[0]["what"] == "force of ls" and "needs the estimator's front end" in notes[0]["why"]
+
+
+def test_the_force_curves_are_named_and_described_from_the_kinds_given(tmp_path: Path) -> None:
+    # given: the kinds in another order, and the LSTM's stand-in (with its lags) among them
+    kinds = [("fnn", FNNParams()), ("lstm", LSTMParams()), ("ls", LSParams())]
+    # when
+    found, notes = force_models(
+        kinds, write_choices(tmp_path / "choices", models=("ls", "fnn", "lstm")), {}, ["A"]
+    )
+    # then: one curve per kind in the order given: a linear stand-in's kind fitted as it is, the others'
+    # stand-ins, each described from its kind's label and stand-in
+    assert notes == []
+    assert list(found) == ["fnn_stand_in", "lstm_stand_in", "ls"]
+    assert found["ls"].about == "LS (the paper's calibration matrix) on rest_volts"
+    assert found["fnn_stand_in"].about == (
+        "the networks' stand-in (ridge on the FNN's inputs rest_volts, their squares and pairwise products), "
+        "not a trained FNN or LSTM"
+    )
+    assert "the LSTM's inputs rest_volts" in found["lstm_stand_in"].about
+    assert ", lags [" in found["lstm_stand_in"].about

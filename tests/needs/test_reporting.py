@@ -4,75 +4,16 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any
 
 from pipeline.reporting.needs import how_much_data_you_need, plot_needs
+from tests.needs.docs import needs_doc, typed
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
-def cues(balanced: float, coverage: float) -> dict[str, Any]:
-    seen = {"wrong_final": 0.01, "wrong_frames": 0.005, "coverage_frames": coverage}
-    return {"balanced_within_s": balanced, "seen": seen, "trials": 126}
-
-
-def needs_doc() -> dict[str, Any]:
-    """A needs document as the stage writes it: two ladder steps, two units left out, one new unit."""
-    force = {"ls": {"mean_nrmse_pct": 7.3}, "fnn_stand_in": {"mean_nrmse_pct": 5.9}}
-    return {
-        "format": "needlecue-needs/1",
-        "params": {"cue_target_pct": 95.0, "calibration_insertions": [1, 2]},
-        "cue_within_s": 3.0,
-        "training": {
-            "have_per_angle": {"0": 12, "15": 12},
-            "units": ["A", "B"],
-            "ladder": [6, 12],
-            "subsample": "spread over units and batches",
-            "force_models": [
-                {"name": "ls", "about": "LS on rest_volts"},
-                {"name": "fnn_stand_in", "about": "ridge"},
-            ],
-            "force_scored_on": "held-out trials",
-            "cues_scored_on": "held-out trials",
-            "steps": [
-                {
-                    "per_angle": 6,
-                    "trials": 12,
-                    "by_unit": {"A": 6, "B": 6},
-                    "force": force,
-                    "cues": cues(0.81, 0.7),
-                },
-                {
-                    "per_angle": 12,
-                    "trials": 24,
-                    "by_unit": {"A": 12, "B": 12},
-                    "force": force,
-                    "cues": cues(0.93, 0.8),
-                },
-            ],
-        },
-        "calibration": {
-            "insertions_per_angle": [1, 2],
-            "force": "not recomputed: it needs the models retrained without the unit",
-            "new_units": {
-                "N": {"calibration_insertions": {"0": 1, "15": 1}, "steps": [{"k": 1, **cues(0.9, 0.8)}]}
-            },
-            "leave_one_unit_out": {
-                "units": {
-                    u: {"test_trials": 30, "steps": [{"k": 1, **cues(0.7, 0.6)}, {"k": 2, **cues(0.8, 0.7)}]}
-                    for u in "AB"
-                },
-                "mean": [{"k": 1, "units": 2, **cues(0.7, 0.6)}, {"k": 2, "units": 2, **cues(0.8, 0.7)}],
-            },
-        },
-        "advice": ["The cues do not reach 95 % with the 12 you have."],
-        "not_computed": [{"what": "N with 2 calibration insertions per angle", "why": "its batch has 1"}],
-    }
-
-
 def test_the_section_shows_the_advice_the_tables_and_the_figure() -> None:
     # given / when
-    text = how_much_data_you_need(needs_doc())
+    text = how_much_data_you_need(typed(needs_doc()))
     # then: the heading, the advice, a row per ladder step with force and cue figures, the calibration
     # rows, what was not computed, the figure linked relative to reports/
     assert text.startswith("## How much data you need\n")
@@ -91,14 +32,14 @@ def test_a_step_that_was_not_scored_says_why_in_its_row() -> None:
     doc["training"]["steps"][0]["cues"] = {"unavailable": "no angle estimator could be fitted"}
     # when / then
     assert "| 6 | 12 (6, 6) | 7.30 | 5.90 | not scored: no angle estimator could be fitted |" in (
-        how_much_data_you_need(doc)
+        how_much_data_you_need(typed(doc))
     )
 
 
 def test_the_figure_has_the_same_bytes_every_time(tmp_path: Path) -> None:
     # given / when: the figure drawn twice
     for name in ("a.png", "b.png"):
-        plot_needs(needs_doc(), tmp_path / name)
+        plot_needs(typed(needs_doc()), tmp_path / name)
     # then
     first = (tmp_path / "a.png").read_bytes()
     assert first[:8] == PNG and first == (tmp_path / "b.png").read_bytes()
@@ -112,7 +53,7 @@ def test_the_figure_of_a_document_with_nothing_computed_still_draws(tmp_path: Pa
         step["cues"] = {"unavailable": "no external trial of a training unit"}
     doc["calibration"].update(new_units={}, leave_one_unit_out=None)
     # when
-    plot_needs(doc, tmp_path / "needs.png")
+    plot_needs(typed(doc), tmp_path / "needs.png")
     # then: a PNG, and the section has no calibration table
     assert (tmp_path / "needs.png").read_bytes()[:8] == PNG
-    assert "### Calibration insertions per angle" not in how_much_data_you_need(doc)
+    assert "### Calibration insertions per angle" not in how_much_data_you_need(typed(doc))

@@ -72,8 +72,8 @@ def test_a_calibration_becomes_a_unit_version_with_the_current_alias(
     run = client.get_run(current.run_id)
     assert client.get_experiment(run.info.experiment_id).name == "needle-units"
     doc = read_unit(path)
-    assert run.data.params["ridge"] == str(doc["params"]["ridge"])
-    assert run.data.metrics["ls_loss_before"] == pytest.approx(doc["transforms"]["ls"]["loss_before"])
+    assert run.data.params["ridge"] == str(doc.params["ridge"])
+    assert run.data.metrics["ls_loss_before"] == pytest.approx(doc.transforms["ls"].loss_before)
     assert run.data.metrics["ls_loss_after"] < run.data.metrics["ls_loss_before"]
     assert {k: run.data.tags[k] for k in ("unit_id", "batches", "angles_used", "angles_missing")} == {
         "unit_id": UNIT,
@@ -108,7 +108,7 @@ def test_the_same_document_is_registered_once_and_current_never_moves_back(
     assert len(runs) == 1
 
     # when: a new calibration (other settings), then the first document again
-    doc = read_unit(cal / f"{UNIT}.json")
+    doc = json.loads((cal / f"{UNIT}.json").read_text())
     doc["params"]["ridge"] = 0.5
     write_unit(doc, cal)
     newer = register_dir(cal)["units"][UNIT]

@@ -14,7 +14,7 @@ from mlflow import MlflowClient
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.registry import store, versions
+from pipeline.registry import mlflow_env, store, versions
 from pipeline.registry.store import CHAMPION, TAG, model_name
 from pipeline.vocab import DEPLOY_FORMAT
 
@@ -168,11 +168,14 @@ def test_connecting_and_using_the_fluent_api_leave_mlflows_globals_as_they_were(
     import mlflow
 
     other = f"sqlite:///{tmp_path / 'other.db'}"
-    env = {k: os.environ.get(k) for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", *store.HTTP_SETTINGS)}
+    env = {
+        k: os.environ.get(k)
+        for k in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", *mlflow_env.HTTP_SETTINGS)
+    }
     # when: a writer connects to another store and logs a run there through the fluent API
     client = store.connect(other, write=True)
-    with store.patience(write=True), store.fluent(client.tracking_uri):
-        assert os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == store.WRITE_TIMEOUT_S
+    with mlflow_env.patience(write=True), mlflow_env.fluent(client.tracking_uri):
+        assert os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] == mlflow_env.WRITE_TIMEOUT_S
         with mlflow.start_run(experiment_id=store.experiment_id(client)) as run:
             mlflow.log_metric("m", 1.0)
     # then: the run is in the other store, and the environment and MLflow's URIs are as before
@@ -200,8 +203,8 @@ def test_environment_blocks_that_end_out_of_order_restore_the_environment(monkey
     # given: a timeout the user set, and two polls on two threads, each in its own block
     monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "30")
     first, second = (
-        store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}),
-        store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}),
+        mlflow_env.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}),
+        mlflow_env.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}),
     )
     # when: the second starts before the first ends, and ends after it
     first.__enter__()
@@ -219,14 +222,14 @@ def test_nested_environment_blocks_restore_each_level_and_patience_reads_the_use
     monkeypatch.delenv("MLFLOW_HTTP_REQUEST_TIMEOUT", raising=False)
     # when: a writer's patience opens while a poll's block is open (another thread's), and inside it
     # one more block
-    with store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}):
-        with store.patience(write=True):
+    with mlflow_env.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "2"}):
+        with mlflow_env.patience(write=True):
             writer = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
-            with store.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "5"}):
+            with mlflow_env.environment({"MLFLOW_HTTP_REQUEST_TIMEOUT": "5"}):
                 inner = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
             after_inner = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
         after_writer = os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"]
     # then: the writer gets its own 60 s, not the poll's 2 s; each level comes back as it ends
-    assert (writer, inner, after_inner) == (store.WRITE_TIMEOUT_S, "5", store.WRITE_TIMEOUT_S)
+    assert (writer, inner, after_inner) == (mlflow_env.WRITE_TIMEOUT_S, "5", mlflow_env.WRITE_TIMEOUT_S)
     assert after_writer == "2"
     assert "MLFLOW_HTTP_REQUEST_TIMEOUT" not in os.environ

@@ -141,3 +141,17 @@ def test_a_lab_that_recorded_fz_alone_gets_tables_of_fz_alone():
     # and a three-axis evaluation says neither
     three = render(in_memory_metrics(network_error(0.20, 0.05, 0.06)))
     assert "Force axes" not in three and "| Fx | Fy | Fz |" in three
+
+
+def test_table_3_shows_the_papers_comparison_whatever_else_was_trained():
+    # given: an evaluation of the paper's kinds and of one it never ran
+    def error(model: str, train: float, data: float) -> float:
+        return 0.05 + 0.1 * abs(train - data) / 15
+
+    report = render(in_memory_metrics(error, kinds=("ls", "fnn", "lstm", "gru")))
+    # when: reading Table III
+    table3 = report.split("## Table III")[1].split("\n## ")[0]
+    rows = [line.split(" | ")[0] for line in table3.splitlines() if line.startswith("| ") and "°" in line]
+    # then: the rows are the paper's LSTM and FNN, at the angle and at the gap, and no other kind
+    assert rows == ["| LSTM (30°)", "| FNN (30°)", "| LSTM (angle gap 15°)", "| FNN (angle gap 15°)"]
+    assert "GRU (" in report.split("## Table III")[0]  # the other tables show every kind

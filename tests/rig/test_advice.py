@@ -9,7 +9,7 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.config import IngestParams
-from pipeline.rig.ingest import check_batches
+from pipeline.rig.check import check_batches
 from tests.rig.batches import TRIALS, A, copy_batch, lines_of, replace_in, write_lines
 
 

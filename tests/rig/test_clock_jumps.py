@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from pipeline.config import IngestParams, ResampleParams
-from pipeline.rig.ingest import check_batches
+from pipeline.rig.check import check_batches
 from pipeline.signals.resample import run as resample
 from tests.rig.batches import run
 from tests.signals.fabricate import Fabricated, fabricate

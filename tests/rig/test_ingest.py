@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from pipeline.config import IngestParams
-from pipeline.rig import ingest
+from pipeline.rig import batch_store, check, ingest
 from tests.helpers import tree_hash
 from tests.rig.batches import TRIALS, A, copy_batch, drop_column, run, set_cell
 
@@ -109,7 +109,7 @@ def test_crash_while_writing_leaves_no_matching_fingerprint(raw_dir, tmp_path, m
     set_cell(raw_dir / A / "t001.fsr.csv", 5, "left", "0.5")
     # When writing its new outputs fails half way
     with monkeypatch.context() as m:
-        m.setattr(ingest, "_write_parquet", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
+        m.setattr(batch_store, "write_parquet", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
         with pytest.raises(OSError):
             run([raw_dir], out)
     # Then the next run parses it again (no stale fingerprint matches) and writes the new value
@@ -137,10 +137,11 @@ def test_a_batch_naming_two_units_beside_one_whose_unit_is_a_list_is_written_not
     # Then the other unit's trial is set aside at its line, the listed batch as a whole, and every
     # JSON written holds plain values (line numbers are ints)
     assert result.accepted == [A] and result.set_aside == ["lab-bench-b"]
-    problems = json.loads((out / A / ingest.PROBLEMS).read_text())
+    problems = json.loads((out / A / batch_store.PROBLEMS).read_text())
     assert [(p["trial_id"], p["line"], p["column"]) for p in problems] == [("t002", 3, "unit_id")]
-    assert json.loads((out / A / ingest.FINGERPRINT).read_text())["outcome"]["trials_set_aside"] == ["t002"]
-    listed_problems = json.loads((out / "lab-bench-b" / ingest.PROBLEMS).read_text())
+    stored = json.loads((out / A / batch_store.FINGERPRINT).read_text())
+    assert stored["outcome"]["trials_set_aside"] == ["t002"]
+    listed_problems = json.loads((out / "lab-bench-b" / batch_store.PROBLEMS).read_text())
     assert "sensor.unit_id" in listed_problems[0]["reason"]
 
 
@@ -175,8 +176,8 @@ def test_check_folders_reports_problems_and_writes_nothing(raw_dir, lab_bench_a,
     drop_column(bad / "t001.fsr.csv", "left")
     before = tree_hash(tmp_path)
     # When they are checked (as a folder of batches and as one batch folder)
-    problems = ingest.check_folders([raw_dir], IngestParams())
-    single = ingest.check_folders([lab_bench_a], IngestParams())
+    problems = check.check_folders([raw_dir], IngestParams())
+    single = check.check_folders([lab_bench_a], IngestParams())
     # Then exactly the broken file is reported, and nothing was written anywhere
     assert [(p.batch_id, Path(p.file).name, p.column) for p in problems] == [
         ("lab-bench-b", "t001.fsr.csv", "left")

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.config import IngestParams
-from pipeline.rig.ingest import check_batches
+from pipeline.rig.check import check_batches
 from tests.rig.batches import A, lines_of, replace_in, set_cell, write_lines
 
 

@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 
 from pipeline.config import IngestParams
-from pipeline.rig import ingest
+from pipeline.rig import check
 from pipeline.rig.format import BatchMeta
 from pipeline.rig.problems import MAX_PER_COLUMN
 from tests.helpers import tree_hash
@@ -168,7 +168,7 @@ def test_gzip_csv_and_tdms_reference_ingest_to_the_same_bytes_as_plain_csv(raw_d
     assert forms.batches[0].warnings == []
     assert _parquets(tmp_path / "out-plain") == _parquets(tmp_path / "out-forms")
     # ... and `needlecue check` agrees, naming no problem
-    assert ingest.check_folders([other], IngestParams()) == []
+    assert check.check_folders([other], IngestParams()) == []
     assert tree_hash(other) == before
 
 
@@ -993,7 +993,7 @@ def test_a_file_the_os_will_not_read_is_a_located_problem(raw_dir, lab_bench_a, 
     monkeypatch.setattr(Path, "open", guarded_open)
     # When the folder is ingested, and checked
     result = run([raw_dir], tmp_path / "out")
-    checked = ingest.check_folders([raw_dir], IngestParams())
+    checked = check.check_folders([raw_dir], IngestParams())
     # Then both name the file and the reason, and the other batch goes on
     for problems in (result.problems, checked):
         assert [p.reason for p in problems if Path(p.file) == locked] == ["cannot read: Permission denied"]

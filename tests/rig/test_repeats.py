@@ -9,7 +9,8 @@ from pathlib import Path
 from pipeline.config import IngestParams, ResampleParams, SplitParams
 from pipeline.dataset import split
 from pipeline.rig import repeats
-from pipeline.rig.ingest import check_batches, ingest_batches
+from pipeline.rig.check import check_batches
+from pipeline.rig.ingest import ingest_batches
 from pipeline.signals import resample
 from tests.rig.batches import gzip_file, lines_of, to_tdms, write_lines
 

@@ -18,8 +18,8 @@ from scipy.signal import lfilter
 
 from pipeline.config import ResampleParams
 from pipeline.rig.repeats import SAMPLES_KEY, samples_sha256
-from pipeline.signals.resample import ResampledTrial, Streams, align, check_response, on_grid
 from pipeline.signals.scaling import to_volts
+from pipeline.signals.trial import ResampledTrial, Streams, align, check_response, on_grid
 
 FSR_HZ = 30.0
 REF_HZ = 100.0

@@ -11,11 +11,12 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from pipeline.config import LSParams
 from pipeline.cues.document import read_cue_evaluation
 from pipeline.modelling.checkpoint import save_checkpoint
 from pipeline.modelling.fit import fit
+from pipeline.modelling.kinds.ls import LSParams
 from pipeline.modelling.split_predictions import predict_all
+from pipeline.reporting import cue_figures
 from pipeline.reporting import cues as cue_report
 from pipeline.stages import cues
 from tests.cues.synthetic import ANGLES, make_split, write_processed
@@ -48,8 +49,8 @@ def render(out: Path) -> str:
     """What the report stage makes of the cues stage's outputs: summary.md and the two figures."""
     evaluation = read_cue_evaluation(out / "evaluation.json")
     packs = {float(p.stem): json.loads(p.read_text()) for p in sorted((out / "packs").glob("*.json"))}
-    cue_report.plot_confusion(evaluation, out / "confusion.png")
-    cue_report.plot_time_to_cue(evaluation, out / "time_to_cue.png")
+    cue_figures.plot_confusion(evaluation, out / "confusion.png")
+    cue_figures.plot_time_to_cue(evaluation, out / "time_to_cue.png")
     return cue_report.angle_cues(evaluation, packs)
 
 

@@ -10,6 +10,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from pipeline.needs.document import read_needs
 from pipeline.reporting.needs import how_much_data_you_need
 from pipeline.stages import needs
 from tests.helpers import tree_hash
@@ -53,7 +54,7 @@ def test_stage_writes_the_same_bytes_on_one_worker_or_two(
     # and the advice is in needs.json and in the log
     assert doc["advice"] and all(f"advice: {line}" in result.output for line in doc["advice"])
     # and the report's section renders from it, linking the figure relative to reports/
-    section = how_much_data_you_need(doc)
+    section = how_much_data_you_need(read_needs(outs["1"] / "needs.json"))
     assert section.startswith("## How much data you need")
     assert "(needs/needs.png)" in section and doc["advice"][0] in section
 
@@ -89,4 +90,4 @@ def test_odd_data_is_said_and_never_stops_the_stage(tmp_path: Path) -> None:
     assert said["cues"] == "one trained angle (30°): nothing to tell apart"
     assert said["leave-one-unit-out calibration curve"].startswith("one training unit (A)")
     assert (out / "needs.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "Not computed, and why:" in how_much_data_you_need(doc)
+    assert "Not computed, and why:" in how_much_data_you_need(read_needs(out / "needs.json"))

@@ -1,9 +1,11 @@
 """The model kinds: one module each, one line each in `TABLE` (docs/model-kinds.md).
 
-A kind is a `base.ModelKind`: its params section, its config, its training, the inputs choice's
-stand-in for it and its runtime. Training, prediction, export and calibration ask `kind_of(name)`
-and never branch on a kind's name; `vocab.KINDS` names the same kinds, simplest first, for the
-params (a test checks the two agree).
+A kind is a `base.ModelKind`: its params section (a class in its module), its config, its training,
+the inputs choice's stand-in for it, its runtime, and its label and colour in the report. Training,
+prediction, export, calibration and the report ask the table (`kind_of(name)`, `kind_label(name)`)
+and never branch on a kind's name. `vocab.KINDS` names the same kinds, simplest first, for
+`config.py` (which the simulator's client loads, so it cannot import this table) to check the
+params' kind names against when they are read; a test checks that the two agree.
 """
 
 from __future__ import annotations
@@ -22,3 +24,9 @@ def kind_of(name: str, what: str = "use") -> ModelKind:
         return TABLE[name]
     except (KeyError, TypeError):
         raise ValueError(f"cannot {what} model kind {name!r}; expected one of {', '.join(TABLE)}") from None
+
+
+def kind_label(name: str) -> str:
+    """How the report names the kind called `name`: its label in the table, else the name in capitals."""
+    kind = TABLE.get(name)
+    return kind.label if kind is not None else name.upper()

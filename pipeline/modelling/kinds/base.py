@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple, Protocol
 import numpy as np
 import pandas as pd
 
-from pipeline.config import Section
+from pipeline.config import InputParams, Section
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import ModelConfig
 from pipeline.modelling.features import ModelInputs
@@ -39,6 +39,16 @@ class StandIn:
             return "least squares on the inputs" + ("" if self.intercept else ", no intercept")
         lags = f", lags {list(self.lags)} samples" if self.lags else ""
         return "ridge on inputs, squares and pairwise products" + lags
+
+
+class KindParams(Protocol):
+    """What training reads of any kind's params section (a frozen `config.Section` defined in the
+    kind's module, `ModelKind.params`): `inputs`, what the model reads. The rest is the kind's own."""
+
+    @property
+    def inputs(self) -> InputParams: ...
+
+    def model_dump(self, *, mode: str = "python") -> dict[str, Any]: ...
 
 
 class Fitted(NamedTuple):
@@ -70,11 +80,18 @@ class Runtime(Protocol):
 
 class ModelKind(ABC):
     """One kind of force model. A subclass sets `name` (the params section and `vocab.KINDS` entry),
-    `params` (its `config.Section`) and, if it reads a window of samples per row, `sequence`."""
+    `params` (its `config.Section`, defined in its module) and, if it reads a window of samples per
+    row, `sequence`; the report names it by `label` and draws it in `color`."""
 
     name: ClassVar[str]
     params: ClassVar[type[Section]]
     sequence: ClassVar[bool] = False  # reads the last `window` samples of the trial per row
+    color: ClassVar[str | None] = None  # its colour in the report's figures (None: matplotlib's next)
+
+    @property
+    def label(self) -> str:
+        """How the report names the kind: its name in capitals, unless the kind says otherwise."""
+        return self.name.upper()
 
     @abstractmethod
     def config(self, params: Any, n_in: int) -> ModelConfig:

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.config import LSParams
+from pipeline.config import InputParams, Section
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import ModelConfig
 from pipeline.modelling.features import ModelInputs
@@ -22,9 +22,17 @@ from pipeline.vocab import axes_of
 LSTSQ_CUTOFF = 1e-6  # relative singular-value cutoff: scikit-learn's LinearRegression `tol` default
 
 
+class LSParams(Section):
+    """`ls`: the calibration matrix of eq. (1)-(2)."""
+
+    fit_intercept: bool = False  # the paper's F = C v has none; zero volts -> zero force
+    inputs: InputParams = InputParams()
+
+
 class LS(ModelKind):
     name = "ls"
     params = LSParams
+    color = "tab:red"
 
     def config(self, params: LSParams, n_in: int) -> ModelConfig:
         return ModelConfig(kind=self.name, n_in=n_in)

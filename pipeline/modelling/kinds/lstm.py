@@ -6,7 +6,9 @@ from __future__ import annotations
 import functools
 from typing import TYPE_CHECKING
 
-from pipeline.config import LSTMParams
+from pydantic import Field
+
+from pipeline.config import InputParams, Section
 from pipeline.modelling.checkpoint import ModelConfig
 from pipeline.modelling.kinds.base import StandIn
 from pipeline.modelling.kinds.network import NetworkKind
@@ -15,9 +17,26 @@ if TYPE_CHECKING:
     import torch
 
 
+class LSTMParams(Section):
+    """`lstm`: an LSTM on a window of the estimator's own recent voltages."""
+
+    window: int = Field(15, ge=1, description="samples, including the current one")
+    hidden: int = Field(24, ge=1)
+    layers: int = Field(1, ge=1)
+    lr: float = Field(0.005, gt=0)
+    weight_decay: float = Field(0.0, ge=0)
+    batch_size: int = Field(128, ge=1)
+    max_epochs: int = Field(60, ge=1)
+    patience: int = Field(10, ge=1, description="epochs without a better validation loss before stopping")
+    ema: float = Field(0.0, ge=0, lt=1, description="running weight average per step, validated and saved")
+    seed: int = 0
+    inputs: InputParams = InputParams()
+
+
 class LSTM(NetworkKind):
     name = "lstm"
     params = LSTMParams
+    color = "tab:green"
     sequence = True
 
     def config(self, params: LSTMParams, n_in: int) -> ModelConfig:

@@ -1,4 +1,4 @@
-"""Fitting cue packs: small strict JSON, what cannot be built."""
+"""Building cue packs: small strict JSON, what cannot be built."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from pipeline.config import CuesParams
-from pipeline.cues.fit import build_cue_pack
+from pipeline.cues.packs import build_cue_pack
 from tests.cues.synthetic import (
     ANGLES,
     CHANNELS,
