@@ -78,7 +78,7 @@ test: setup setup-system setup-node  ## lint and run the test suite, the team st
 test-team: setup setup-system  ## only the tests against the real team stack (tests/team/)
 	$(BIN)/pytest -q -m team
 
-# `make verify` (the whole pipeline, about 6 min) is not part of CI, which has 30 min: the suite
+# `make verify` (the whole pipeline, 8 to 13 min) is not part of CI, which should stay under 30 min: the suite
 # checks that dvc.lock belongs to the committed code and params (tests/test_dvc_lock.py), and whoever
 # changes a stage runs `make verify` and commits the lock it writes.
 ci: test              ## what CI runs (.ci/run, on a fresh clone): the README's test command
