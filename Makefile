@@ -12,14 +12,16 @@ setup: $(VENV)/.installed
 # Installs from requirements.lock (every package pinned, with its sha256; `make lock` writes it) with
 # uv, in seconds. The lock names the CPU build of torch (2.13.0+cpu) by version and hash, not by place:
 # WHEELS is where that wheel is found (this machine's folder by default; a lab without it gives the
-# PyTorch CPU index, docs/reproducibility.md "Installing").
+# PyTorch CPU index, docs/reproducibility.md "Installing"). --compile-bytecode: where PYTHONDONTWRITEBYTECODE
+# is set (this project's machines), nothing would ever write the libraries' bytecode, and every process
+# would compile torch, pandas and MLflow again: 16 s instead of 7 s to import them here.
 UV_VERSION := 0.13.9
 WHEELS ?= $(if $(wildcard /opt/wheels/torch-*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 UV := $(BIN)/uv
 $(VENV)/.installed: pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
-	$(UV) pip install --quiet --python $(BIN)/python --require-hashes $(WHEELS) -r requirements.lock
+	$(UV) pip install --quiet --python $(BIN)/python --compile-bytecode --require-hashes $(WHEELS) -r requirements.lock
 	$(UV) pip install --quiet --python $(BIN)/python --no-deps -e .
 	touch $@
 
