@@ -18,19 +18,22 @@ setup: $(VENV)/.installed
 UV_VERSION := 0.13.9
 WHEELS ?= $(if $(wildcard /opt/wheels/torch-*),--find-links /opt/wheels,--extra-index-url https://download.pytorch.org/whl/cpu)
 UV := $(BIN)/uv
-$(VENV)/.installed: pyproject.toml requirements.lock
+# The lock holds every third-party package; the project's two distributions, the simulator's client
+# (client/, docs/client.md) and the training package that depends on it, are installed from their folders.
+$(VENV)/.installed: pyproject.toml client/pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
 	$(UV) pip install --quiet --python $(BIN)/python --compile-bytecode --require-hashes $(WHEELS) -r requirements.lock
-	$(UV) pip install --quiet --python $(BIN)/python --no-deps -e .
+	$(UV) pip install --quiet --python $(BIN)/python --no-deps -e ./client -e .
 	touch $@
 
 # Rewrites requirements.lock from pyproject.toml's dependencies and extras, keeping every pin the lock
-# already has unless pyproject.toml rules it out (`make lock UPGRADE=--upgrade` takes the newest).
+# already has unless pyproject.toml rules it out (`make lock UPGRADE=--upgrade` takes the newest). The
+# client's own dependencies come in through needlecue-client (client/pyproject.toml), which is not locked.
 lock: $(VENV)/.installed
 	$(UV) pip compile --quiet pyproject.toml --extra dev --extra team --generate-hashes \
 	  --python-version 3.11 --python-platform x86_64-manylinux_2_28 $(WHEELS) $(UPGRADE) \
-	  --custom-compile-command "make lock" --output-file requirements.lock
+	  --custom-compile-command "make lock" --no-emit-package needlecue-client --output-file requirements.lock
 
 # PostgreSQL's server, for the team stack; Chromium, for the trainee page's browser test; the AVR
 # toolchain, the Arduino core and simavr, for the firmware and its emulated board (Debian's packages;

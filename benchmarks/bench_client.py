@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.registry import store
+from needlecue_runtime.registry import store
 
 FRAMES = 3000
 WARMUP = 300
@@ -72,9 +72,9 @@ def _champions(client: object) -> dict[int, str]:
 def bench_angle(angle: int, uri: str, cache: Path, root: Path) -> dict[str, object] | None:
     import onnxruntime as ort
 
-    from pipeline.client import ForceClient
+    from needlecue_client import ForceClient
+    from needlecue_runtime.features import rest_reading, unit_inputs
     from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
-    from pipeline.modelling.features import rest_reading, unit_inputs
     from pipeline.modelling.inputs import window_index
     from pipeline.modelling.predictor import Predictor
 

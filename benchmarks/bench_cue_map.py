@@ -15,8 +15,8 @@ Each PROJECT is a project kept by `bench_family.py --keep DIR` or `bench_indepen
    units' layout (Powell, from the identity, a 0.01 pull towards it). Its calibration evidence is
    gathered through the same map. Then, per evidence stage, how far its calibration insertions
    depart from a shift of the training layout over the distance between neighbouring angles
-   (`pipeline.cues.reading.own_departure` / `neighbour_distance`; above 1: "outside"), and how the
-   pipeline's rule (`pipeline.cues.units.cue_reading`) reads it: as it is, or through the map of
+   (`needlecue_runtime.cues.reading.own_departure` / `neighbour_distance`; above 1: "outside"), and how the
+   pipeline's rule (`needlecue_runtime.cues.units.cue_reading`) reads it: as it is, or through the map of
    the kind that fits it best where that map removes a departure.
 2. **The angle from the force's direction**: exact-angle accuracy of a linear discriminant (shrunk,
    per level) on the unit direction of the force when its norm first reaches each of nine levels (up
@@ -39,18 +39,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.cues.pack import AngleEstimator
+from needlecue_runtime.cues.reading import neighbour_distance, own_departure
+from needlecue_runtime.cues.units import cue_reading, unit_readings
+from needlecue_runtime.vocab import CALIBRATION, angle_name, channels_of
 from pipeline.calibration.unit import cue_map_kind
 from pipeline.config import CuesParams, load_section
-from pipeline.cues.evidence import UnitMap
-from pipeline.cues.pack import AngleEstimator
-from pipeline.cues.reading import neighbour_distance, own_departure
 from pipeline.cues.score import evaluate_cues
 from pipeline.cues.trials import Trial, replay_evidence, run_evidence, trials_of
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.cues.units import cue_reading, unit_readings
 from pipeline.dataset.splits import SplitFiles, front_ends, unit_roles
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import CALIBRATION, angle_name, channels_of
 
 LEVELS = 9  # force-direction levels, as the cue estimator's
 REACH = 0.9  # ... up to the force that this share of training trials reach
@@ -132,7 +132,7 @@ def cues(project: Project, unit: str, unit_map: UnitMap | None, kind: str) -> di
 
 
 def pipeline_reads(project: Project, unit: str) -> str:
-    """How the pipeline's rule (`pipeline.cues.units.cue_reading`) reads the unit: "as it is" or
+    """How the pipeline's rule (`needlecue_runtime.cues.units.cue_reading`) reads the unit: "as it is" or
     "through <kind>'s map" (its calibration's `cues` section as `pipeline.calibration.unit` writes it
     now, whatever the kept project's code wrote)."""
     transforms = project.docs[unit]["transforms"]

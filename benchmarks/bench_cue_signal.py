@@ -47,7 +47,10 @@ def parse(variant: str) -> tuple[str, dict[str, float]]:
 
 def project(root: Path, member: str, overrides: dict[str, float]) -> None:
     """A copy of the pipeline whose rig `variant` is `member` with `overrides`, and its params."""
-    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    for package in ("pipeline", "client"):  # the training package; the client's and the runtime's
+        shutil.copytree(
+            REPO / package, root / package, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info")
+        )
     with (root / "pipeline" / "sim" / "rigs.py").open("a") as f:
         f.write(
             "\n\n# bench_cue_signal: the variant under study\n"
@@ -64,11 +67,11 @@ def measure(root: Path) -> dict[str, list[float | None]]:
     """Per stage, the cross-validated accuracy and the signal-to-scatter ratio (run inside the copy)."""
     import numpy as np
 
+    from needlecue_runtime.vocab import channels_of
     from pipeline.config import CuesParams, load_section
     from pipeline.cues.estimator import fit_angle_estimator
     from pipeline.cues.unit_evidence import trial_features
     from pipeline.dataset.splits import SplitFiles
-    from pipeline.vocab import channels_of
 
     params = load_section(CuesParams, "cues", root / "params.yaml")
     files = SplitFiles(root / "data" / "processed")
@@ -103,7 +106,7 @@ def run_variant(variant: str, keep: Path | None) -> dict[str, list[float | None]
     root.mkdir(parents=True, exist_ok=True)
     try:
         project(root, member, overrides)
-        env = dict(os.environ, PYTHONPATH=str(root))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), str(root / "client")]))
         for stage in STAGES:
             run = [sys.executable, "-m", "pipeline.execution.run", *stage]
             subprocess.run(run, cwd=root, env=env, check=True, capture_output=True)

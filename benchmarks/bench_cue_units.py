@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.vocab import AXES, channels_of
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.estimator import fit_angle_estimator
 from pipeline.cues.packs import build_cue_pack
 from pipeline.cues.score import evaluate_cues
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.dataset.splits import SplitFiles, unit_roles
-from pipeline.vocab import AXES, channels_of
 
 
 def _split(frames: dict[float, pd.DataFrame], unit: str) -> tuple[dict, dict, dict]:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.registry import store
+from needlecue_runtime.registry import store
 
 PER_COUNT = 5.0 / 1023  # a 10-bit ADC on 5 V
 
@@ -29,11 +29,11 @@ PER_COUNT = 5.0 / 1023  # a 10-bit ADC on 5 V
 def main() -> int:
     import mlflow
 
-    from pipeline.calibration.document import read_unit, transform_for
-    from pipeline.client import ForceClient
+    from needlecue_client import ForceClient
+    from needlecue_runtime.features import unit_inputs
+    from needlecue_runtime.unit_calibration import read_unit, transform_for
     from pipeline.modelling.checkpoint import ModelConfig
     from pipeline.modelling.export import graph_feed
-    from pipeline.modelling.features import unit_inputs
 
     root = Path(__file__).resolve().parents[1]
     uri = store.tracking_uri()

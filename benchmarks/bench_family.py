@@ -38,13 +38,15 @@ BIN = Path(sys.executable).parent
 SMALL = {"train_batches": 2, "trials_per_angle": 2, "heldout_trials_per_angle": 6, "angles_deg": [0, 30, 60]}
 
 
-CODE = ("dvc.yaml", ".dvcignore", "pipeline")  # what a project is made of, with its params.yaml
+CODE = ("dvc.yaml", ".dvcignore", "pipeline", "client")  # what a project is made of, with its params.yaml
 
 
 def _copy(src: Path, dst: Path, names: tuple[str, ...]) -> None:
     for name in names:
         if (src / name).is_dir():
-            shutil.copytree(src / name, dst / name, ignore=shutil.ignore_patterns("__pycache__"))
+            shutil.copytree(
+                src / name, dst / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info")
+            )
         else:
             shutil.copy(src / name, dst / name)
 
@@ -143,6 +145,7 @@ def repro_figures(root: Path) -> dict[str, Any]:
         os.environ,
         PATH=f"{BIN}{os.pathsep}{os.environ['PATH']}",
         MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
+        PYTHONPATH=str(root / "client"),  # the copy's client/ and runtime, not the checkout's
     )
     stages = subprocess.run(
         ["dvc", "stage", "list", "--name-only"], cwd=root, env=env, capture_output=True, text=True, check=True

@@ -1,6 +1,6 @@
 """Which model inputs transfer between estimator units: the input study behind `<model>.inputs`.
 
-For each input kind of `pipeline.modelling.features` (raw volts, volts or conductance relative to the
+For each input kind of `needlecue_runtime.features` (raw volts, volts or conductance relative to the
 trial's rest reading, conductance) and each model kind given (default: ls and fnn; lstm takes
 ~40 s per angle), trains one model per angle on the processed training splits (`make repro` first;
 DATA_DIR defaults to data/processed) with params.yaml's settings and only `inputs.kind` changed, and
@@ -23,16 +23,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import INPUT_KINDS, NEEDS_CIRCUIT
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import angle_name
 from pipeline.config import load_section
 from pipeline.dataset.splits import SplitFiles, unit_roles
-from pipeline.frontend import Circuit
 from pipeline.metrics.scores import nrmse_pct
-from pipeline.modelling.features import INPUT_KINDS, NEEDS_CIRCUIT
 from pipeline.modelling.fit import fit
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.split_predictions import predict_model
 from pipeline.modelling.train import choose_folders, load_angle
-from pipeline.vocab import angle_name
 
 AXES = ["fx", "fy", "fz"]
 AUTO = "auto"  # the pipeline's own choice, by validation

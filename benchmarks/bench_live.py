@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
 from pipeline.live.app import LiveOptions, settings_for
 from pipeline.live.display import Board, WebDisplay
 from pipeline.live.port import run_port

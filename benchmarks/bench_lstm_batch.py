@@ -30,9 +30,9 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from needlecue_runtime.vocab import AXES
 from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.predictor import load_predictor
-from pipeline.vocab import AXES
 
 DATA = Path("data/processed")
 CHOICE = Path("data/choices/lstm.json")

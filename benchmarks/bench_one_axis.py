@@ -29,8 +29,8 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_family import SMALL, project, snapshot
 
+from needlecue_runtime.vocab import sorted_angles
 from pipeline.metrics.scores import nrmse_pct
-from pipeline.vocab import sorted_angles
 
 RUNS = {"three-axis": ["fx", "fy", "fz"], "one-axis": ["fz"]}
 

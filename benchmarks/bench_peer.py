@@ -23,16 +23,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import ModelInputs, spec_of
+from needlecue_runtime.vocab import channels_of
 from pipeline.config import load_section
 from pipeline.dataset.splits import SplitFiles
 from pipeline.metrics.scores import nrmse_pct
 from pipeline.modelling.choice import load_choice
-from pipeline.modelling.features import ModelInputs, spec_of
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import features_of
 from pipeline.modelling.kinds.fnn import FNNParams
 from pipeline.modelling.train import load_angle
-from pipeline.vocab import channels_of
 
 DATA = Path("data/processed")
 CHOICE = Path("data/choices/fnn.json")  # the choose stage's inputs for the FNN

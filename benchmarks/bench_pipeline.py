@@ -40,7 +40,10 @@ def make_copy(root: Path) -> Path:
     for name in ("dvc.yaml", "params.yaml", ".dvcignore"):
         if (REPO / name).exists():
             shutil.copy(REPO / name, root / name)
-    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    for package in ("pipeline", "client"):  # the training package; the client's and the runtime's
+        shutil.copytree(
+            REPO / package, root / package, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info")
+        )
     (root / "data" / "raw").mkdir(parents=True)
     dvc(root, {}, "init", "--no-scm", "-q")
     dvc(root, {}, "config", "core.analytics", "false")

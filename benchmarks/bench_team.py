@@ -32,9 +32,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.client import ForceClient, fetch, published  # noqa: E402
-from pipeline.client.cache import poll_alias  # noqa: E402
-from pipeline.registry import mlflow_env, store  # noqa: E402
+from needlecue_client import ForceClient, fetch, published  # noqa: E402
+from needlecue_client.cache import poll_alias  # noqa: E402
+from needlecue_runtime.registry import mlflow_env, store  # noqa: E402
 from pipeline.team.stack import Stack, free_base_port  # noqa: E402
 
 ROUNDS = 3

@@ -9,7 +9,7 @@ one training unit), with one group of fields taken from the new unit as drawn: a
 group. Each case is a fresh copy of this checkout's pipeline with the lab in data/raw, run through
 `dvc repro split` only; then the angle estimator is fitted on the training trials (params.yaml's
 `cues`) and the new unit's calibration insertions (one per angle) are read as the cues stage reads
-them. Printed per case: the evidence stages where the unit departs (`pipeline.cues.reading.departs`,
+them. Printed per case: the evidence stages where the unit departs (`needlecue_runtime.cues.reading.departs`,
 "outside what training covered"), and per stage its departure over the distance between
 neighbouring angles (`own_departure / neighbour_distance`, above 1: departs).
 """
@@ -33,13 +33,13 @@ import independent_rig
 from bench_cue_map import departure_ratios
 from bench_family import BIN, project, snapshot
 
+from needlecue_runtime.cues.pack import AngleEstimator
+from needlecue_runtime.cues.units import unit_readings
+from needlecue_runtime.vocab import CALIBRATION, channels_of
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.estimator import fit_angle_estimator
-from pipeline.cues.pack import AngleEstimator
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.cues.units import unit_readings
 from pipeline.dataset.splits import SplitFiles, front_ends
-from pipeline.vocab import CALIBRATION, channels_of
 
 NEW, TRAINING = "ind-new-1", "ind-unit-1"
 PARTS: dict[str, tuple[str, ...] | None] = {  # None: every field, the new unit as drawn

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from pipeline.vocab import angle_name
+from needlecue_runtime.vocab import angle_name
 
 FORMAT = "needlecue-ledger/1"
 USED, SET_ASIDE = "used", "set aside"

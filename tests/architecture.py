@@ -14,15 +14,25 @@ from pathlib import Path
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGE = "pipeline"
+PACKAGE = "pipeline"  # the training package
+CLIENT = "needlecue_client"  # the simulator's client (client/, its own distribution)
+RUNTIME = "needlecue_runtime"  # what the client and training share (client/ as well)
+# each import package of the project and the folder that holds it
+ROOTS = {PACKAGE: REPO, CLIENT: REPO / "client", RUNTIME: REPO / "client"}
+
+
+def package_files(package: str) -> list[Path]:
+    """Every module of one of the project's import packages."""
+    return sorted(ROOTS[package].joinpath(package).rglob("*.py"))
 
 
 def module_file(module: str) -> Path | None:
-    """The file of a project module (`pipeline.cues.pack` -> pipeline/cues/pack.py), None if not ours."""
+    """The file of a project module (`pipeline.cues.packs` -> pipeline/cues/packs.py,
+    `needlecue_runtime.cues.pack` -> client/needlecue_runtime/cues/pack.py), None if not ours."""
     parts = module.split(".")
-    if parts[0] != PACKAGE:
+    if parts[0] not in ROOTS:
         return None
-    base = REPO.joinpath(*parts)
+    base = ROOTS[parts[0]].joinpath(*parts)
     for candidate in (base.with_suffix(".py"), base / "__init__.py"):
         if candidate.is_file():
             return candidate
@@ -30,7 +40,8 @@ def module_file(module: str) -> Path | None:
 
 
 def module_name(path: Path) -> str:
-    rel = path.relative_to(REPO).with_suffix("")
+    root = next(r for package, r in ROOTS.items() if path.is_relative_to(r / package))
+    rel = path.relative_to(root).with_suffix("")
     parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
     return ".".join(parts)
 
@@ -117,18 +128,20 @@ def stage_deps(stage_file: Path) -> list[str]:
     modules and the stage's own module as files. The folders first, then the files, each sorted."""
     out = set()
     for dep in code_deps(stage_file):
-        parts = dep.split("/")
-        library = len(parts) > 2 and parts[1] != "stages"
-        out.add("/".join(parts[:2]) if library else dep)
+        # the package's folder (pipeline/, client/needlecue_runtime/), then the path inside it
+        top = "/".join(dep.split("/")[:2]) if dep.startswith("client/") else dep.split("/")[0]
+        inner = dep[len(top) + 1 :].split("/")
+        library = len(inner) > 1 and inner[0] != "stages"
+        out.add(f"{top}/{inner[0]}" if library else dep)
     return sorted(out, key=lambda dep: (dep.endswith(".py"), dep))
 
 
 def listed_code_deps(stage: dict) -> list[str]:
     """The deps of a dvc.yaml stage that are project code (files and package folders)."""
-    return [d for d in stage.get("deps", []) if str(d).startswith(f"{PACKAGE}/")]
+    return [d for d in stage.get("deps", []) if str(d).startswith((f"{PACKAGE}/", "client/"))]
 
 
-CODE_DEP = re.compile(rf"^      - {PACKAGE}/\S*$")  # one code dep of a stage, as dvc.yaml writes it
+CODE_DEP = re.compile(r"^      - (pipeline|client)/\S*$")  # one code dep of a stage, as dvc.yaml writes it
 STAGE = re.compile(r"^  (\w+):\s*$")
 
 

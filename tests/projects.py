@@ -41,13 +41,18 @@ TINY_MODELS = {
 }
 
 
+# what a copy of the code leaves out: bytecode, and what building or installing the client leaves behind
+COPY_IGNORE = shutil.ignore_patterns("__pycache__", "build", "*.egg-info")
+
+
 def make_project(root: Path, simulate: dict) -> Path:
     """A throw-away copy of the project (code, dvc.yaml, params.yaml) with its own DVC repo."""
     root.mkdir()
     for name in ("dvc.yaml", ".dvcignore"):
         if (REPO / name).exists():
             shutil.copy(REPO / name, root / name)
-    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    for package in ("pipeline", "client"):  # the training package; the client's and the runtime's
+        shutil.copytree(REPO / package, root / package, ignore=COPY_IGNORE)
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["simulate"].update(simulate)
     if "angles_deg" in simulate:  # train only the angles the small rig records
@@ -61,9 +66,10 @@ def make_project(root: Path, simulate: dict) -> Path:
 
 def run(root: Path, *cmd: str, env: Mapping[str, str] | None = None) -> str:
     """Run a command of the venv (dvc, python) in the copy, with `env` added to the environment;
-    fail with its output if it fails."""
+    fail with its output if it fails. The copy's own client/ comes first on the import path (the
+    venv's editable install points at the checkout's), as the pipeline's own code does from the cwd."""
     path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"
-    full = dict(os.environ, **(env or {}), PATH=path)
+    full = dict(os.environ, **(env or {}), PATH=path, PYTHONPATH=str(root / "client"))
     done = subprocess.run(cmd, cwd=root, env=full, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, f"{' '.join(cmd)} failed:\n{done.stdout}\n{done.stderr}"
     return done.stdout + done.stderr

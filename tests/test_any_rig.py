@@ -12,12 +12,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
+from needlecue_runtime.features import InputTransform
+from needlecue_runtime.frontend import declared
 from pipeline.config import SimulateParams
-from pipeline.frontend import declared
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.checkpoint import load_checkpoint
-from pipeline.modelling.features import InputTransform
 from pipeline.modelling.prediction_store import Predictions
 from pipeline.modelling.predictor import load_predictor
 from pipeline.sim import rig, rigs

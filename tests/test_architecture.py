@@ -1,6 +1,6 @@
-"""The layout's rules: stages are entry points nothing imports; the simulator's client imports none of
-the training code (tests/client/test_imports.py runs it); dvc.yaml lists the code each stage
-runs, package by package."""
+"""The layout's rules: stages are entry points nothing imports; the simulator's client (client/, its own
+distribution) imports none of the training code (tests/client/test_imports.py and test_light_install.py
+run it); dvc.yaml lists the code each stage runs, package by package."""
 
 from __future__ import annotations
 
@@ -10,13 +10,17 @@ import sys
 import yaml
 
 from tests.architecture import (
+    CLIENT,
     PACKAGE,
     REPO,
+    ROOTS,
+    RUNTIME,
     closure,
     imported_modules,
     listed_code_deps,
     module_file,
     module_name,
+    package_files,
     stage_deps,
     stage_modules,
 )
@@ -45,25 +49,32 @@ def test_every_stage_module_is_run_by_dvc_and_is_thin() -> None:
     assert {p.name: n for p in on_disk if (n := len(p.read_text().splitlines())) > 150} == {}
 
 
-# how volts become a model's inputs, and the circuit they are read through (numpy and pydantic only);
-# the packages' __init__ files are docstrings
-SHARED_WITH_CLIENT = {
-    "pipeline.modelling",
-    "pipeline.modelling.features",
-    "pipeline.frontend",
-}
+def test_the_client_distribution_imports_nothing_of_the_training_package() -> None:
+    # given: every module of the client's distribution (client/: the client and the runtime it shares)
+    files = [*package_files(CLIENT), *package_files(RUNTIME)]
+    # when: reading the project modules each names in an import (function-local imports too)
+    offenders = {
+        module_name(f): sorted(m for m in imported_modules(f) if m.split(".")[0] == PACKAGE) for f in files
+    }
+    # then: none names the training package: `pip install ./client` gives all the client runs
+    assert {k: v for k, v in offenders.items() if v} == {}
 
 
-def test_the_client_package_imports_no_training_module() -> None:
-    # given: the project files the client can load, by static reading (function-local imports too)
-    loaded = {module_name(p) for p in closure(REPO / PACKAGE / "client" / "__init__.py")}
-    # then: the runtime cue tracker, the shared names, the registry's store and the numpy-only modules
-    # training shares with it (how volts become a model's inputs; a unit's calibration document), never
-    # the training side
-    training = ("pipeline.modelling", "pipeline.metrics", "pipeline.reporting", "pipeline.stages")
-    training += ("pipeline.rig", "pipeline.signals", "pipeline.sim", "pipeline.dataset")
-    shared = SHARED_WITH_CLIENT
-    assert sorted(m for m in loaded if m.startswith(training) and m not in shared) == []
+def test_the_runtime_imports_nothing_of_the_client() -> None:
+    # given: the runtime, which the training package imports as well
+    files = package_files(RUNTIME)
+    # then: it names no module of the client (data flows one way: runtime <- client, runtime <- pipeline)
+    offenders = {
+        module_name(f): sorted(m for m in imported_modules(f) if m.split(".")[0] == CLIENT) for f in files
+    }
+    assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def test_the_client_loads_only_the_client_and_the_runtime() -> None:
+    # given: the project files the client can load, by static reading, from its package on
+    loaded = {module_name(p) for p in closure(ROOTS[CLIENT] / CLIENT / "__init__.py")}
+    # then: each belongs to one of the client distribution's two packages
+    assert sorted(m for m in loaded if m.split(".")[0] not in (CLIENT, RUNTIME)) == []
 
 
 def test_dvc_yaml_lists_the_code_each_stage_imports_package_by_package() -> None:
@@ -110,17 +121,16 @@ def test_the_live_session_imports_no_training_module() -> None:
     # then: the client's side only, as on a simulator
     training = ("pipeline.modelling", "pipeline.metrics", "pipeline.reporting", "pipeline.stages")
     training += ("pipeline.rig", "pipeline.signals", "pipeline.sim", "pipeline.dataset")
-    shared = SHARED_WITH_CLIENT
-    assert sorted(m for m in loaded if m.startswith(training) and m not in shared) == []
+    assert sorted(m for m in loaded if m.startswith(training)) == []
 
 
 def test_the_package_import_graph_has_no_cycle() -> None:
-    # given: every module of the package and the project modules each one names in an import (at the
-    # top or inside a function: a lazy import hides a loop from Python, not from a reader)
+    # given: every module of the project's three packages and the project modules each one names in an
+    # import (at the top or inside a function: a lazy import hides a loop from Python, not from a reader)
     import networkx as nx
 
     graph = nx.DiGraph()
-    for f in REPO.joinpath(PACKAGE).rglob("*.py"):
+    for f in [*package_files(PACKAGE), *package_files(CLIENT), *package_files(RUNTIME)]:
         for module in imported_modules(f):
             target = module_file(module)
             if target is not None and target != f:
@@ -133,5 +143,6 @@ def test_an_edit_to_the_rig_format_or_ingest_reruns_no_model_stage() -> None:
     # given: the code deps of every stage from choose on (what trains, calibrates, predicts, scores)
     modules = stage_modules()
     downstream = ("choose", "train", "calibrate", "predict", "cues", "needs", "evaluate", "register")
-    # then: none of them loads anything from pipeline/rig (the front end they share is pipeline/frontend.py)
+    # then: none of them loads anything from pipeline/rig (the front end they share is the runtime's,
+    # client/needlecue_runtime/frontend.py)
     assert {s: d for s in downstream if "pipeline/rig" in (d := stage_deps(modules[s]))} == {}

@@ -187,7 +187,7 @@ def test_calibrate_refuses_a_batch_with_nothing_usable_naming_file_and_line(tmp_
 def test_calibrate_registers_a_new_unit_through_the_champions(tmp_path, mlflow_store):
     # Given LS champions at 30° and 45° (registered with their checkpoints, as the register stage
     # does), and a short simulated calibration batch of a new unit at 30° only
-    from pipeline.client import ForceClient
+    from needlecue_client import ForceClient
     from pipeline.modelling.fit import fit
     from tests.client.builders import TINY, cue_trials, register
 

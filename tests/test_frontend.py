@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.frontend import (
+from needlecue_runtime.frontend import (
     Divider,
     Transimpedance,
     Undeclared,

@@ -20,17 +20,26 @@ def locked() -> dict[str, str]:
 
 
 def test_every_dependency_and_extra_is_pinned_by_the_lock_within_its_bounds() -> None:
-    # given: the project's dependencies and the extras make setup installs (dev, team)
-    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    # given: the project's dependencies and the extras make setup installs (dev, team), the client's
+    # (client/pyproject.toml) among them
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
+    project = pyproject["project"]
     wanted = [*project["dependencies"], *project["optional-dependencies"]["dev"]]
     wanted += project["optional-dependencies"]["team"]
+    # the project's own distributions (the client, installed from its folder): their dependencies instead
+    folders = {canonicalize_name(n): s["path"] for n, s in pyproject["tool"]["uv"]["sources"].items()}
     pins = locked()
     # when: each is looked up in the lock (markers for other platforms or Pythons aside)
     env = {"python_version": "3.11", "platform_python_implementation": "CPython", "sys_platform": "linux"}
     wrong = {}
-    for text in wanted:
-        req = Requirement(text)
+    while wanted:
+        req = Requirement(wanted.pop(0))
         if req.marker is not None and not req.marker.evaluate(env):
+            continue
+        if (folder := folders.get(canonicalize_name(req.name))) is not None:
+            own = tomllib.loads((REPO / folder / "pyproject.toml").read_text())["project"]
+            assert req.specifier.contains(own["version"]), f"{req}: {folder} is version {own['version']}"
+            wanted += own["dependencies"] + [d for e in req.extras for d in own["optional-dependencies"][e]]
             continue
         pin = pins.get(canonicalize_name(req.name))
         if pin is None or not req.specifier.contains(pin, prereleases=True):

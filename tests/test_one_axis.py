@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
 from tests.deploy.test_node import node_ready, publish_to, replay_in_node

@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
 from tests.projects import SWAP_SIM, A, D, first_external_trial, make_project, run, use_small_models

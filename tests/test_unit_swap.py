@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.client import ForceClient, UncalibratedUnit
+from needlecue_client import ForceClient, UncalibratedUnit
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
 from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models

@@ -6,10 +6,10 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from pipeline.calibration.document import read_units, transform_for
+from needlecue_runtime.unit_calibration import read_units, transform_for
+from needlecue_runtime.vocab import angle_name
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, load_checkpoint
 from pipeline.modelling.split_predictions import UnitTransforms
-from pipeline.vocab import angle_name
 
 
 def unit_transforms(

@@ -3,7 +3,7 @@ unit through it, gives the reference force of the unit's calibration trials at i
 unit declares its circuit the map acts on the FSRs' conductance, g' = g A^T + b, before the model's
 inputs are computed from it (the part-to-part quantity: a unit's FSR gains scale its conductance,
 whatever inputs the model reads); otherwise on the model's inputs, x' = x A^T + b
-(`pipeline.modelling.features.InputTransform`).
+(`needlecue_runtime.features.InputTransform`).
 
 One transform per unit and model kind, shared by the angles: what differs between units (FSR gain,
 placement, alignment) belongs to the unit, not to the angle, so every calibration insertion constrains
@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform, rest_reading
+from needlecue_runtime.frontend import Circuit, conductance_us, volts_of_conductance
+from needlecue_runtime.vocab import AXES, axes_of
 from pipeline.config import CalibrateParams
 from pipeline.execution.workers import ordered_map, workers_for
-from pipeline.frontend import Circuit, conductance_us, volts_of_conductance
 from pipeline.modelling.determinism import deterministic_torch, exact_lbfgs
-from pipeline.modelling.features import MIN_CONDUCTANCE_US, NEEDS_CIRCUIT, InputTransform, rest_reading
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes, window_index
 from pipeline.modelling.predictor import Predictor
-from pipeline.vocab import AXES, axes_of
 
 WORTH_A_WORKER = 200_000  # rows through the models over all fits (fewer fit faster than a worker starts)
 MIN_FORCE_STD = 1e-3  # N: a flat reference force would otherwise weigh without bound

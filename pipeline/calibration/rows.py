@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.vocab import CALIBRATION
+from needlecue_runtime.vocab import CALIBRATION
 
 
 def calibration_rows(data_dir: Path) -> dict[str, pd.DataFrame]:

@@ -13,9 +13,9 @@ applies to those models only).
 
 `cues.mapped` is the same evidence gathered through the unit's map on its conductance (`cue_map_kind`
 says whose); the cues read the unit through it only where that removes a departure from the
-training units' layout (`pipeline.cues.units.cue_reading`).
+training units' layout (`needlecue_runtime.cues.units.cue_reading`).
 
-The stage and `needlecue calibrate` both build it here; `pipeline.calibration.document` reads it.
+The stage and `needlecue calibrate` both build it here; `needlecue_runtime.unit_calibration` reads it.
 """
 
 from __future__ import annotations
@@ -25,16 +25,16 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.calibration.document import DIGITS, FORMAT
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.unit_calibration import DIGITS, FORMAT
+from needlecue_runtime.vocab import angle_name, jsonable, sorted_angles
 from pipeline.calibration.fit import AngleData, fit_transforms
 from pipeline.config import CalibrateParams, CuesParams
-from pipeline.cues.evidence import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.predictor import Predictor
-from pipeline.vocab import angle_name, jsonable, sorted_angles
 
 
 def _set_aside(batch: Any, trial: Any, angle: str, reason: str) -> dict[str, str]:

@@ -118,8 +118,8 @@ def _print_trials(
 ) -> None:
     """One batch's accounting: each trial passes ingest's checks or is set aside (the problems above
     say why); for a trial the last run's ledger knows, where it ended up."""
+    from needlecue_runtime.vocab import one_line
     from pipeline.reporting.ledger import entry_text
-    from pipeline.vocab import one_line
 
     n = len(c.trials_accepted) + len(c.trials_set_aside)
     typer.echo(

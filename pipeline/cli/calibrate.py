@@ -15,7 +15,7 @@ from pipeline.exits import fail
 def _print_calibration(doc: dict[str, Any], champions: dict[str, Any], aside: list[str]) -> None:
     """Loss before and after per kind, the angles used and missing, what was set aside, and which
     champions the calibration does not cover."""
-    from pipeline.calibration.document import parse_unit
+    from needlecue_runtime.unit_calibration import parse_unit
     from pipeline.registry.calibrations import uncovered_angles
 
     typer.echo(f"unit {doc['unit_id']}: {len(doc['trials'])} trial(s) of {', '.join(doc['batches']) or '-'}")
@@ -61,17 +61,18 @@ def calibrate(
     """
     from mlflow.exceptions import MlflowException
 
-    from pipeline.calibration.document import parse_unit
+    from needlecue_runtime.registry import mlflow_env, store
+    from needlecue_runtime.unit_calibration import parse_unit
     from pipeline.calibration.unit import calibrate_unit
     from pipeline.config import CalibrateParams
-    from pipeline.registry import calibrations, mlflow_env, store
+    from pipeline.registry import calibrations
 
     def say(message: str) -> None:
         typer.echo(f"calibrate: {message}", err=True)
 
     if not batch_dir.is_dir():
         raise fail(f"not a folder: {batch_dir}", 2)
-    from pipeline.vocab import CALIBRATION
+    from needlecue_runtime.vocab import CALIBRATION
 
     batch = checked_batch(batch_dir, unit_id, params, CALIBRATION)
     unit, rows, aside, front_end = batch.unit_id, batch.rows, batch.set_aside, batch.front_end

@@ -19,7 +19,7 @@ def rollback(
 ) -> None:
     """Move `needle-force-<angle>@champion` back to an earlier version (exit 1: refused, including by a
     read-only store or something that is not MLflow; 2: offline). Nothing changes unless it succeeds."""
-    from pipeline.registry.store import NotMlflow, ReadOnlyStore, RegistryUnreachable, model_name
+    from needlecue_runtime.registry.store import NotMlflow, ReadOnlyStore, RegistryUnreachable, model_name
     from pipeline.registry.versions import rollback as do_rollback
 
     try:
@@ -48,7 +48,7 @@ def ui(
     import time
     import urllib.request
 
-    from pipeline.registry import mlflow_env, store
+    from needlecue_runtime.registry import mlflow_env, store
     from pipeline.registry.ui import is_server, runs_link, server_command
 
     uri = store.tracking_uri()
@@ -100,8 +100,8 @@ def data_of(
     import subprocess
     import sys
 
+    from needlecue_runtime.registry.store import RegistryUnreachable
     from pipeline.registry.provenance import ProvenanceError, restore_lock
-    from pipeline.registry.store import RegistryUnreachable
 
     try:
         found = restore_lock(angle, version, Path.cwd())

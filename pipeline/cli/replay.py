@@ -53,11 +53,11 @@ def replay(
     """
     import pandas as pd
 
-    from pipeline.client import replay as rp
-    from pipeline.client.force import CALIBRATE_FIX
-    from pipeline.registry.store import RegistryUnreachable
+    from needlecue_client import replay as rp
+    from needlecue_client.force import CALIBRATE_FIX
+    from needlecue_runtime.registry.store import RegistryUnreachable
+    from needlecue_runtime.vocab import channels_of, rate_hz
     from pipeline.rig.format import BATCH_FILE, STREAM_SUFFIXES
-    from pipeline.vocab import channels_of, rate_hz
 
     if angle is None and model_dir is None:
         raise fail("give --angle (the preset angle whose model to fetch) or --model-dir")
@@ -154,9 +154,9 @@ def _replay_session(
     unverified: bool = False,
 ) -> None:
     """`needlecue replay` of a live session's recording: its lines through the same chain again."""
+    from needlecue_runtime.registry.store import RegistryUnreachable
     from pipeline.live.app import replay_session
     from pipeline.live.recording import read_meta, read_trials
-    from pipeline.registry.store import RegistryUnreachable
 
     meta = read_meta(folder)
     recorded_unit = (meta.get("sensor") or {}).get("unit_id")

@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from needlecue_runtime.cues.pack import VERDICTS, cue_for_deviation, sig
 from pipeline.config import CuesParams
-from pipeline.cues.pack import VERDICTS, cue_for_deviation, sig
 
 
 def softmax(z: np.ndarray) -> np.ndarray:

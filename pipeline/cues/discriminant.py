@@ -1,6 +1,7 @@
 """One evidence stage of the angle estimator: Gaussian classes with one shrunk covariance, the average
 unit's class means, and how far units depart from them (the template weight, the offsets' spread);
-each trial read through its own unit's class means (`pipeline.cues.reading`), as the tracker reads it.
+each trial read through its own unit's class means (`needlecue_runtime.cues.reading`), as the tracker
+reads it.
 """
 
 from __future__ import annotations
@@ -9,8 +10,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from needlecue_runtime.cues.reading import distances, log_scores, read_unit
 from pipeline.config import CuesParams
-from pipeline.cues.reading import distances, log_scores, read_unit
 from pipeline.cues.unit_evidence import average_unit
 
 
@@ -111,7 +112,7 @@ def fit_stage(
 
 def stage_logits(fitted: dict, x: np.ndarray, units: np.ndarray, classes: int) -> np.ndarray:
     """Scores (trials, classes) of trials, each read through its own unit's class means and their
-    uncertainty (`pipeline.cues.reading`), as the tracker reads them (before the temperature)."""
+    uncertainty (`needlecue_runtime.cues.reading`), as the tracker reads them (before the temperature)."""
     stage = fitted["stage"]
     out = np.empty((len(x), classes))
     for u in sorted(set(units.tolist())):

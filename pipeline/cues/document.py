@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import TypeAdapter
 
-from pipeline.documents import Document, DocumentFile, Number
+from needlecue_runtime.documents import Document, DocumentFile, Number
 
 FORMAT = "needlecue-cues-eval/1"
 DIGITS = 6  # evaluation.json precision: fractions to 0.0001 %, like metrics.json's percentages

@@ -1,7 +1,7 @@
 """Fitting the angle estimator on every angle's training trials: per evidence stage a linear
 discriminant (`pipeline.cues.discriminant`), its temperature and the confidence a cue needs cross-
 validated (`pipeline.cues.confidence`), for a training unit and for a unit left out, read calibrated or
-not. The result is the pack's `angle_estimator` (`pipeline.cues.pack.AngleEstimator`).
+not. The result is the pack's `angle_estimator` (`needlecue_runtime.cues.pack.AngleEstimator`).
 """
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.pack import sig, siglist
+from needlecue_runtime.cues.reading import distances, log_scores, read_unit
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import angle_name, channels_of
 from pipeline.config import CuesParams
 from pipeline.cues.confidence import fit_temperature, min_confidence_of, reading_confidence, softmax
 from pipeline.cues.discriminant import fit_stage, outside_limit, stage_logits
-from pipeline.cues.pack import sig, siglist
-from pipeline.cues.reading import distances, log_scores, read_unit
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
-from pipeline.vocab import angle_name, channels_of
 
 Circuits = Mapping[str, Circuit | None]  # {unit_id: its declared circuit (processed front_ends.json)}
 
@@ -102,7 +102,7 @@ def fit_angle_estimator(
     u_all = np.array([t.unit for t in trials])
     st_all = np.array([t.stage for t in trials], dtype=np.int64)
     out_stages = []
-    # per reading (pipeline.cues.pack.READINGS): (trial, stage, its cross-validated P(angle))
+    # per reading (needlecue_runtime.cues.pack.READINGS): (trial, stage, its cross-validated P(angle))
     cv_probs: dict[str, list[tuple[int, int, np.ndarray]]] = {"training": []}
     for j in range(len(levels) + 1):
         sel = np.flatnonzero(st_all >= j)
@@ -189,7 +189,7 @@ def fit_angle_estimator(
         )
     return {
         "method": "Gaussian classes per evidence stage (shared shrunk covariance, uniform priors), each "
-        "unit read through its own class means and their uncertainty (pipeline.cues.reading), "
+        "unit read through its own class means and their uncertainty (needlecue_runtime.cues.reading), "
         "softmax(scores / temperature)",
         "features": "per channel, the log of the rest signal (the FSR's conductance through each unit's "
         "declared front end; the volts where none is declared), then the unit direction of the "

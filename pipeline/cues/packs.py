@@ -1,6 +1,6 @@
 """Building the cue packs from training splits only: per preset angle, the standard profile and the
 paper-method thresholds (`pipeline.cues.thresholds`), and the angle estimator shared by every preset
-(`pipeline.cues.estimator`). The pack is checked and written as a `pipeline.cues.pack.CuePack`.
+(`pipeline.cues.estimator`). The pack is checked and written as a `needlecue_runtime.cues.pack.CuePack`.
 
 What cannot be built from the data (the angle estimator: one angle only, too few trials, no rest
 reading; the standard profile: no trial with a contact) is left null and `unavailable` says why; the
@@ -19,14 +19,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.pack import FORMAT, sig
+from needlecue_runtime.frontend import circuit_key
+from needlecue_runtime.vocab import angle_name, channels_of
 from pipeline.config import CuesParams
 from pipeline.cues.estimator import Circuits, try_fit_angle_estimator
-from pipeline.cues.pack import FORMAT, sig
 from pipeline.cues.thresholds import Predicted, paper_thresholds, standard_profile
 from pipeline.cues.trials import Trial, trials_of, trials_rate_hz
-from pipeline.frontend import circuit_key
 from pipeline.logs import Log
-from pipeline.vocab import angle_name, channels_of
 
 
 def build_cue_pack(

@@ -17,17 +17,17 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.cues.pack import CUES, METHODS, REFERENCE, CuePack, as_pack
+from needlecue_runtime.cues.tracker import CueTracker
+from needlecue_runtime.cues.units import UnitEvidence, reading_of, unit_evidence
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import AXES, TRIAL_KEY, angle_name
 from pipeline.config import CuesParams
-from pipeline.cues.evidence import UnitMap
-from pipeline.cues.pack import CUES, METHODS, REFERENCE, CuePack, as_pack
 from pipeline.cues.summary import Run, summarise_runs
-from pipeline.cues.tracker import CueTracker
 from pipeline.cues.trials import Trial, trials_of
-from pipeline.cues.units import UnitEvidence, reading_of, unit_evidence
 from pipeline.execution.workers import ordered_map, workers_for
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
-from pipeline.vocab import AXES, TRIAL_KEY, angle_name
 
 WORTH_A_WORKER = 300_000  # frames replayed: fewer take less than a worker process's start
 # (kind, preset angle, true angle) -> the preset model's forces on that angle's external frame
@@ -173,8 +173,8 @@ def track_external(
     angle's `kind` model's forces on that frame, rows in frame order (None: no such model). `units`:
     the calibrated units' evidence (`pipeline.cues.unit_evidence`); a trial of a unit neither there nor
     among the pack's training units is read as the average unit's. `maps`: the calibrated units read
-    through their map (`pipeline.cues.units.cue_reading`), {unit_id: map}. `paper_bound`: also score the
-    paper's method on the measured force (its upper bound; the angle-estimate matrix comes with it).
+    through their map (`needlecue_runtime.cues.units.cue_reading`), {unit_id: map}. `paper_bound`: also
+    score the paper's method on the measured force (its upper bound; the angle-estimate matrix comes with it).
     Without external trials with an insertion phase there is nothing to score: `skipped` says why.
     The combined method is scored only with an angle estimator."""
     external = {float(a): f for a, f in external.items() if len(f)}

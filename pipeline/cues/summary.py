@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.cues.pack import CUES, DEVIATION_GROUPS, VERDICTS, cue_for_deviation
+from needlecue_runtime.cues.pack import CUES, DEVIATION_GROUPS, VERDICTS, cue_for_deviation
 
 
 def deviation_group(dev_deg: float) -> str:

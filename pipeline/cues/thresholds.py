@@ -1,6 +1,6 @@
 """The paper's method, fitted: the preset angle's standard force profile (mean and spread of the
 reference force against time since the detected contact) and the thresholds that cut the profile score
-(`pipeline.cues.profile`) into continue / correct / stop, per model kind, on training trials only.
+(`needlecue_runtime.cues.profile`) into continue / correct / stop, per model kind, on training trials only.
 """
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from typing import Any
 
 import numpy as np
 
+from needlecue_runtime.cues.pack import REFERENCE, VERDICTS, StandardProfile, cue_for_deviation, sig, siglist
+from needlecue_runtime.cues.profile import profile_scores
+from needlecue_runtime.vocab import AXES
 from pipeline.config import CuesParams
-from pipeline.cues.pack import REFERENCE, VERDICTS, StandardProfile, cue_for_deviation, sig, siglist
-from pipeline.cues.profile import profile_scores
 from pipeline.cues.trials import Trial, run_evidence
 from pipeline.logs import Log
-from pipeline.vocab import AXES
 
 Predicted = Mapping[str, Mapping[float, np.ndarray]]  # {kind: {angle: forces on its training frame}}
 
@@ -100,7 +100,7 @@ def paper_thresholds(
 ) -> tuple[dict[str, Any], dict[str, str]]:
     """({kind: its thresholds}, {"thresholds.profile.<kind>": why none}) of the paper's method at the
     preset angle: per model kind in `predicted` ({kind: {angle: forces}}) and the reference force
-    (REFERENCE, an ideal model), the cut points of the profile score (`pipeline.cues.profile`) that
+    (REFERENCE, an ideal model), the cut points of the profile score (`needlecue_runtime.cues.profile`) that
     best tell the training trials' true cues apart, frame by frame."""
     angles = sorted(trials)
     thresholds: dict[str, Any] = {}

@@ -9,10 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.evidence import MIN_VOLTS, Evidence, UnitMap
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import AXES, TRIAL_KEY, axes_of, rate_hz
 from pipeline.config import AUTO_EVIDENCE_LEVELS, CuesParams
-from pipeline.cues.evidence import MIN_VOLTS, Evidence, UnitMap
-from pipeline.frontend import Circuit
-from pipeline.vocab import AXES, TRIAL_KEY, axes_of, rate_hz
 
 AUTO_REACH = 0.9  # "auto" evidence levels end at the loading this share of training trials reach
 

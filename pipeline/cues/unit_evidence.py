@@ -1,7 +1,7 @@
 """Estimator units in the angle estimator. Units differ (part-to-part gain, cast-in preload, placement,
 connector alignment: docs/physics.md §4) by more than the needle's weight and the loading direction
 move the volts from one angle to the next, so the estimator reads every unit through its own class
-means (`pipeline.cues.units.unit_readings`).
+means (`needlecue_runtime.cues.units.unit_readings`).
 
 Per evidence stage, a trial's features (`Evidence.features`) are modelled as the angle's mean for the
 average unit, plus the unit's offset, plus the unit's own departure at that angle, plus the trial's
@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import angle_name, channels_of
 from pipeline.config import CuesParams
-from pipeline.cues.evidence import UnitMap
 from pipeline.cues.trials import Trial, loading_levels, replay_evidence, stage_frames, trials_of
-from pipeline.frontend import Circuit
-from pipeline.vocab import angle_name, channels_of
 
 ITERATIONS = 50  # alternating means converge in a few for the designs seen here; fixed for determinism
 NO_UNIT = ""  # the unit of trials whose frame has no unit_id column

@@ -11,13 +11,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.cues.units import UnitEvidence
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import angle_name
 from pipeline.config import CuesParams
-from pipeline.cues.evidence import UnitMap
 from pipeline.cues.score import Tracked, evaluate_cues
 from pipeline.cues.summary import summarise_runs
-from pipeline.cues.units import UnitEvidence
-from pipeline.frontend import Circuit
-from pipeline.vocab import angle_name
 
 UNIT_GROUPS = ("same_unit", "new_uncalibrated", "new_calibrated")
 GROUP_KEYS = ("balanced_within_s", "recall_within_s", "within_s", "accuracy_final", "confusion_final", "seen")

@@ -46,14 +46,14 @@ from typing import Any
 
 import pyarrow as pa
 
+from needlecue_runtime.frontend import circuit_key, declared
+from needlecue_runtime.vocab import AXES, CALIBRATION, SPLITS
 from pipeline.config import SplitParams
 from pipeline.dataset.split_plan import AngleSplit, drop_repeats, plan, plan_calibration, untrainable
 from pipeline.dataset.splits import FRONT_ENDS
 from pipeline.dataset.tables import columns_for, table_schema, write_table
 from pipeline.dataset.trials import Trial, load_trials
-from pipeline.frontend import circuit_key, declared
 from pipeline.logs import Log
-from pipeline.vocab import AXES, CALIBRATION, SPLITS
 
 MANIFEST = "manifest.json"
 

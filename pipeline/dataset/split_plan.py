@@ -13,11 +13,11 @@ from fnmatch import fnmatchcase
 
 import numpy as np
 
+from needlecue_runtime.vocab import AXES, angle_name, sorted_angles
 from pipeline.config import SplitParams
 from pipeline.dataset.tables import columns_for
 from pipeline.dataset.trials import Trial, TrialKey
 from pipeline.rig.repeats import reason, repeats
-from pipeline.vocab import AXES, angle_name, sorted_angles
 
 
 def drop_repeats(trials: list[Trial]) -> tuple[list[Trial], list[dict[str, str]]]:

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.frontend import Circuit, circuit_key, declared
-from pipeline.vocab import CALIBRATION, SPLITS, sorted_angles
+from needlecue_runtime.frontend import Circuit, circuit_key, declared
+from needlecue_runtime.vocab import CALIBRATION, SPLITS, sorted_angles
 
 FRONT_ENDS = "front_ends.json"  # in each angle folder (and calibration/): {unit_id: its circuit or null}
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.vocab import AXES, ID_COLUMNS
+from needlecue_runtime.vocab import AXES, ID_COLUMNS
 
 TEXT_IDS = frozenset(
     {"batch_id", "unit_id", "trial_id", "tissue_point", "phase"}

@@ -12,9 +12,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from needlecue_runtime.vocab import AXES, angle_name, axes_of
 from pipeline.dataset.tables import columns_for
 from pipeline.rig.repeats import SAMPLES_KEY
-from pipeline.vocab import AXES, angle_name, axes_of
 
 TrialKey = tuple[str, str]  # (batch_id, trial_id)
 

@@ -11,7 +11,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.force import ForceClient
+from needlecue_client.force import ForceClient
 from pipeline.live.display import Board, TerminalView, WebDisplay
 from pipeline.live.port import run_port
 from pipeline.live.recording import SessionRecorder, read_lines, read_meta, unescape

@@ -25,7 +25,7 @@ def load_client(
     """The champion (or `model_dir`) with unit `unit_id`'s registered calibration, as the simulator
     loads it; `unverified` runs a `model_dir` that fails its check, after a loud warning. Raises what
     the client raises (RegistryUnreachable, ValueError incl. ModelRefused, LookupError, ...)."""
-    from pipeline.client import ForceClient
+    from needlecue_client import ForceClient
 
     if model_dir is None:
         if angle is None:
@@ -35,9 +35,9 @@ def load_client(
         return ForceClient.from_registry(angle, alias, unit_id=unit_id, cues_uncalibrated=cues_uncalibrated)
     calibration = None
     if unit_id is not None:  # the unit's registered calibration, if there is one
-        from pipeline.calibration.document import FILE
-        from pipeline.client import ModelNotFound, fetch_unit
-        from pipeline.registry.store import RegistryUnreachable
+        from needlecue_client import ModelNotFound, fetch_unit
+        from needlecue_runtime.registry.store import RegistryUnreachable
+        from needlecue_runtime.unit_calibration import FILE
 
         try:
             calibration = fetch_unit(unit_id) / FILE
@@ -111,8 +111,8 @@ def live(
     (http://127.0.0.1:8770/), a terminal line, and a recording `needlecue replay` plays back.
 
     Exit 1 on a bad model or unit, 2 if the registry is unreachable and nothing is cached."""
+    from needlecue_runtime.registry.store import RegistryUnreachable
     from pipeline.live.app import LiveOptions, run_live
-    from pipeline.registry.store import RegistryUnreachable
 
     try:
         client = load_client(angle, alias, model_dir, unit, cues_uncalibrated, unverified)

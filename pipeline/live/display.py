@@ -18,8 +18,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import IO, Any
 
-from pipeline.cues.pack import NO_CUE_REASONS
-from pipeline.vocab import AXES
+from needlecue_runtime.cues.pack import NO_CUE_REASONS
+from needlecue_runtime.vocab import AXES
 
 KEEPALIVE_S = 5.0
 

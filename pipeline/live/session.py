@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.client.force import ForceClient
+from needlecue_client.force import ForceClient
 from pipeline.live.health import StreamHealth
 from pipeline.live.insertions import InsertionDetector, InsertionRules
 from pipeline.live.recording import SessionRecorder, escape
@@ -322,7 +322,7 @@ class LiveSession:
         frame, c = self._frame, self.client
         cue_state = getattr(frame, "cue", None)
         inside = self._current is not None
-        no_cue = None  # why there is no angle cue (pipeline.cues.pack.NO_CUE_REASONS), if none
+        no_cue = None  # why there is no angle cue (needlecue_runtime.cues.pack.NO_CUE_REASONS), if none
         if self._phase in ("connecting", "disconnected"):
             cue, reason = "wait", self._phase
         elif not inside:

@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, TypeAdapter
 
-from pipeline.documents import Document, DocumentFile, Number
+from needlecue_runtime.documents import Document, DocumentFile, Number
 
 EVALUATION_FILE = "evaluation.json"  # the full evaluation, in the reports folder (metrics.json: its headline)
 DIGITS = 4  # precision of evaluation.json and metrics.json: 0.1 mN for RMSE, 0.0001 % for NRMSE

@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.vocab import AXES, TRIAL_KEY, axes_of, sorted_angles
 from pipeline.logs import Log
 from pipeline.metrics.scores import gap_summary, gaps_present, mean_known, mean_over_axes, shared_scores
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import AXES, TRIAL_KEY, axes_of, sorted_angles
 
 
 @dataclass(frozen=True)

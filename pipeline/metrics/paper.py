@@ -9,10 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from needlecue_runtime.vocab import AXES, sorted_angles
 from pipeline.metrics.document import AxisScore, Evaluation, ForceScores, MeanNrmse
 from pipeline.metrics.scores import mean_over_axes
 from pipeline.modelling.kinds import TABLE, kind_label
-from pipeline.vocab import AXES, sorted_angles
 
 NETWORKS = ("fnn", "lstm")
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.vocab import AXES
+from needlecue_runtime.vocab import AXES
 
 GAP_TOL = 1e-6  # degrees; angles are parsed from folder names, so only rounding noise
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.calibration.document import UnitCalibration
+from needlecue_runtime.unit_calibration import UnitCalibration
 from pipeline.metrics.evaluation import EvalSet
 from pipeline.metrics.scores import mean_known, mean_over_axes, nrmse_of, shared_scores
 from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 from pydantic import Field, TypeAdapter, ValidationError
 
-from pipeline.documents import Document
+from needlecue_runtime.documents import Document
 
 FORMAT = "needlecue-model/1"
 CHECKPOINT_FILE = "model.pt"

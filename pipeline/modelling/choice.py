@@ -33,11 +33,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.frontend import Circuit
-from pipeline.modelling.features import INPUT_KINDS, ModelInputs
+from needlecue_runtime.features import INPUT_KINDS, ModelInputs
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import axes_of
 from pipeline.modelling.inputs import features_of, sequence_order, times_of, trial_codes
 from pipeline.modelling.kinds.base import StandIn
-from pipeline.vocab import axes_of
 
 FORMAT = "needlecue-inputs-choice/1"  # the choose stage's file: one model kind's choice
 RIDGE = 1e-3  # relative to the mean diagonal of the normal equations: only against ill-conditioning

@@ -18,7 +18,7 @@ of fx, fy, fz in that order (all three, or only fz from a load cell, say), never
 `window` is 1 for ls and fnn. The same checkpoint gives the same ONNX bytes, in any process (a test
 checks it), and the MLflow model carries a `needlecue` metadata block (`deploy_metadata`) with what a
 client needs besides: the rest period, the channels and rate, the cue pack. What a simulator runs is
-verified as one (`pipeline.client.folder`): the graph's own metadata holds the sha256 of that block,
+verified as one (`needlecue_client.folder`): the graph's own metadata holds the sha256 of that block,
 and the block the sha256 of the graph (`onnx_sha256`), both recorded when the model is logged.
 
 torch, onnx and mlflow are imported inside the functions, so importing this module is cheap.
@@ -38,12 +38,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from needlecue_runtime.features import features_at, rest_reading, spec_of, unit_inputs
+from needlecue_runtime.vocab import (
+    AXES,
+    DEPLOY_FORMAT,
+    INPUT_NAMES,
+    OUTPUT_NAME,
+    axes_in_order,
+    description_sha256,
+)
 from pipeline.modelling.checkpoint import ModelConfig, check_checkpoint, checkpoint_sha256
-from pipeline.modelling.features import features_at, rest_reading, spec_of, unit_inputs
 from pipeline.modelling.front import front_module
 from pipeline.modelling.inputs import window_index
 from pipeline.modelling.kinds import kind_of
-from pipeline.vocab import AXES, DEPLOY_FORMAT, INPUT_NAMES, OUTPUT_NAME, axes_in_order, description_sha256
 
 if TYPE_CHECKING:
     import torch

@@ -1,7 +1,7 @@
 """Training one model of a kind (`pipeline.modelling.kinds`) for one insertion angle, on the
 estimator's voltages only, into a self-describing checkpoint.
 
-What a model reads (`x`) is its params' `inputs` (`pipeline.modelling.features`): raw volts as in
+What a model reads (`x`) is its params' `inputs` (`needlecue_runtime.features`): raw volts as in
 the paper, or the FSR conductance relative to the trial's rest reading, which transfers between
 estimator units; the checkpoint records it.
 
@@ -20,16 +20,16 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.frontend import Circuit
+from needlecue_runtime.features import inputs_for
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import AXES, axes_of, channels_of, rate_hz
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import FORMAT, data_sha256
 from pipeline.modelling.choice import Choice, choose_inputs
-from pipeline.modelling.features import inputs_for
 from pipeline.modelling.inputs import trial_codes
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.kinds.base import KindParams
 from pipeline.modelling.predictor import Predictor
-from pipeline.vocab import AXES, axes_of, channels_of, rate_hz
 
 LOSS_DEFINITION = "MSE of fx, fy, fz standardised by the training split's mean and std, averaged over axes"
 

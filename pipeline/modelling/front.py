@@ -2,8 +2,8 @@
 calibration in, the model's inputs out, in torch so that it exports to ONNX with the network behind
 it (`pipeline.modelling.export`).
 
-It computes what `pipeline.modelling.features.features` computes, in float64 and with the same
-formulas (`pipeline.frontend`), so that a simulator in any language feeds the graph nothing but
+It computes what `needlecue_runtime.features.features` computes, in float64 and with the same
+formulas (`needlecue_runtime.frontend`), so that a simulator in any language feeds the graph nothing but
 what the estimator sends: its readings (counts or volts, `volts_per_count` scales them). The unit's
 calibration is data, not code: the three `unit_*` inputs that `features.unit_inputs` encodes
 (identity and no circuit: the model's own reading, uncalibrated).
@@ -17,8 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.frontend import MAX_KOHM, MIN_KOHM
-from pipeline.modelling.features import (
+from needlecue_runtime.features import (
     GROUND_DIVIDER,
     MIN_CONDUCTANCE_US,
     ON_CONDUCTANCE,
@@ -27,6 +26,7 @@ from pipeline.modelling.features import (
     ModelInputs,
     encode_circuit,
 )
+from needlecue_runtime.frontend import MAX_KOHM, MIN_KOHM
 
 if TYPE_CHECKING:
     import torch

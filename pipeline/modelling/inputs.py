@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.modelling.features import ModelInputs, features
-from pipeline.vocab import TRIAL_KEY
+from needlecue_runtime.features import ModelInputs, features
+from needlecue_runtime.vocab import TRIAL_KEY
 
 
 def trial_codes(frame: pd.DataFrame) -> np.ndarray:

@@ -29,9 +29,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from needlecue_runtime.features import ModelInputs, spec_of
+from needlecue_runtime.vocab import AXES, angle_name, axes_of, sorted_angles
 from pipeline.modelling.choice import Choice
-from pipeline.modelling.features import ModelInputs, spec_of
-from pipeline.vocab import AXES, angle_name, axes_of, sorted_angles
 
 UNCALIBRATED = "external-uncalibrated"  # the external rows predicted without any unit's calibration
 

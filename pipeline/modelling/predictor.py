@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.frontend import Circuit
+from needlecue_runtime.features import InputTransform, features, spec_of
+from needlecue_runtime.frontend import Circuit
 from pipeline.modelling.checkpoint import checkpoint_meta, load_checkpoint
-from pipeline.modelling.features import InputTransform, features, spec_of
 from pipeline.modelling.inputs import times_of, trial_codes
 from pipeline.modelling.kinds import kind_of
 

@@ -12,13 +12,14 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from needlecue_runtime.features import InputTransform
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import AXES, SPLITS, angle_name, sorted_angles
 from pipeline.dataset.splits import SplitFiles
 from pipeline.execution.workers import WORKERS, ordered_map, workers_for
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.choice import Choice
-from pipeline.modelling.features import InputTransform
 from pipeline.modelling.prediction_store import (
     UNCALIBRATED,
     ModelReads,
@@ -27,7 +28,6 @@ from pipeline.modelling.prediction_store import (
     write_predictions,
 )
 from pipeline.modelling.predictor import Predictor, load_predictor
-from pipeline.vocab import AXES, SPLITS, angle_name, sorted_angles
 
 WORTH_A_WORKER = 500_000  # rows predicted, over all models: fewer take less than a worker's start
 UnitTransforms = Mapping[str, InputTransform]  # {unit_id: its calibration for one model}

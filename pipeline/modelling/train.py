@@ -11,14 +11,14 @@ from typing import Any
 
 import pandas as pd
 
+from needlecue_runtime.frontend import Circuit, circuit_key
+from needlecue_runtime.vocab import angle_name, file_sha256
 from pipeline.dataset.splits import common_front_end, front_ends
-from pipeline.frontend import Circuit, circuit_key
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import save_model_dir
 from pipeline.modelling.choice import Choice, pool
 from pipeline.modelling.fit import choose, fit
 from pipeline.modelling.kinds.base import KindParams
-from pipeline.vocab import angle_name, file_sha256
 
 
 @dataclass(frozen=True)

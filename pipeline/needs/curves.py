@@ -25,17 +25,17 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import angle_name
 from pipeline.calibration.rows import calibration_rows
 from pipeline.config import CuesParams, NeedsParams
 from pipeline.dataset.splits import SplitFiles, unit_roles
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.metrics.scores import mean_known
 from pipeline.needs.document import FORMAT
 from pipeline.needs.force import ForceModel, force_curve
 from pipeline.needs.scoring import SEEN, CueJob, CueScoring, Frames, score_cues
 from pipeline.needs.subsample import SUBSAMPLE, Key, Selection, ladder, spread_order, trials_in, units_of
-from pipeline.vocab import angle_name
 
 
 def note(what: str, why: str) -> dict[str, str]:

@@ -16,8 +16,8 @@ from typing import Any, Literal
 
 from pydantic import TypeAdapter, ValidationError
 
+from needlecue_runtime.documents import Document, DocumentFile, Number
 from pipeline.config import NeedsParams
-from pipeline.documents import Document, DocumentFile, Number
 from pipeline.modelling.kinds import TABLE, kind_label
 
 FORMAT = "needlecue-needs/1"

@@ -14,19 +14,19 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import inputs_for
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import angle_name, axes_of, channels_of
 from pipeline.dataset.splits import common_front_end
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.metrics.scores import mean_known, nrmse_pct
 from pipeline.modelling.choice import load_choice, ridge, stand_in_basis  # the stand-in as choose scores
-from pipeline.modelling.features import inputs_for
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import features_of, times_of, trial_codes
 from pipeline.modelling.kinds import kind_label, kind_of
 from pipeline.modelling.kinds.base import StandIn
 from pipeline.needs.document import force_name, networks
 from pipeline.needs.subsample import Selection, select
-from pipeline.vocab import angle_name, axes_of, channels_of
 
 
 @dataclass(frozen=True)

@@ -17,16 +17,16 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.vocab import axes_of, channels_of
 from pipeline.config import CuesParams
 from pipeline.cues.estimator import try_fit_angle_estimator
 from pipeline.cues.packs import build_cue_pack
 from pipeline.cues.score import WORTH_A_WORKER, evaluate_cues
 from pipeline.cues.unit_evidence import evidence_of, trial_features
 from pipeline.execution.workers import WORKERS_ENV, ordered_imap, workers_for
-from pipeline.frontend import Circuit
 from pipeline.logs import Log
 from pipeline.needs.subsample import Key, Selection, select
-from pipeline.vocab import axes_of, channels_of
 
 SEEN = ("wrong_final", "wrong_frames", "coverage_frames")  # what the trainee sees, of `seen`
 Frames = Mapping[str, Mapping[float, pd.DataFrame]]  # {split: {angle: rows}}

@@ -19,9 +19,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.calibration.document import FILE, UnitCalibration, read_unit, transform_for, unit_text
-from pipeline.logs import Log
-from pipeline.registry.store import (
+from needlecue_runtime.registry.store import (
     CALIBRATION_SHA_TAG,
     CHAMPION,
     UNIT_ABOUT,
@@ -35,7 +33,9 @@ from pipeline.registry.store import (
     unit_model_name,
     versions,
 )
-from pipeline.vocab import DEPLOY_FORMAT, angle_name, sorted_angles
+from needlecue_runtime.unit_calibration import FILE, UnitCalibration, read_unit, transform_for, unit_text
+from needlecue_runtime.vocab import DEPLOY_FORMAT, angle_name, sorted_angles
+from pipeline.logs import Log
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient

@@ -10,12 +10,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.vocab import KINDS, axes_of
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.metrics.scores import mean_nrmse, shared_scores
 from pipeline.modelling.checkpoint import checkpoint_sha256, load_checkpoint, read_train_metrics
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import KINDS, axes_of
 
 SPLITS = ("val", "test", "external")  # what each model is scored on
 

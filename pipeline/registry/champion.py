@@ -10,8 +10,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from needlecue_runtime.registry.store import CHALLENGER, CHAMPION
 from pipeline.registry.candidates import Trained, kind_rank
-from pipeline.registry.store import CHALLENGER, CHAMPION
 
 
 def best_per_angle(trained: Iterable[Trained], candidates: tuple[str, ...]) -> dict[str, Trained]:

@@ -13,8 +13,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.registry.mlflow_env import patience
-from pipeline.registry.store import TAG, connect, model_name, tracking_uri
+from needlecue_runtime.registry.mlflow_env import patience
+from needlecue_runtime.registry.store import TAG, connect, model_name, tracking_uri
 from pipeline.registry.tracking import LOCK_ARTIFACT
 
 

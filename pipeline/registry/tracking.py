@@ -18,15 +18,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.registry.store import TAG, finished_run
+from needlecue_runtime.vocab import DEPLOY_FORMAT, axes_of
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
 from pipeline.metrics.document import Evaluation
 from pipeline.metrics.scores import gap_of
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, HISTORY_FILE, METRICS_FILE, checkpoint_meta
 from pipeline.registry.candidates import Trained
-from pipeline.registry.store import TAG, finished_run
 from pipeline.reporting.loss import loss_curve_png
-from pipeline.vocab import DEPLOY_FORMAT, axes_of
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from pipeline.registry.store import EXPERIMENT, RegistryUnreachable, ui_link
+from needlecue_runtime.registry.store import EXPERIMENT, RegistryUnreachable, ui_link
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient

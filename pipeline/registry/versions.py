@@ -14,6 +14,20 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.registry.store import (
+    CHALLENGER,
+    CHAMPION,
+    EXPERIMENT,
+    FORMAT_TAG,
+    RegistryUnreachable,
+    alias_version,
+    create_registered_model,
+    experiment_id,
+    model_name,
+    versions,
+    writing,
+)
+from needlecue_runtime.vocab import AXES, DEPLOY_FORMAT, axes_of
 from pipeline.config import RegisterParams
 from pipeline.dataset.splits import SplitFiles
 from pipeline.logs import Log
@@ -27,21 +41,7 @@ from pipeline.modelling.split_predictions import predict_frame
 from pipeline.registry.calibrations import load_documents, register_units
 from pipeline.registry.candidates import Trained, collect, kind_rank
 from pipeline.registry.champion import best_per_angle, decide
-from pipeline.registry.store import (
-    CHALLENGER,
-    CHAMPION,
-    EXPERIMENT,
-    FORMAT_TAG,
-    RegistryUnreachable,
-    alias_version,
-    create_registered_model,
-    experiment_id,
-    model_name,
-    versions,
-    writing,
-)
 from pipeline.registry.tracking import TAG, Datasets, axes_words, deploy_sha256, git_commit, track
-from pipeline.vocab import AXES, DEPLOY_FORMAT, axes_of
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient

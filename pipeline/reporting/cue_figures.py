@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from needlecue_runtime.cues.pack import CUES, DEVIATION_GROUPS, METHODS, VERDICTS
 from pipeline.cues.document import CueEvaluation, SkippedCues
-from pipeline.cues.pack import CUES, DEVIATION_GROUPS, METHODS, VERDICTS
 from pipeline.reporting.style import save_png
 
 

@@ -1,5 +1,6 @@
 """The angle cues in the report: the `## Angle cues` section, written from the cues stage's evaluation
-(`pipeline.cues.document`) and packs (`pipeline.cues.pack`); its figures: `pipeline.reporting.cue_figures`."""
+(`pipeline.cues.document`) and packs (`needlecue_runtime.cues.pack`); its figures:
+`pipeline.reporting.cue_figures`."""
 
 from __future__ import annotations
 
@@ -7,8 +8,7 @@ import json
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from pipeline.cues.document import AngleMatrix, CueEvaluation, MethodResult, Results, ScoredCues, SkippedCues
-from pipeline.cues.pack import (
+from needlecue_runtime.cues.pack import (
     CUES,
     DEVIATION_GROUPS,
     METHODS,
@@ -18,8 +18,9 @@ from pipeline.cues.pack import (
     CuePack,
     as_pack,
 )
+from needlecue_runtime.vocab import angle_name
+from pipeline.cues.document import AngleMatrix, CueEvaluation, MethodResult, Results, ScoredCues, SkippedCues
 from pipeline.reporting.cue_figures import method_label, scored_kinds
-from pipeline.vocab import angle_name
 
 
 def _f(x: float | None, spec: str = ".1f") -> str:

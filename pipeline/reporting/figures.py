@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.vocab import TRIAL_KEY, axes_of, sorted_angles
 from pipeline.metrics.document import Evaluation, GapPoint
 from pipeline.metrics.evaluation import EvalSet, Scored
 from pipeline.metrics.paper import reference_angle
 from pipeline.metrics.scores import GAP_TOL, gap_of, mean_over_axes
 from pipeline.modelling.kinds import kind_label
 from pipeline.reporting.style import COLORS, fmt, placeholder_png, save_png
-from pipeline.vocab import TRIAL_KEY, axes_of, sorted_angles
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from pipeline.frontend import Divider
+from needlecue_runtime.features import INPUT_KINDS, ModelInputs
+from needlecue_runtime.frontend import Divider
+from needlecue_runtime.vocab import sorted_angles
 from pipeline.modelling.choice import Choice, pool
-from pipeline.modelling.features import INPUT_KINDS, ModelInputs
 from pipeline.modelling.kinds import kind_label
 from pipeline.modelling.prediction_store import ModelReads
 from pipeline.reporting.style import table
-from pipeline.vocab import sorted_angles
 
 
 def _circuit(inputs: ModelInputs) -> str:

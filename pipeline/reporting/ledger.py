@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from pipeline.vocab import sorted_angles
+from needlecue_runtime.vocab import sorted_angles
 
 SPLIT_ORDER = ("train", "val", "test", "external", "calibration")
 

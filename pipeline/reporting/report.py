@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from needlecue_runtime.vocab import AXES, axes_of, sorted_angles
 from pipeline.metrics.document import AxisNrmse, Evaluation, Scores
 from pipeline.metrics.paper import (
     PAPER_MEAN_NRMSE,
@@ -32,7 +33,6 @@ from pipeline.metrics.paper import (
 from pipeline.metrics.scores import mean_over_axes
 from pipeline.modelling.kinds import kind_label
 from pipeline.reporting.style import fmt, table
-from pipeline.vocab import AXES, axes_of, sorted_angles
 
 FLAGGED_SHOWN = 5  # flagged trials named in report.md; the ledger lists them all
 

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.vocab import AXES, PHASES
 from pipeline.config import ResampleParams
 from pipeline.signals.resample import OFFSET_CSV_COLUMNS, Resampled
-from pipeline.vocab import AXES, PHASES
 
 
 def write_offsets_csv(rows: list[dict[str, Any]], path: Path) -> None:

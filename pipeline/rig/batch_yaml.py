@@ -11,11 +11,11 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
-from pipeline.frontend import CIRCUITS
+from needlecue_runtime.frontend import CIRCUITS
+from needlecue_runtime.vocab import NON_CHANNELS
 from pipeline.rig.csvfile import encoding_hint
 from pipeline.rig.format import BATCH_FILE, ID_PATTERN, BatchMeta, is_valid_id
 from pipeline.rig.problems import ProblemLog
-from pipeline.vocab import NON_CHANNELS
 
 # Columns the pipeline adds: the validated frames' own (pipeline.rig.reader) and the processed
 # frames' (ids, time, phase, the reference force). A channel of the same name would be ambiguous.

@@ -67,7 +67,7 @@ def fingerprint(batch_dir: Path, params: IngestParams, source_dir: str | None = 
         "n_files": len(files),
         "params": params.model_dump(mode="json"),
         "code_sha256": _code_sha256(),
-        "id_pattern": ID_PATTERN.pattern,  # lives in pipeline/vocab.py, outside CODE_FILES
+        "id_pattern": ID_PATTERN.pattern,  # lives in client/needlecue_runtime/vocab.py, outside CODE_FILES
         "versions": {m: metadata.version(m) for m in ("great_expectations", "pandas", "pyarrow", "npTDMS")},
     }
     parts["fingerprint"] = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()

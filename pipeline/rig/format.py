@@ -1,5 +1,5 @@
 """The rig-log/1 contract (`docs/rig-log-format.md`): file and column names, the id pattern (its one
-home is `pipeline.vocab`, shared with params.yaml's unit ids), the `batch.yaml` models and `Problem`,
+home is `needlecue_runtime.vocab`, shared with params.yaml's unit ids), the `batch.yaml` models and `Problem`,
 the one way any part of the pipeline says what is wrong.
 
 Shared by the simulator (which writes such folders) and ingest (which reads them), so the two
@@ -16,8 +16,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
-from pipeline.frontend import FrontEnd
-from pipeline.vocab import AXES, ID_PATTERN, one_line
+from needlecue_runtime.frontend import FrontEnd
+from needlecue_runtime.vocab import AXES, ID_PATTERN, one_line
 
 FORMAT = "rig-log/1"
 BATCH_FILE = "batch.yaml"
@@ -114,7 +114,7 @@ class SensorMeta(_Meta):
     units: Literal["counts", "volts"]
     adc_bits: int | None = Field(None, ge=1, le=32)
     vref_v: float | None = Field(None, gt=0)
-    # the circuit between each FSR and its channel (pipeline.frontend); absent: not declared
+    # the circuit between each FSR and its channel (needlecue_runtime.frontend); absent: not declared
     front_end: FrontEnd | None = None
 
     @model_validator(mode="after")

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from needlecue_runtime.vocab import one_line
 from pipeline.config import IngestParams
 from pipeline.execution.workers import ordered_imap, workers_for
 from pipeline.logs import Log
@@ -47,7 +48,6 @@ from pipeline.rig.expectations import Validator
 from pipeline.rig.fingerprint import fingerprint
 from pipeline.rig.format import BATCH_FILE, Problem, batch_dirs
 from pipeline.rig.reader import ParsedBatch, parse_batch
-from pipeline.vocab import one_line
 
 WORTH_A_WORKER = 8_000_000  # bytes of batches to parse: less parses faster than a worker loads GX
 

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.vocab import AXES
 from pipeline.rig.format import REF_TIME, REF_TORQUES, undeclared_axes
 from pipeline.rig.problems import ProblemLog
-from pipeline.vocab import AXES
 
 TIME = REF_TIME
 WF_INCREMENT, WF_OFFSET, UNIT = "wf_increment", "wf_start_offset", "unit_string"

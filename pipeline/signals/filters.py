@@ -11,7 +11,7 @@ import math
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from pipeline import vocab
+from needlecue_runtime import vocab
 
 # A source counts as "faster than the grid" only above this margin: a 30.02 Hz host stream
 # onto a 30 Hz grid has nothing to alias, and filtering it would only blur it.

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.frontend import is_declared
 from pipeline.config import IngestParams, ResampleParams
-from pipeline.frontend import is_declared
 from pipeline.rig.batch_store import write_batch
 from pipeline.rig.expectations import Validator
 from pipeline.rig.fingerprint import fingerprint

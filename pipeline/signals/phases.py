@@ -11,7 +11,7 @@ import pandas as pd
 import pyarrow as pa
 from scipy.ndimage import uniform_filter1d
 
-from pipeline.vocab import PHASES
+from needlecue_runtime.vocab import PHASES
 
 
 def label_phases(force_n: np.ndarray, rate_hz: float) -> np.ndarray:

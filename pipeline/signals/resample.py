@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from needlecue_runtime.vocab import AXES, PHASES, angle_name
 from pipeline.config import ResampleParams
 from pipeline.dataset.tables import table_schema, write_table
 from pipeline.logs import Log
@@ -34,7 +35,6 @@ from pipeline.signals.filters import SetAside
 from pipeline.signals.phases import phase_durations
 from pipeline.signals.scaling import to_newtons, to_volts
 from pipeline.signals.trial import Streams, align, check_response, clean_time, on_grid
-from pipeline.vocab import AXES, PHASES, angle_name
 
 TRUTH_COLUMN = "sim_clock_offset_s"  # written by the simulator only; a lab's data has no truth
 OFFSET_CSV_COLUMNS = (

@@ -27,8 +27,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.signal import lfilter
 
+from needlecue_runtime.frontend import Circuit, Divider, Transimpedance, volts_of
 from pipeline.config import EffectScales
-from pipeline.frontend import Circuit, Divider, Transimpedance, volts_of
 
 G = 9.81  # m/s^2
 
@@ -211,7 +211,7 @@ class Estimator:
     hysteresis: float = 0.10  # (R_F+ - R_F-)/R_F+ about +10 % (datasheet)
     hysteresis_scale_n: float = 0.05  # assumption: load change over which the loop closes
     drift_per_decade: float = 0.04  # "under 5 % per decade of time under constant load"
-    # read-out: V_out = V+ / (1 + R_FSR / R_M), R_M = 10 kOhm, V+ = 5 V (pipeline.frontend)
+    # read-out: V_out = V+ / (1 + R_FSR / R_M), R_M = 10 kOhm, V+ = 5 V (needlecue_runtime.frontend)
     front_end: Circuit = NOMINAL_FRONT_END
     rail_v: float = 5.0  # an op-amp's output cannot leave 0..rail
     noise_v: float = 0.0015  # assumption: electrical noise, about a third of an ADC count

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from needlecue_runtime.vocab import AXES, CALIBRATION, angle_name
 from pipeline.config import EffectScales, SimulateParams
 from pipeline.logs import Log
 from pipeline.rig.format import (
@@ -50,7 +51,6 @@ from pipeline.rig.format import (
     ref_file,
 )
 from pipeline.sim import physics, rigs
-from pipeline.vocab import AXES, CALIBRATION, angle_name
 
 MANIFEST = "simulate.json"
 CHANNELS = ("fsr1", "fsr2", "fsr3")

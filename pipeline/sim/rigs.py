@@ -11,7 +11,7 @@ Every figure is in docs/physics.md §11 with its source; none was chosen by how 
 
 from __future__ import annotations
 
-from pipeline.frontend import Circuit, Divider, Transimpedance
+from needlecue_runtime.frontend import Circuit, Divider, Transimpedance
 from pipeline.sim.physics import Estimator
 
 DEFAULT = "default"

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import typer
 
-from pipeline.calibration.document import read_unit, write_unit
+from needlecue_runtime.unit_calibration import read_unit, write_unit
+from needlecue_runtime.vocab import CALIBRATION, angle_name
 from pipeline.calibration.rows import calibration_rows
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, CuesParams, TrainParams, load_section
@@ -27,7 +28,6 @@ from pipeline.execution.workers import WORKERS
 from pipeline.logs import setup
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE
 from pipeline.modelling.predictor import load_predictor
-from pipeline.vocab import CALIBRATION, angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

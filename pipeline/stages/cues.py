@@ -20,19 +20,19 @@ from pathlib import Path
 
 import typer
 
-from pipeline.calibration.document import calibrated_units, read_units
+from needlecue_runtime.cues.pack import write_pack
+from needlecue_runtime.cues.units import cue_reading, departing_levels
+from needlecue_runtime.unit_calibration import calibrated_units, read_units
+from needlecue_runtime.vocab import angle_name
 from pipeline.config import CuesParams, load_section
 from pipeline.cues.document import write_cue_evaluation
-from pipeline.cues.pack import write_pack
 from pipeline.cues.packs import build_packs
 from pipeline.cues.score import cue_document, skipped_evaluation, track_external
 from pipeline.cues.thresholds import Predicted
 from pipeline.cues.unit_groups import evaluate_unit_groups
-from pipeline.cues.units import cue_reading, departing_levels
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.logs import setup
 from pipeline.modelling.prediction_store import UNCALIBRATED, Predictions
-from pipeline.vocab import angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

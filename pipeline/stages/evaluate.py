@@ -22,7 +22,8 @@ from pathlib import Path
 
 import typer
 
-from pipeline.calibration.document import calibrated_units, read_units
+from needlecue_runtime.unit_calibration import calibrated_units, read_units
+from needlecue_runtime.vocab import angle_name
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.cues.document import read_cue_evaluation
 from pipeline.dataset.splits import unit_roles
@@ -33,7 +34,6 @@ from pipeline.metrics.evaluation import compute_metrics, gather, load_eval_sets
 from pipeline.metrics.headline import headline
 from pipeline.metrics.unit_transfer import by_unit, calibration_summary, champions_by_angle, unit_transfer
 from pipeline.modelling.prediction_store import Predictions
-from pipeline.vocab import angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

@@ -12,7 +12,7 @@
    or paths, so a fresh store gives the same file).
 
 Scores come from the predict stage's `PRED_DIR`; the store is `$MLFLOW_TRACKING_URI` or the
-project's `mlflow.db` (`pipeline.registry.store`).
+project's `mlflow.db` (`needlecue_runtime.registry.store`).
 
 Usage: `python -m pipeline.execution.run register MODELS_DIR DATA_DIR PRED_DIR CAL_DIR REPORTS_DIR OUT_JSON
 [--params params.yaml]`.
@@ -25,9 +25,9 @@ from pathlib import Path
 
 import typer
 
+from needlecue_runtime.registry.store import RegistryUnreachable
 from pipeline.config import RegisterParams, load_section
 from pipeline.logs import setup
-from pipeline.registry.store import RegistryUnreachable
 from pipeline.registry.versions import register_all
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__

@@ -20,9 +20,10 @@ from pathlib import Path
 
 import typer
 
+from needlecue_runtime.cues.pack import read_pack
+from needlecue_runtime.vocab import angle_name
 from pipeline.config import EvaluateParams, TrainParams, load_section
 from pipeline.cues.document import read_cue_evaluation
-from pipeline.cues.pack import read_pack
 from pipeline.logs import setup
 from pipeline.metrics.document import EVALUATION_FILE, read_evaluation
 from pipeline.metrics.evaluation import gather, load_eval_sets
@@ -31,7 +32,6 @@ from pipeline.needs.document import read_needs
 from pipeline.reporting import cue_figures, cues, figures, report, unit_transfer
 from pipeline.reporting.inputs import inputs_section
 from pipeline.reporting.needs import how_much_data_you_need
-from pipeline.vocab import angle_name
 
 _log = logging.getLogger("pipeline.stages").info  # not __name__: a stage runs as __main__
 

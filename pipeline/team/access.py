@@ -17,7 +17,7 @@ import secrets
 from collections.abc import Iterator
 from typing import Any, Protocol
 
-from pipeline.registry.mlflow_env import environment
+from needlecue_runtime.registry.mlflow_env import environment
 
 
 class Server(Protocol):
@@ -103,7 +103,7 @@ def ensure_users(stack: Server) -> None:
 
 
 def add_webhook(stack: Server, url: str, name: str = "needlecue-alias") -> str:
-    """Have the server call `url` (a simulator's listener, `pipeline.client.webhook`) on every alias
+    """Have the server call `url` (a simulator's listener, `needlecue_client.webhook`) on every alias
     change, signed with the stack's webhook secret; returns the webhook's id. Needs the admin."""
     from mlflow import MlflowClient
 

@@ -1,14 +1,14 @@
 """Publishing what simulators run, out of the tracking server's path: every alias of the lab's registered
 models (`needle-force-<angle>@champion`, `needle-unit-<id>@current`, ...) copied to the published bucket
 of the team's object store, as immutable objects named by their sha256 and one signed manifest per model
-and alias (the format: `pipeline.registry.manifest`).
+and alias (the format: `needlecue_runtime.registry.manifest`).
 
 `plan` compares the registry with the bucket and says what is out of date; `publish` applies it:
 objects first (each only if missing), then the manifest, so a simulator never finds a manifest whose
 files are not there. Publishing twice changes nothing. An alias that is gone has its manifest withdrawn
 (a simulator keeps what it runs: "not found" is not a reason to stop). Objects are never deleted: a
 simulator offline since last week may still ask for one. What is published is checked first as a client
-checks it (`pipeline.client.cache.download_checked`): a broken version is not published.
+checks it (`needlecue_client.cache.download_checked`): a broken version is not published.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
-from pipeline.client.cache import download_checked
-from pipeline.client.copies import read_version
-from pipeline.registry import manifest as signed
-from pipeline.registry import store
+from needlecue_client.cache import download_checked
+from needlecue_client.copies import read_version
+from needlecue_runtime.registry import manifest as signed
+from needlecue_runtime.registry import store
 
 log = logging.getLogger(__name__)
 

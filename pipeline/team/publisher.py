@@ -3,7 +3,7 @@ date (`pipeline.team.publish`), so that simulators never wait on the tracking se
 
 MLflow's registry webhook calls it on every alias change: the register stage's, `needlecue rollback`'s,
 `needlecue calibrate`'s, or one made by hand in the MLflow UI. A verified call (signed with the stack's
-webhook secret, fresh, not replayed: `pipeline.client.webhook.AliasListener`) wakes it, and it publishes
+webhook secret, fresh, not replayed: `needlecue_client.webhook.AliasListener`) wakes it, and it publishes
 what is out of date of the models the calls named: idempotent, and a burst of calls (the register stage
 moves one alias per angle) is one round. Every `interval_s` it publishes the whole registry, so that a
 call MLflow could not deliver is caught.
@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.webhook import ALIAS_ENTITY, AliasListener
+from needlecue_client.webhook import ALIAS_ENTITY, AliasListener
 from pipeline.logs import setup
 from pipeline.team import access, publish
 from pipeline.team.stack import Stack

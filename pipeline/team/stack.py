@@ -115,7 +115,7 @@ def new_settings(
 
 def publish_settings() -> dict[str, Any]:
     """A simulator's read-only S3 keys and the lab's signing key (added to an older team.json on start)."""
-    from pipeline.registry.manifest import new_private_key
+    from needlecue_runtime.registry.manifest import new_private_key
 
     return {
         "s3_reader": {"access_key": "simulator" + secrets.token_hex(6), "secret_key": _token(30)},
@@ -197,7 +197,7 @@ class Stack:
 
     def public_key(self) -> str:
         """The public half of the lab's publishing key (base64), as simulators hold it."""
-        from pipeline.registry.manifest import public_of
+        from needlecue_runtime.registry.manifest import public_of
 
         return base64.b64encode(public_of(base64.b64decode(self.settings["publish_private_key"]))).decode()
 
@@ -221,7 +221,7 @@ class Stack:
         """A block in which MLflow calls go to this stack's server as the lab (its tracking
         credentials in the environment, restored afterwards): how the stack's own tools read the
         registry."""
-        from pipeline.registry import mlflow_env
+        from needlecue_runtime.registry import mlflow_env
 
         lab = self.role_env("lab")
         return mlflow_env.environment({k: v for k, v in lab.items() if k.startswith("MLFLOW_TRACKING_")})

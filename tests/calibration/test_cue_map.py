@@ -6,11 +6,11 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.frontend import Divider
 from pipeline.calibration.unit import cue_evidence, cue_map_kind
 from pipeline.config import CuesParams
-from pipeline.cues.evidence import UnitMap
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.frontend import Divider
 from tests.cues.synthetic import CHANNELS, make_split
 
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.62)

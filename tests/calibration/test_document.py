@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.calibration.document import (
+from needlecue_runtime.unit_calibration import (
     calibrated_units,
     parse_unit,
     read_unit,

@@ -10,8 +10,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.calibration.document import FORMAT as UNIT_FORMAT
-from pipeline.calibration.document import parse_unit
+from needlecue_runtime.registry import mlflow_env, store
+from needlecue_runtime.unit_calibration import FORMAT as UNIT_FORMAT
+from needlecue_runtime.unit_calibration import parse_unit
+from needlecue_runtime.vocab import AXES, angle_name
 from pipeline.config import InputParams
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import CHECKPOINT_FILE, checkpoint_sha256, save_checkpoint
@@ -19,8 +21,7 @@ from pipeline.modelling.kinds.fnn import FNNParams
 from pipeline.modelling.kinds.ls import LSParams
 from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import calibrations, mlflow_env, store
-from pipeline.vocab import AXES, angle_name
+from pipeline.registry import calibrations
 
 UNREACHABLE = "http://127.0.0.1:9"  # the discard port: connection refused at once
 CHANNELS = ["fsr1", "fsr2", "fsr3"]

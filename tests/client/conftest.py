@@ -8,12 +8,12 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.client import fetch, follow
+from needlecue_client import fetch, follow
+from needlecue_runtime.registry import store
+from needlecue_runtime.vocab import AXES
 from pipeline.config import CuesParams
 from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit
-from pipeline.registry import store
-from pipeline.vocab import AXES
 from tests.client.builders import TINY, Clock, Registered, cue_predictions, cue_trials, register
 
 

@@ -9,17 +9,17 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import client as fc
-from pipeline.client.cache import poll_alias
-from pipeline.client.folder import read_metadata
+import needlecue_client as fc
+from needlecue_client.cache import poll_alias
+from needlecue_client.folder import read_metadata
+from needlecue_runtime.registry import store
+from needlecue_runtime.vocab import description_sha256
 from pipeline.modelling.checkpoint import checkpoint_sha256
 from pipeline.modelling.export import to_onnx
 from pipeline.modelling.fit import fit
-from pipeline.registry import store
-from pipeline.vocab import description_sha256
 from tests.client.builders import TINY, UNREACHABLE, Registered, cue_trials, register
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 def test_fetch_downloads_once_and_falls_back_to_the_copy_when_offline(
@@ -47,7 +47,7 @@ def test_fetch_downloads_once_and_falls_back_to_the_copy_when_offline(
     assert fc.fetch(30, cache_dir=cache, tracking_uri=registered.uri) == folder
 
     # when: the registry is unreachable, over HTTP and as a sqlite file in a missing folder
-    with caplog.at_level(logging.WARNING, logger="pipeline.client"):
+    with caplog.at_level(logging.WARNING, logger="needlecue_client"):
         offline = fc.fetch(30, cache_dir=cache, tracking_uri=UNREACHABLE)
         gone = fc.fetch(30, cache_dir=cache, tracking_uri=f"sqlite:///{tmp_path / 'nope' / 'mlflow.db'}")
     # then: the local copy is used, with a warning saying so

@@ -1,5 +1,5 @@
 """What a simulator runs is what the lab registered: a model folder's graph and description checked
-before anything runs (pipeline/client/folder.py), from a fetched folder, offline from the cache, and
+before anything runs (client/needlecue_client/folder.py), from a fetched folder, offline from the cache, and
 through `needlecue replay --model-dir`; a malformed field is one line naming the file and the field."""
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from urllib.parse import urlparse
 import pytest
 from typer.testing import CliRunner
 
-from pipeline import client as fc
+import needlecue_client as fc
+from needlecue_runtime.registry import store
 from pipeline.cli import app
-from pipeline.registry import store
 from tests.client.builders import UNREACHABLE, Registered, register_unit, unit_document
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 def _edit_mlmodel(old: str, new: str) -> Callable[[Path], None]:
@@ -97,7 +97,7 @@ def test_unverified_runs_a_changed_folder_loudly_and_a_broken_graph_is_still_one
     broken = shutil.copytree(fetched, tmp_path / "broken")
     _truncate(broken)
     # when: asked to run them unverified
-    with caplog.at_level("WARNING", logger="pipeline.client"):
+    with caplog.at_level("WARNING", logger="needlecue_client"):
         client = fc.ForceClient.from_dir(edited, unverified=True)
     # then: the edited one runs, with its edit, after a loud warning; the broken one is a clear error
     assert client.inputs.rest_s == 5.0

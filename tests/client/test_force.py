@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import client as fc
+import needlecue_client as fc
 from pipeline.modelling.predictor import Predictor
 from tests.client.builders import CHANNELS, UNREACHABLE, Clock, Registered, cue_trials, register
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 def test_streaming_equals_batch_predictions_of_the_trial(registered: Registered, fetched: Path) -> None:
@@ -64,7 +64,7 @@ def test_a_cue_pack_of_another_format_gives_force_without_cues(
     mlmodel = old / "MLmodel"
     mlmodel.write_text(mlmodel.read_text().replace("needlecue-cues/5", "needlecue-cues/3"))
     # when: a client loads it, cues asked for, the edited description run unverified
-    with caplog.at_level(logging.WARNING, logger="pipeline.client"), pytest.warns(fc.UncalibratedUnit):
+    with caplog.at_level(logging.WARNING, logger="needlecue_client"), pytest.warns(fc.UncalibratedUnit):
         client = fc.ForceClient.from_dir(old, cues_uncalibrated=True, unverified=True)
     # then: force every frame, no cue, and a warning that says why and what to do
     frame = client.step([0.6, 0.6, 0.6])
@@ -134,7 +134,7 @@ def test_reset_swaps_in_a_new_champion_once_the_poll_interval_has_passed(
 
     # when: the next insertion starts once 60 s have passed
     clock.advance(1)
-    with caplog.at_level(logging.INFO, logger="pipeline.client"):
+    with caplog.at_level(logging.INFO, logger="needlecue_client"):
         client.reset()
     # then: v2 is loaded, said in the log, and its forces are the new model's
     assert client.version["version"] == "2" and registry_calls == [mlflow_store] * 2  # the poll, the fetch
@@ -186,7 +186,7 @@ def test_an_unreachable_registry_keeps_the_model_warns_once_and_retries_after_th
     store.rename(tmp_path / "away")
     registry_calls.clear()
     # when: an insertion starts after the interval, another before the next one, a third after it
-    with caplog.at_level(logging.DEBUG, logger="pipeline.client"):
+    with caplog.at_level(logging.DEBUG, logger="needlecue_client"):
         clock.advance(60)
         client.reset()
         client.reset()
@@ -229,7 +229,7 @@ def test_a_new_champion_that_does_not_fit_the_stream_is_refused(
     before = client.step(VOLTS).force_n
     # when: v2, which reads fsr4 instead of fsr3, becomes champion; two insertions start an interval apart
     register(mlflow_store, tmp_path, ls_models["fsr4"])
-    with caplog.at_level(logging.INFO, logger="pipeline.client"):
+    with caplog.at_level(logging.INFO, logger="needlecue_client"):
         clock.advance(60)
         client.reset()
         clock.advance(60)

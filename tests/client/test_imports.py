@@ -11,7 +11,7 @@ from pathlib import Path
 
 from tests.client.builders import Registered, unit_document
 
-HEAVY = ("torch", "sklearn", "typer", "matplotlib", "great_expectations", "pandas")
+HEAVY = ("pipeline", "torch", "sklearn", "dvc", "typer", "matplotlib", "great_expectations", "pandas")
 ROOT = Path(__file__).resolve().parents[2]
 
 # Run in a fresh interpreter: this test process has imported all of them already.
@@ -22,9 +22,9 @@ HEAVY = {heavy!r}
 def loaded():
     return sorted(m for m in HEAVY if m in sys.modules)
 
-import pipeline.client
+import needlecue_client
 after_import = loaded()
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
 
 client = ForceClient.from_dir(sys.argv[1], calibration=sys.argv[2])
 client.reset()
@@ -47,7 +47,7 @@ def test_importing_and_running_the_client_loads_no_heavy_dependency(
     # fresh interpreter
     calibration = tmp_path / "calibration.json"
     calibration.write_text(json.dumps(unit_document("est-i1", {30: registered.checkpoint})))
-    # when: it imports pipeline.client, loads the folder with the calibration and steps one sample
+    # when: it imports needlecue_client, loads the folder with the calibration and steps one sample
     run = subprocess.run(
         [sys.executable, "-c", SCRIPT.format(heavy=HEAVY), str(fetched), str(calibration)],
         capture_output=True,

@@ -1,6 +1,6 @@
-"""The client on a simulator's install, for real: a fresh venv holding client-requirements.txt alone,
-the project on PYTHONPATH, fetching a model and an estimator unit's calibration through a real MLflow
-server over HTTP and stepping them.
+"""The client on a simulator's install, for real: a fresh venv holding the client's distribution alone
+(`pip install ./client`, no PYTHONPATH), fetching a model and an estimator unit's calibration through a
+real MLflow server over HTTP and stepping them.
 
 What this test does is what docs/client.md's "Installing just the client on a simulator" tells a simulator
 maker to do; change one with the other. Slow (it builds a venv: about a minute).
@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -22,20 +23,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.calibration.document import parse_unit
+from needlecue_runtime.features import InputTransform
+from needlecue_runtime.registry import mlflow_env, store
+from needlecue_runtime.unit_calibration import parse_unit
 from pipeline.config import CuesParams
 from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling import export
-from pipeline.modelling.features import InputTransform
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import calibrations, mlflow_env, store
+from pipeline.registry import calibrations
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
 from tests.helpers import stop_group
 
 ROOT = Path(__file__).resolve().parents[2]
-REQUIREMENTS = ROOT / "client-requirements.txt"
-HEAVY = ("torch", "sklearn", "typer", "matplotlib", "great_expectations", "pandas")
+CLIENT = ROOT / "client"  # the client's distribution (client/pyproject.toml)
+# what a simulator must not get: the training package and the heavy libraries it pulls
+HEAVY = ("pipeline", "torch", "sklearn", "dvc", "typer", "matplotlib", "great_expectations", "pandas")
 VOLTS = [0.4, 0.5, 0.6]
 UNIT = "est-light-1"
 MIX = [[1.08, 0.05, 0.0], [0.0, 0.93, 0.04], [-0.03, 0.0, 1.1]]
@@ -45,7 +48,7 @@ INSTALL_S = 300.0  # venv and pip from the index, once per run of this test
 # What a simulator runs, in the light venv.
 SIMULATOR = """
 import importlib.util, json, sys
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
 
 uri, cache, heavy, volts = sys.argv[1], sys.argv[2], sys.argv[3].split(","), json.loads(sys.argv[4])
 UNIT = sys.argv[5]
@@ -153,9 +156,12 @@ def test_a_venv_of_client_requirements_alone_fetches_through_a_server_and_steps(
         _run([sys.executable, "-m", "venv", str(venv)], timeout=120)
         python = str(venv / "bin" / "python")
         pip_log = tmp_path / "pip.log"
+        # a copy, as a simulator maker would have it: building leaves an egg-info beside the sources
+        source = tmp_path / "needlecue-client"
+        shutil.copytree(CLIENT, source, ignore=shutil.ignore_patterns("__pycache__", "build", "*.egg-info"))
         with pip_log.open("wb") as log:
             pip = subprocess.Popen(
-                [python, "-m", "pip", "install", "-q", "-r", str(REQUIREMENTS)],
+                [python, "-m", "pip", "install", "-q", str(source)],
                 stdout=log,
                 stderr=subprocess.STDOUT,
             )
@@ -169,21 +175,21 @@ def test_a_venv_of_client_requirements_alone_fetches_through_a_server_and_steps(
             if pip.poll() is None:
                 pip.kill()
                 pip.wait()
-        assert code == 0, f"pip install -r {REQUIREMENTS.name} exited {code}:\n{pip_log.read_text()[-3000:]}"
+        assert code == 0, f"pip install ./client exited {code}:\n{pip_log.read_text()[-3000:]}"
 
-        # when: the simulator, in the light venv with the project on PYTHONPATH, fetches and steps it
+        # when: the simulator, in the light venv (nothing on PYTHONPATH), fetches and steps it
         env = {k: v for k, v in os.environ.items() if not k.startswith(("MLFLOW_", "PYTHON"))}
-        env["PYTHONPATH"] = str(ROOT)
         cache = tmp_path / "cache"
         run = _run(
             [python, "-c", SIMULATOR, uri, str(cache), ",".join(HEAVY), json.dumps(VOLTS), UNIT],
             timeout=120,
             env=env,
-            cwd=tmp_path,  # importable through PYTHONPATH only, not the working directory
+            cwd=tmp_path,  # not the checkout: what runs is what pip installed
         )
     out = json.loads(run.stdout.splitlines()[-1])
-    # then: the venv really is light, the model and the unit's calibration came through the server (a
-    # version made from a plain artifact folder), and the force is the model's through the calibration
+    # then: the venv really is light (nor has it the training package), the model and the unit's
+    # calibration came through the server (a version made from a plain artifact folder), and the force
+    # is the model's through the calibration
     assert out["installed"] == [] and out["loaded"] == [], out
     assert (out["version"]["version"], out["version"]["tracking_uri"]) == ("1", uri)
     assert (out["calibration"]["name"], out["calibration"]["version"]) == (f"needle-unit-{UNIT}", "1")

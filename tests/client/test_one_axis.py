@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pipeline import client as fc
+import needlecue_client as fc
+from needlecue_client.replay import plot_replay, replay, rmse
 from pipeline.cli import app
-from pipeline.client.replay import plot_replay, replay, rmse
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
 from tests.client.builders import CHANNELS, TINY, Registered, cue_trials, keep_axes, register
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +80,7 @@ def test_a_cue_pack_profiling_other_axes_than_the_model_gives_force_without_cues
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     register(uri, tmp_path, keep_axes(registered.checkpoint, ("fz",)), registered.pack)
     # when: the client loads it and steps
-    with caplog.at_level("WARNING", logger="pipeline.client"):
+    with caplog.at_level("WARNING", logger="needlecue_client"):
         client = fc.ForceClient.from_registry(
             30, cache_dir=tmp_path / "cache", tracking_uri=uri, cues_uncalibrated=True
         )

@@ -8,14 +8,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline import client as fc
-from pipeline.client.replay import cue_changes, replay, rmse
+import needlecue_client as fc
+from needlecue_client.replay import cue_changes, replay, rmse
 from pipeline.config import CuesParams
 from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit
 from tests.client.builders import BENCH_UNIT, TINY, cue_predictions, cue_trials, register
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 def test_replay_returns_one_row_per_sample_in_time_order(fetched: Path) -> None:

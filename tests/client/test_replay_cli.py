@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from pipeline import client as fc
+import needlecue_client as fc
 from pipeline.cli import app
 from tests.client.builders import (
     UNREACHABLE,
@@ -19,7 +19,7 @@ from tests.client.builders import (
     unit_document,
 )
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 def test_replay_command_prints_the_summary_and_writes_the_plot(

@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import client as fc
-from pipeline.calibration.document import FILE
-from pipeline.client.folder import ModelFolderError
-from pipeline.client.replay import replay
-from pipeline.modelling.features import InputTransform
+import needlecue_client as fc
+from needlecue_client.folder import ModelFolderError
+from needlecue_client.replay import replay
+from needlecue_runtime.features import InputTransform
+from needlecue_runtime.registry import store
+from needlecue_runtime.unit_calibration import FILE
 from pipeline.modelling.predictor import Predictor
-from pipeline.registry import store
 from tests.client.builders import (
     UNREACHABLE,
     Clock,
@@ -64,7 +64,7 @@ def test_fetch_unit_caches_the_calibration_and_falls_back_to_it_offline(
     )
     assert info["source"].endswith("/calibration") and info["calibration_sha256"]
     # when: the registry is unreachable
-    with caplog.at_level(logging.WARNING, logger="pipeline.client"):
+    with caplog.at_level(logging.WARNING, logger="needlecue_client"):
         offline = fc.fetch_unit("est-f1", cache_dir=cache, tracking_uri=UNREACHABLE)
     # then: the cached copy, with a warning
     assert offline == folder and "offline" in caplog.text and "needle-unit-est-f1@current" in caplog.text

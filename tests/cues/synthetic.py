@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pandas as pd
 
-from pipeline.cues.pack import FORMAT
-from pipeline.cues.tracker import CueTracker
-from pipeline.cues.units import unit_evidence
+from needlecue_runtime.cues.pack import FORMAT
+from needlecue_runtime.cues.tracker import CueTracker
+from needlecue_runtime.cues.units import unit_evidence
 
 RATE = 30.0
 NOMINAL = "nominal"  # the unit that records `make_trial`'s trials unless told otherwise

@@ -10,14 +10,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.cues.pack import NO_CUE_REASONS
+from needlecue_runtime.cues.tracker import CueTracker
+from needlecue_runtime.cues.units import departing_levels, reading_of, unit_evidence, validated_reading
 from pipeline.config import CuesParams
 from pipeline.cues.confidence import CONFIDENCE_GRID, reading_confidence
-from pipeline.cues.pack import NO_CUE_REASONS
 from pipeline.cues.packs import build_cue_pack
-from pipeline.cues.tracker import CueTracker
 from pipeline.cues.trials import replay_evidence, stage_frames, trials_of
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.cues.units import departing_levels, reading_of, unit_evidence, validated_reading
 from tests.cues.synthetic import ANGLES, CHANNELS, make_trial, make_unit_split, run_tracker
 
 PARAMS = CuesParams(kinds=("ls",), evidence_levels=(0.05, 0.1, 0.2))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
+from needlecue_runtime.cues.pack import AngleEstimator
 from pipeline.config import CuesParams
 from pipeline.cues.estimator import fit_angle_estimator, try_fit_angle_estimator
-from pipeline.cues.pack import AngleEstimator
 from tests.cues.synthetic import ANGLES, NOMINAL, make_split
 
 

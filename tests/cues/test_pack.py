@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cues.pack import (
+from needlecue_runtime.cues.pack import (
     CuePack,
     as_pack,
     cue_for_deviation,

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from needlecue_runtime.cues.pack import StandardProfile, as_pack
+from needlecue_runtime.cues.profile import ProfileScore, profile_scores
+from needlecue_runtime.cues.tracker import CueTracker
 from pipeline.config import CuesParams
-from pipeline.cues.pack import StandardProfile, as_pack
-from pipeline.cues.profile import ProfileScore, profile_scores
-from pipeline.cues.tracker import CueTracker
 from pipeline.cues.trials import run_evidence, trials_of
 from tests.cues.synthetic import CHANNELS, make_trial
 

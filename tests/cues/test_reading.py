@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.cues.discriminant import outside_limit
-from pipeline.cues.reading import (
+from needlecue_runtime.cues.reading import (
     departs,
     distances,
     log_scores,
@@ -18,6 +17,7 @@ from pipeline.cues.reading import (
     own_departure,
     read_unit,
 )
+from pipeline.cues.discriminant import outside_limit
 
 MU = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 

@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.vocab import angle_name
 from pipeline.config import CuesParams
 from pipeline.cues.document import write_cue_evaluation
 from pipeline.cues.packs import build_cue_pack
@@ -16,7 +17,6 @@ from pipeline.cues.summary import Run, summarise_runs, time_to_cue
 from pipeline.cues.unit_groups import evaluate_unit_groups
 from pipeline.reporting import cue_figures
 from pipeline.reporting import cues as cue_report
-from pipeline.vocab import angle_name
 from tests.cues.synthetic import (
     ANGLES,
     external_split,

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.cues.pack import REFERENCE
 from pipeline.config import CuesParams
-from pipeline.cues.pack import REFERENCE
 from pipeline.cues.thresholds import best_thresholds, paper_thresholds, standard_profile
 from pipeline.cues.trials import trials_of
 from tests.cues.synthetic import CHANNELS, make_split

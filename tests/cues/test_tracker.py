@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
+from needlecue_runtime.cues.evidence import Evidence
+from needlecue_runtime.cues.pack import EstimatorStage
+from needlecue_runtime.cues.tracker import CueTracker
+from needlecue_runtime.cues.units import calibration_evidence, unit_readings
+from needlecue_runtime.frontend import Circuit, Divider, volts_of
 from pipeline.config import CuesParams
-from pipeline.cues.evidence import Evidence
-from pipeline.cues.pack import EstimatorStage
 from pipeline.cues.packs import build_cue_pack
-from pipeline.cues.tracker import CueTracker
-from pipeline.cues.units import calibration_evidence, unit_readings
-from pipeline.frontend import Circuit, Divider, volts_of
 from tests.cues.synthetic import (
     CHANNELS,
     end_of_insertion,

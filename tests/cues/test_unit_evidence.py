@@ -7,11 +7,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.cues.tracker import CueTracker
+from needlecue_runtime.cues.units import unit_evidence
 from pipeline.config import CuesParams
 from pipeline.cues.packs import build_cue_pack
-from pipeline.cues.tracker import CueTracker
 from pipeline.cues.unit_evidence import evidence_of, trial_features
-from pipeline.cues.units import unit_evidence
 from tests.cues.synthetic import ANGLES, CHANNELS, make_unit_split, run_tracker, whole_pack
 
 

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.cues.evidence import Evidence, UnitMap
+from needlecue_runtime.cues.tracker import CueTracker
+from needlecue_runtime.cues.units import cue_reading, departing_levels, unit_evidence
+from needlecue_runtime.frontend import Divider, conductance_us, volts_of_conductance
 from pipeline.config import CuesParams
-from pipeline.cues.evidence import Evidence, UnitMap
 from pipeline.cues.packs import build_cue_pack
-from pipeline.cues.tracker import CueTracker
 from pipeline.cues.unit_evidence import trial_features
-from pipeline.cues.units import cue_reading, departing_levels, unit_evidence
-from pipeline.frontend import Divider, conductance_us, volts_of_conductance
 from tests.cues.synthetic import CHANNELS, NOMINAL, make_split, run_tracker, whole_pack
 
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0, series_kohm=1.62)

@@ -11,9 +11,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from needlecue_runtime.vocab import AXES
 from pipeline.dataset.tables import table_schema, write_table
 from pipeline.rig.repeats import samples_sha256
-from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
 

@@ -8,13 +8,13 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from needlecue_runtime.vocab import AXES, CALIBRATION, ID_COLUMNS, SPLITS
 from pipeline.config import SplitParams
 from pipeline.dataset import split as sp
 from pipeline.dataset import split_plan
 from pipeline.dataset.splits import SplitFiles, unit_roles
 from pipeline.dataset.tables import write_table
 from pipeline.dataset.trials import Trial
-from pipeline.vocab import AXES, CALIBRATION, ID_COLUMNS, SPLITS
 from tests.dataset.resampled import CHANNELS, files_of, make_input, trials_in, write_resampled
 
 

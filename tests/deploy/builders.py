@@ -10,11 +10,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.client import ForceClient
+from needlecue_client import ForceClient
+from needlecue_runtime.features import InputTransform, unit_inputs
+from needlecue_runtime.frontend import Divider
 from pipeline.config import InputParams
-from pipeline.frontend import Divider
 from pipeline.modelling import export
-from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
 from pipeline.modelling.kinds.lstm import LSTMParams
 from tests.client.builders import cue_trials, keep_axes, register, register_unit, unit_document

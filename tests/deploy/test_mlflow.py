@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.modelling.features import unit_inputs
+from needlecue_runtime.features import unit_inputs
 from tests.deploy.builders import Champion, client_forces, pyfunc_champion, raw_feed
 from tests.helpers import stop_group
 

@@ -14,9 +14,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.registry import manifest as signed
+from needlecue_runtime.registry import store
 from pipeline.modelling.checkpoint import checkpoint_sha256
-from pipeline.registry import manifest as signed
-from pipeline.registry import store
 from pipeline.team.publish import Target, put_version
 from tests.deploy.bucket import FolderBucket
 from tests.deploy.builders import UNIT, Champion, client_forces

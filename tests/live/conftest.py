@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline.client import fetch
+from needlecue_client import fetch
 from pipeline.config import CuesParams
 from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit

@@ -8,7 +8,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline.client import ForceClient, UncalibratedUnit
+from needlecue_client import ForceClient, UncalibratedUnit
 from pipeline.live.app import replay_session
 from pipeline.live.display import terminal_line
 from pipeline.live.emulate import load_trial, schedule

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import ModelInputs
+from needlecue_runtime.vocab import AXES
 from pipeline.metrics.document import Evaluation
 from pipeline.metrics.evaluation import EvalSet, Scored, compute_metrics
 from pipeline.modelling import prediction_store
-from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.split_predictions import predict_model
-from pipeline.vocab import AXES
 from tests.metrics.documents import evaluation
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]

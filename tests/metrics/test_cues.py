@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from needlecue_runtime.cues.pack import CUES, VERDICTS
 from pipeline.cues.document import FORMAT, ScoredCues, SkippedCues
-from pipeline.cues.pack import CUES, VERDICTS
 from pipeline.metrics.cues import cue_headline
 
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from needlecue_runtime.vocab import AXES
 from pipeline.metrics.scores import axis_scores, gap_summary, nrmse_pct, rmse
-from pipeline.vocab import AXES
 from tests.metrics.fakes import ANGLES, AXIS_SCALE, gap_error
 
 

@@ -9,15 +9,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.frontend import Divider, Transimpedance, volts_of
+from needlecue_runtime.vocab import AXES
 from pipeline.config import InputParams
-from pipeline.frontend import Divider, Transimpedance, volts_of
 from pipeline.modelling.choice import Choice, candidates, choose_inputs, load_choice, pool, save_choice
 from pipeline.modelling.fit import fit
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.kinds.fnn import FNNParams
 from pipeline.modelling.kinds.ls import LSParams
 from pipeline.modelling.kinds.lstm import LSTMParams
-from pipeline.vocab import AXES
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
 DIVIDER = Divider(circuit="divider", supply_v=5.0, fixed_kohm=10.0)

@@ -13,17 +13,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from needlecue_runtime.features import InputTransform, unit_inputs
+from needlecue_runtime.frontend import Divider, Transimpedance
+from needlecue_runtime.vocab import INPUT_NAMES, description_sha256
 from pipeline.config import InputParams
-from pipeline.frontend import Divider, Transimpedance
 from pipeline.modelling import export
 from pipeline.modelling.checkpoint import load_checkpoint, save_checkpoint
-from pipeline.modelling.features import InputTransform, unit_inputs
 from pipeline.modelling.fit import fit
 from pipeline.modelling.kinds.fnn import FNNParams
 from pipeline.modelling.kinds.ls import LSParams
 from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.modelling.predictor import Predictor
-from pipeline.vocab import INPUT_NAMES, description_sha256
 from tests.modelling.frames import make_frame
 
 CHANNELS = ["fsr1", "fsr2", "fsr3"]
@@ -260,7 +260,7 @@ def test_logged_model_has_signature_example_metadata_and_no_pickles(checkpoints,
         checkpoint, {"format": "test-pack"}
     )
     # the graph MLflow wrote is the one exported with the description's hash, and the description
-    # names it: each vouches for the other (pipeline.client.folder)
+    # names it: each vouches for the other (needlecue_client.folder)
     graph = (folder / "model.onnx").read_bytes()
     assert graph == export.to_onnx(checkpoint, description_sha256(meta))
     assert meta["onnx_sha256"] == hashlib.sha256(graph).hexdigest()

@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.config import EffectScales
-from pipeline.frontend import Divider, conductance_us, volts_of
-from pipeline.modelling.features import (
+from needlecue_runtime.features import (
     InputTransform,
     ModelInputs,
     RestReading,
@@ -15,6 +13,8 @@ from pipeline.modelling.features import (
     features_at,
     spec_of,
 )
+from needlecue_runtime.frontend import Divider, conductance_us, volts_of
+from pipeline.config import EffectScales
 from pipeline.sim import physics, rigs
 
 QUIET = EffectScales(

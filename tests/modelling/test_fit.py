@@ -9,6 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
+from needlecue_runtime.vocab import KINDS
 from pipeline.config import InputParams
 from pipeline.modelling.checkpoint import ModelConfig, save_checkpoint
 from pipeline.modelling.fit import fit
@@ -17,7 +18,6 @@ from pipeline.modelling.kinds.fnn import FNNParams
 from pipeline.modelling.kinds.ls import LSParams
 from pipeline.modelling.kinds.lstm import LSTMParams
 from pipeline.modelling.predictor import load_predictor
-from pipeline.vocab import KINDS
 from tests.modelling.frames import CHANNELS, make_frame
 
 VOLTS = InputParams(kind="volts")  # these tests read the channels as they are (the choice: test_choice.py)

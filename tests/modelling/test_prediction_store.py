@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from needlecue_runtime.features import ModelInputs
 from pipeline.modelling.choice import Choice
-from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.prediction_store import INPUTS_FILE, ModelReads, read_inputs, write_inputs
 
 CHOSEN = Choice("rest_volts", {"volts": 9.1, "rest_volts": 5.2}, "leave-one-unit-out (3 units)", "ridge")

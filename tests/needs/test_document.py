@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from needlecue_runtime.vocab import dump_json
 from pipeline.needs.document import read_needs, write_needs
-from pipeline.vocab import dump_json
 from tests.needs.docs import needs_doc
 
 

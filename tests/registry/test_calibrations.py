@@ -12,12 +12,13 @@ import pandas as pd
 import pytest
 from mlflow import MlflowClient
 
-from pipeline.calibration.document import FILE, read_unit, write_unit
+from needlecue_runtime.registry import store
+from needlecue_runtime.unit_calibration import FILE, read_unit, write_unit
 from pipeline.calibration.unit import calibrate_unit
 from pipeline.config import CalibrateParams, RegisterParams
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor, load_predictor
-from pipeline.registry import calibrations, store
+from pipeline.registry import calibrations
 from tests.client.builders import TINY, cue_trials, register
 from tests.registry.test_versions import GOOD, quiet, run_stage, train_models, write_data
 

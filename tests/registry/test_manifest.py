@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from pipeline.registry import manifest as signed
+from needlecue_runtime.registry import manifest as signed
 
 SHA = "ab" * 32
 

@@ -13,10 +13,11 @@ import pytest
 from mlflow import MlflowClient
 from typer.testing import CliRunner
 
+from needlecue_runtime.registry import mlflow_env, store
+from needlecue_runtime.registry.store import CHAMPION, TAG, model_name
+from needlecue_runtime.vocab import DEPLOY_FORMAT
 from pipeline.cli import app
-from pipeline.registry import mlflow_env, store, versions
-from pipeline.registry.store import CHAMPION, TAG, model_name
-from pipeline.vocab import DEPLOY_FORMAT
+from pipeline.registry import versions
 
 PAGE = b"<html><body>Welcome</body></html>"
 NO_SUCH = b'{"error_code": "RESOURCE_DOES_NOT_EXIST", "message": "Not found"}'

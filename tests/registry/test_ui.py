@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from mlflow import MlflowClient
 
-from pipeline.registry import store
+from needlecue_runtime.registry import store
 from tests.projects import copy_project, run
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

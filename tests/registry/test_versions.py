@@ -12,12 +12,12 @@ import typer
 from mlflow import MlflowClient
 from typer.testing import CliRunner
 
+from needlecue_runtime.registry.store import ABOUT, FORMAT_TAG, RegistryUnreachable, model_name
 from pipeline.config import RegisterParams, load_section
 from pipeline.modelling.kinds import kind_of
 from pipeline.modelling.split_predictions import predict_all
 from pipeline.modelling.train import train_folder
 from pipeline.registry import versions
-from pipeline.registry.store import ABOUT, FORMAT_TAG, RegistryUnreachable, model_name
 from pipeline.stages import register
 from tests.modelling.frames import make_frame
 

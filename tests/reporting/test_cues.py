@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from needlecue_runtime.cues.pack import as_pack, read_pack, write_pack
 from pipeline.config import CuesParams
 from pipeline.cues.document import CUE_EVALUATION_DOC
-from pipeline.cues.pack import as_pack, read_pack, write_pack
 from pipeline.cues.packs import build_cue_pack
 from pipeline.cues.score import skipped_evaluation
 from pipeline.reporting import cue_figures

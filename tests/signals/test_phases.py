@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from needlecue_runtime.vocab import PHASES
 from pipeline.signals.phases import label_phases
-from pipeline.vocab import PHASES
 from tests.signals.fabricate import fabricate, resample_fab
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from needlecue_runtime.frontend import resistance_of
 from pipeline.config import EffectScales
-from pipeline.frontend import resistance_of
 from pipeline.sim import physics
 
 OFF = EffectScales(

@@ -9,8 +9,8 @@ import pandas as pd
 import pytest
 import yaml
 
+from needlecue_runtime.frontend import conductance_us, volts_of
 from pipeline.config import EffectScales, IngestParams, ResampleParams, SimulateParams
-from pipeline.frontend import conductance_us, volts_of
 from pipeline.rig.format import BatchMeta
 from pipeline.rig.ingest import ingest_batches
 from pipeline.signals import resample

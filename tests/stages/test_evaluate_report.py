@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from needlecue_runtime.vocab import AXES
 from pipeline.reporting.figures import FIGURES
 from pipeline.stages import evaluate, report
-from pipeline.vocab import AXES
 from tests.metrics.fakes import ANGLES, CHANNELS, write_predictions, write_processed
 
 

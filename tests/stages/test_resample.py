@@ -9,8 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 import typer
 
+from needlecue_runtime.vocab import ID_COLUMNS, PHASES
 from pipeline.stages import resample
-from pipeline.vocab import ID_COLUMNS, PHASES
 from tests.signals.fabricate import fabricate, write_ingested
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.client.published import PUBLISHED_ENV
+from needlecue_client.published import PUBLISHED_ENV
 from pipeline.team.stack import SERVERS, Stack, free_base_port
 from tests.projects import built_stages, copy_project, run
 

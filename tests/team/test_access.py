@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import requests
 
-from pipeline.registry import store
+from needlecue_runtime.registry import store
 from pipeline.team import access
 
 # the real servers, on one xdist worker (their tests share one stack), in file order

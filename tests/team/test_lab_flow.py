@@ -24,11 +24,11 @@ import pytest
 import requests
 import yaml
 
-from pipeline.client import ForceClient, fetch
-from pipeline.client.cache import poll_alias
-from pipeline.client.copies import ModelNotFound
-from pipeline.client.webhook import AliasListener, signature
-from pipeline.registry import store
+from needlecue_client import ForceClient, fetch
+from needlecue_client.cache import poll_alias
+from needlecue_client.copies import ModelNotFound
+from needlecue_client.webhook import AliasListener, signature
+from needlecue_runtime.registry import store
 from pipeline.team import access
 from tests.projects import run
 from tests.team.conftest import lab_env as _env

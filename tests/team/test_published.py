@@ -19,12 +19,12 @@ import pytest
 from botocore.config import Config
 from botocore.exceptions import ClientError
 
-from pipeline.client import ForceClient, fetch
-from pipeline.client.cache import poll_alias
-from pipeline.client.model import Model
-from pipeline.client.published import PublishedRefused, default_location
-from pipeline.registry import manifest as signed
-from pipeline.registry import store
+from needlecue_client import ForceClient, fetch
+from needlecue_client.cache import poll_alias
+from needlecue_client.model import Model
+from needlecue_client.published import PublishedRefused, default_location
+from needlecue_runtime.registry import manifest as signed
+from needlecue_runtime.registry import store
 from pipeline.team import publish
 
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
@@ -177,7 +177,7 @@ def test_nothing_changed_or_unsigned_runs_and_the_verified_copy_keeps_running(
     onnx_bytes = s3.get_object(Bucket="published", Key=signed.object_key(onnx["sha256"]))["Body"].read()
     other_key = signed.new_private_key()
     changed = {**doc, "manifest": {**doc["manifest"], "version": "999"}}
-    client_log = logging.getLogger("pipeline.client")
+    client_log = logging.getLogger("needlecue_client")
     client_log.addHandler(caplog.handler)  # directly: an entry point's setup may stop propagation
     cases = {
         "a changed manifest": (json.dumps(changed).encode(), None, "changed after signing"),

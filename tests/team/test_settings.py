@@ -11,8 +11,8 @@ from types import SimpleNamespace
 import pytest
 from typer.testing import CliRunner
 
+from needlecue_runtime.registry import manifest as signed
 from pipeline.cli import app
-from pipeline.registry import manifest as signed
 from pipeline.team.servers.base import StackError
 from pipeline.team.stack import SERVERS, Stack
 

@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple, Protocol
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import ModelInputs
 from pipeline.config import InputParams, Section
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import ModelConfig
-from pipeline.modelling.features import ModelInputs
 
 if TYPE_CHECKING:
     import torch

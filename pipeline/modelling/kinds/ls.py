@@ -10,14 +10,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import ModelInputs
+from needlecue_runtime.vocab import axes_of
 from pipeline.config import InputParams, Section
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import ModelConfig
-from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.inputs import column_stats, features_of
 from pipeline.modelling.kinds.base import Fitted, ModelKind, StandIn, preprocessing
 from pipeline.modelling.kinds.linear import LinearModel
-from pipeline.vocab import axes_of
 
 LSTSQ_CUTOFF = 1e-6  # relative singular-value cutoff: scikit-learn's LinearRegression `tol` default
 

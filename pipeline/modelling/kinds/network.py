@@ -17,10 +17,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from needlecue_runtime.features import ModelInputs
+from needlecue_runtime.vocab import axes_of
 from pipeline.logs import Log
 from pipeline.modelling.checkpoint import ModelConfig
 from pipeline.modelling.determinism import deterministic_torch
-from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.inputs import (
     column_stats,
     features_of,
@@ -32,7 +33,6 @@ from pipeline.modelling.inputs import (
 from pipeline.modelling.kinds.adam import Adam, flatten
 from pipeline.modelling.kinds.base import Fitted, ModelKind, preprocessing
 from pipeline.modelling.kinds.graph import standardised
-from pipeline.vocab import axes_of
 
 if TYPE_CHECKING:
     import torch

@@ -13,12 +13,13 @@ import pytest
 import torch
 from pydantic import Field
 
-from pipeline import client as fc
+import needlecue_client as fc
+from needlecue_runtime.features import ModelInputs
+from needlecue_runtime.vocab import AXES
 from pipeline.config import InputParams, Section
 from pipeline.logs import Log
 from pipeline.metrics.scores import axis_scores
 from pipeline.modelling.checkpoint import ModelConfig, save_model_dir
-from pipeline.modelling.features import ModelInputs
 from pipeline.modelling.fit import fit
 from pipeline.modelling.inputs import features_of
 from pipeline.modelling.kinds import TABLE
@@ -26,10 +27,9 @@ from pipeline.modelling.kinds.base import Fitted, ModelKind, StandIn, preprocess
 from pipeline.modelling.kinds.linear import LinearModel
 from pipeline.modelling.predictor import load_predictor
 from pipeline.modelling.split_predictions import predict_frame
-from pipeline.vocab import AXES
 from tests.client.builders import CHANNELS, cue_trials, register
 
-pytestmark = pytest.mark.filterwarnings("ignore::pipeline.client.force.UncalibratedUnit")
+pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 class RidgeParams(Section):

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
+from needlecue_runtime.vocab import KINDS
 from pipeline.config import InputParams, load_section
 from pipeline.modelling.kinds import TABLE, kind_label, kind_of
 from pipeline.modelling.kinds.ls import LS
 from pipeline.reporting.style import COLORS
-from pipeline.vocab import KINDS
 
 
 def test_the_table_holds_the_kinds_the_params_accept_in_their_order() -> None:

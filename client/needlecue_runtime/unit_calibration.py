@@ -14,10 +14,10 @@ from typing import Any, Literal
 
 from pydantic import TypeAdapter, ValidationError
 
-from pipeline.documents import Document, Number
-from pipeline.frontend import Circuit, declared
-from pipeline.modelling.features import InputTransform
-from pipeline.vocab import angle_name, format_problem
+from needlecue_runtime.documents import Document, Number
+from needlecue_runtime.features import InputTransform
+from needlecue_runtime.frontend import Circuit, declared
+from needlecue_runtime.vocab import angle_name, format_problem
 
 FORMAT = "needlecue-unit/4"  # 4: a transform says its domain (conductance or the inputs)
 DIGITS = 6  # decimals in the JSON: small, stable files
@@ -112,7 +112,7 @@ class UnitCalibration(Document):
 
     def cue_section(self) -> dict[str, Any] | None:
         """The `cues` section as stored, the mapping the cue tracker reads
-        (`pipeline.cues.units.cue_reading`); None without one."""
+        (`needlecue_runtime.cues.units.cue_reading`); None without one."""
         return None if self.cues is None else self.cues.model_dump(mode="json", exclude_none=True)
 
 

@@ -3,14 +3,14 @@
 The paper ends with two rules for the simulator: at the preset angle with the force in range,
 tell the trainee to *continue*; off the preset angle, tell them to *correct* (about 15° off) or
 to *stop* (30° or more), judged from the predicted force profile. The tracker computes both cue
-methods every frame from a *cue pack* (`pipeline.cues.pack.CuePack`, built by `pipeline.cues.packs`):
+methods every frame from a *cue pack* (`needlecue_runtime.cues.pack.CuePack`, built by `pipeline.cues.packs`):
 
 - **paper** (profile comparison alone): a running, spread-normalised RMS distance between the
   predicted force and the preset angle's *standard profile*, cut by two calibrated thresholds;
 - **combined** (ours): the estimator's own volts say at which angle it is held (the needle's weight
   at rest, then the direction in which the FSRs' conductance moves as the load builds), through
   Gaussian classes per evidence stage read with the estimator unit's own class means and how sure
-  they are (`pipeline.cues.units`: every unit differs), plus the profile's "force in range" check.
+  they are (`needlecue_runtime.cues.units`: every unit differs), plus the profile's "force in range" check.
 
 A trainee taught the wrong angle is worse off than one taught nothing: the combined method shows an
 angle cue only when P(its deviation class) reaches the confidence cross-validated for the way the
@@ -29,9 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import CuesParams
-from pipeline.cues.evidence import Evidence, UnitMap
-from pipeline.cues.pack import (
+from needlecue_runtime.cues.evidence import Evidence, UnitMap
+from needlecue_runtime.cues.pack import (
     CUES,
     METHODS,
     NO_CUE,
@@ -44,11 +43,12 @@ from pipeline.cues.pack import (
     cue_for_deviation,
     pack_front_end,
 )
-from pipeline.cues.profile import ProfileScore
-from pipeline.cues.reading import UnitReading, distances, log_scores, outside
-from pipeline.cues.states import CueState, Debounce
-from pipeline.cues.units import UnitEvidence, unit_readings, validated_reading
-from pipeline.frontend import Circuit
+from needlecue_runtime.cues.profile import ProfileScore
+from needlecue_runtime.cues.reading import UnitReading, distances, log_scores, outside
+from needlecue_runtime.cues.states import CueState, Debounce
+from needlecue_runtime.cues.units import UnitEvidence, unit_readings, validated_reading
+from needlecue_runtime.frontend import Circuit
+from needlecue_runtime.params import CuesParams
 
 
 def _floats(x: Any) -> list[float]:

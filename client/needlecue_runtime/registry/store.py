@@ -19,8 +19,8 @@ from contextlib import closing, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.registry.mlflow_env import HTTP_SETTINGS, fluent, patience
-from pipeline.vocab import ID_PATTERN
+from needlecue_runtime.registry.mlflow_env import HTTP_SETTINGS, fluent, patience
+from needlecue_runtime.vocab import ID_PATTERN
 
 if TYPE_CHECKING:
     from mlflow import MlflowClient

@@ -7,9 +7,9 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.copies import ModelNotFound, staging, write_version
-from pipeline.client.verify import Describe, model_info
-from pipeline.registry import mlflow_env, store
+from needlecue_client.copies import ModelNotFound, staging, write_version
+from needlecue_client.verify import Describe, model_info
+from needlecue_runtime.registry import mlflow_env, store
 
 
 def _quiet_downloads() -> contextlib.AbstractContextManager[None]:

@@ -8,11 +8,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from pipeline.calibration.document import FILE as UNIT_FILE
-from pipeline.calibration.document import read_unit
-from pipeline.client.folder import MLMODEL, ONNX_FILE, open_model
-from pipeline.registry import store
-from pipeline.vocab import file_sha256
+from needlecue_client.folder import MLMODEL, ONNX_FILE, open_model
+from needlecue_runtime.registry import store
+from needlecue_runtime.unit_calibration import FILE as UNIT_FILE
+from needlecue_runtime.unit_calibration import read_unit
+from needlecue_runtime.vocab import file_sha256
 
 # What a simulator runs of a force model: its description and its ONNX (not the environment files)
 MODEL_FILES = (MLMODEL, ONNX_FILE)

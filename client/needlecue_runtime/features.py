@@ -8,7 +8,7 @@ what physics says is unit-specific and leaves the rest linear:
 - `volts`: the front end's output as read (the paper's input);
 - `rest_volts`: volts minus the trial's rest reading (removes most of the preload);
 - `conductance`: the FSR conductance (µS) behind the volts, through the estimator's own circuit
-  (batch.yaml `sensor.front_end`, `pipeline.frontend`); above actuation it grows with the load;
+  (batch.yaml `sensor.front_end`, `needlecue_runtime.frontend`); above actuation it grows with the load;
 - `rest_conductance`: conductance minus the trial's rest conductance: the load added by the needle,
   times each FSR's gain. The preload drops out; gain and placement are left as a linear map per
   unit, which is what a unit's calibration (`InputTransform`) fits.
@@ -34,8 +34,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.config import InputParams
-from pipeline.frontend import (
+from needlecue_runtime.frontend import (
     Declared,
     Divider,
     Transimpedance,
@@ -43,6 +42,7 @@ from pipeline.frontend import (
     legacy_divider,
     volts_of_conductance,
 )
+from needlecue_runtime.params import InputParams
 
 INPUT_KINDS: tuple[str, ...] = tuple(
     k for k in get_args(InputParams.model_fields["kind"].annotation) if k != "auto"

@@ -1,5 +1,5 @@
 """The simulator's local copies of registered versions: `<cache>/<name>/<alias>/` with what was
-fetched and its version.json (which version, from where, when, and what `pipeline.client.verify`
+fetched and its version.json (which version, from where, when, and what `needlecue_client.verify`
 found), written into a temp sibling and swapped in by renames, so that a reader never sees half a
 copy; and what a fetch ends in when there is no version to have (`ModelNotFound`) or the copy kept
 is not to run (`CachedCopyRefused`)."""
@@ -16,8 +16,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from pipeline.registry import store
-from pipeline.vocab import file_sha256
+from needlecue_runtime.registry import store
+from needlecue_runtime.vocab import file_sha256
 
 DEFAULT_CACHE = Path("~/.cache/needlecue/models").expanduser()
 

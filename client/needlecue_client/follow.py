@@ -11,12 +11,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.cache import fetch, poll_alias, source_uri
-from pipeline.client.copies import default_cache_dir
-from pipeline.client.model import Model
-from pipeline.registry import store
+from needlecue_client.cache import fetch, poll_alias, source_uri
+from needlecue_client.copies import default_cache_dir
+from needlecue_client.model import Model
+from needlecue_runtime.registry import store
 
-log = logging.getLogger("pipeline.client")
+log = logging.getLogger("needlecue_client")
 
 
 def _monotonic() -> float:

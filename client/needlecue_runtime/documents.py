@@ -11,7 +11,7 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-from pipeline.vocab import dump_json
+from needlecue_runtime.vocab import dump_json
 
 T = TypeVar("T")
 Number = float | None  # None: cannot be computed (NaN is not JSON)

@@ -9,14 +9,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.calibration.document import FILE as UNIT_FILE
-from pipeline.calibration.document import UnitCalibration, parse_unit, read_unit, transform_for
-from pipeline.client.cache import fetch_unit
-from pipeline.client.copies import ModelNotFound, read_version
-from pipeline.client.model import Model
-from pipeline.modelling.features import InputTransform
-from pipeline.registry import store
-from pipeline.vocab import angle_name, file_sha256
+from needlecue_client.cache import fetch_unit
+from needlecue_client.copies import ModelNotFound, read_version
+from needlecue_client.model import Model
+from needlecue_runtime.features import InputTransform
+from needlecue_runtime.registry import store
+from needlecue_runtime.unit_calibration import FILE as UNIT_FILE
+from needlecue_runtime.unit_calibration import UnitCalibration, parse_unit, read_unit, transform_for
+from needlecue_runtime.vocab import angle_name, file_sha256
 
 CALIBRATE_FIX = "record a calibration batch with the unit and run `needlecue calibrate BATCH_DIR`"
 NO_UNIT = "no estimator unit named (unit_id)"

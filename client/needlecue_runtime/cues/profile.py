@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pipeline.cues.pack import StandardProfile
+from needlecue_runtime.cues.pack import StandardProfile
 
 
 class ProfileScore:

@@ -32,9 +32,9 @@ CALIBRATION = "calibration"  # batch purpose, and the processed folder of its tr
 # rig-log/1 batch, trial and unit ids (`docs/rig-log-format.md`, section 2; `pipeline.rig.format`)
 ID_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
-# The deployable model (pipeline.modelling.export writes it, pipeline.client reads it).
+# The deployable model (pipeline.modelling.export writes it, needlecue_client reads it).
 # /2: the graph reads the model's inputs (`inputs` in the metadata says how they are computed from
-# volts: pipeline.modelling.features); /1 graphs read raw volts.
+# volts: needlecue_runtime.features); /1 graphs read raw volts.
 # /3: the description carries its graph's sha256 and the graph its description's (`description_sha256`)
 # /4: the graph reads what the estimator sends (raw volts and their rest reading) and the unit's
 # calibration as data, and computes the model's inputs itself (docs/deploy.md). Clients run /4 only.
@@ -43,7 +43,7 @@ DEPLOY_FORMATS = ("needlecue-deploy/1", "needlecue-deploy/2", "needlecue-deploy/
 # the graph's inputs, in order: the raw readings (batch, window, channels), counts or volts as the
 # estimator sends them, the rest reading in effect at each of those samples (same shape), the volts of
 # one reading unit (1,) (1 for volts, vref / (2^bits - 1) for counts), and the unit: matrix (channels,
-# channels), offset (channels,), circuit (6,) (pipeline.modelling.features.unit_inputs)
+# channels), offset (channels,), circuit (6,) (needlecue_runtime.features.unit_inputs)
 INPUT_NAMES = ("reading", "rest_reading", "volts_per_count", "unit_matrix", "unit_offset", "unit_circuit")
 OUTPUT_NAME = "force_n"
 
@@ -132,7 +132,7 @@ def dump_json(obj: Any, digits: int, indent: int = 2) -> str:
 def description_sha256(block: Mapping[str, Any]) -> str:
     """SHA-256 of a deployable model's description (its MLmodel `needlecue` block) without the
     block's `onnx_sha256`: the graph carries this hash and the block the graph's, so each vouches for
-    the other (`pipeline.client.folder`). Canonical JSON: sorted keys, no spaces."""
+    the other (`needlecue_client.folder`). Canonical JSON: sorted keys, no spaces."""
     core = {k: v for k, v in block.items() if k != "onnx_sha256"}
     text = json.dumps(core, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

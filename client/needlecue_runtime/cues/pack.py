@@ -19,9 +19,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import TypeAdapter
 
-from pipeline.documents import Document, DocumentFile
-from pipeline.frontend import Circuit, declared
-from pipeline.vocab import format_problem
+from needlecue_runtime.documents import Document, DocumentFile
+from needlecue_runtime.frontend import Circuit, declared
+from needlecue_runtime.vocab import format_problem
 
 FORMAT = "needlecue-cues/5"  # 5: a unit's class means with their uncertainty (4: levels in the signal read)
 # "wait": the rest reading is being collected; "none": no angle cue, the evidence does not decide

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.frontend import Circuit, conductance_us, conductance_us_of_frame
-from pipeline.modelling.features import MIN_CONDUCTANCE_US
+from needlecue_runtime.features import MIN_CONDUCTANCE_US
+from needlecue_runtime.frontend import Circuit, conductance_us, conductance_us_of_frame
 
 MIN_VOLTS = 1e-3  # floor before taking logs (an unloaded FSR reads a few mV)
 

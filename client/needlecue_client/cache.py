@@ -2,7 +2,7 @@
 cache.
 
 `fetch` resolves `models:/needle-force-<angle>@<alias>` and keeps one copy per (model, alias) under the
-cache folder (`pipeline.client.copies`): `<cache>/needle-force-<angle>/<alias>/` holding MLmodel,
+cache folder (`needlecue_client.copies`): `<cache>/needle-force-<angle>/<alias>/` holding MLmodel,
 model.onnx and version.json. A copy is downloaded only when the alias points elsewhere: from the
 registry (`from_registry`) or from a published bucket (`from_bucket`), checked (`verify`). When the
 source cannot be reached the cached copy is used with a warning (`offline`), so a simulator keeps
@@ -16,14 +16,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import pipeline.client.published as published
-from pipeline.calibration.document import FILE as UNIT_FILE
-from pipeline.client.copies import default_cache_dir, is_copy_of, read_version
-from pipeline.client.folder import ONNX_FILE
-from pipeline.client.from_bucket import PublishedVersion, fetch_published, published_manifest
-from pipeline.client.from_registry import download, resolve
-from pipeline.client.offline import offline_copy
-from pipeline.client.verify import (
+import needlecue_client.published as published
+from needlecue_client.copies import default_cache_dir, is_copy_of, read_version
+from needlecue_client.folder import ONNX_FILE
+from needlecue_client.from_bucket import PublishedVersion, fetch_published, published_manifest
+from needlecue_client.from_registry import download, resolve
+from needlecue_client.offline import offline_copy
+from needlecue_client.verify import (
     MODEL_FILES,
     Describe,
     Verify,
@@ -33,7 +32,8 @@ from pipeline.client.verify import (
     unit_info,
     unit_problem,
 )
-from pipeline.registry import mlflow_env, store
+from needlecue_runtime.registry import mlflow_env, store
+from needlecue_runtime.unit_calibration import FILE as UNIT_FILE
 
 # A poll is one metadata request that must not hold up an insertion's start: against an HTTP registry it
 # gets a short timeout and no retries (a failed poll is simply tried again at the next interval).

@@ -5,7 +5,7 @@ predicted force beside the reference and the cue per sample; `cue_changes` is it
 `rmse` its error per axis and `plot_replay` draws it. The axes are the model's `targets` (those its
 reference sensor recorded): a model of fz alone gives fz, and fz_ref where the recording has it. This
 is the `needlecue replay` command's module, not the simulator's: it needs pandas (and matplotlib for
-the plot), imported inside the functions, and `pipeline.client` does not import it.
+the plot), imported inside the functions, and `needlecue_client` does not import it.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.client.force import ForceClient, StreamMismatch
-from pipeline.vocab import TRIAL_KEY, axes_of
+from needlecue_client.force import ForceClient, StreamMismatch
+from needlecue_runtime.vocab import TRIAL_KEY, axes_of
 
 if TYPE_CHECKING:
     import pandas as pd

@@ -1,7 +1,7 @@
 """The needle-insertion simulator's client: fetch an angle's registered force model and the estimator
 unit's calibration, run them live.
 
-    from pipeline.client import ForceClient
+    from needlecue_client import ForceClient
 
     client = ForceClient.from_registry(30, unit_id="est-042")  # models:/needle-force-30@champion
     client.calibrated                               # True: est-042's calibration fits this model
@@ -29,15 +29,15 @@ also picks up a new calibration of the unit); `step()` never talks to the regist
 The model is the ONNX graph of `pipeline.modelling.export` run by onnxruntime; nothing is unpickled.
 Importing this package and running a client needs numpy, pyyaml, onnxruntime and mlflow-skinny only
 (mlflow and onnxruntime are imported when first needed). Replaying recorded trials, which needs
-pandas, is `pipeline.client.replay`, not imported here.
+pandas, is `needlecue_client.replay`, not imported here.
 
 Nothing runs unchecked (module `folder`): a model folder's graph and its description (input settings,
 cue pack) must be the ones registered, fetched or cached, else `ModelRefused`; a unit's calibration
 must be the document registered. `from_dir(..., unverified=True)` runs a folder anyway, loudly.
 """
 
-from pipeline.client.cache import fetch, fetch_unit
-from pipeline.client.copies import (
+from needlecue_client.cache import fetch, fetch_unit
+from needlecue_client.copies import (
     CACHE_ENV,
     DEFAULT_CACHE,
     VERSION_FILE,
@@ -45,9 +45,9 @@ from pipeline.client.copies import (
     ModelNotFound,
     default_cache_dir,
 )
-from pipeline.client.folder import ModelFolderError, ModelRefused
-from pipeline.client.force import DEFAULT_POLL_S, ForceClient, Frame, StreamMismatch, UncalibratedUnit
-from pipeline.registry.store import UNIT_ALIAS, RegistryUnreachable
+from needlecue_client.folder import ModelFolderError, ModelRefused
+from needlecue_client.force import DEFAULT_POLL_S, ForceClient, Frame, StreamMismatch, UncalibratedUnit
+from needlecue_runtime.registry.store import UNIT_ALIAS, RegistryUnreachable
 
 __all__ = [
     "CACHE_ENV",

@@ -2,13 +2,13 @@
 
 A simulator pointed at a published bucket (`NEEDLECUE_PUBLISHED_URL=http://<s3 host:port>/<bucket>`,
 with read-only S3 credentials in `AWS_ACCESS_KEY_ID` / `AWS_SECRET_ACCESS_KEY` and the lab's public key
-in `NEEDLECUE_PUBLISH_PUBLIC_KEY`) never talks to the MLflow tracking server: `pipeline.client.cache`
+in `NEEDLECUE_PUBLISH_PUBLIC_KEY`) never talks to the MLflow tracking server: `needlecue_client.cache`
 fetches through a `Bucket` when its location is `published+<url>`. A poll is one GET of the manifest with
 `If-None-Match: <the ETag last seen>`, answered 304 when nothing changed. Every manifest is verified
-(`pipeline.registry.manifest.verify`) before a field is read, and every object's sha256 and size before
-its bytes are written anywhere. A request is a plain HTTP GET signed with AWS Signature Version 4 by
-botocore's signer, on a kept-alive connection (one per thread): a simulator needs botocore, not boto3's
-clients, and a poll costs it a fraction of a millisecond of CPU.
+(`needlecue_runtime.registry.manifest.verify`) before a field is read, and every object's sha256 and
+size before its bytes are written anywhere. A request is a plain HTTP GET signed with AWS Signature
+Version 4 by botocore's signer, on a kept-alive connection (one per thread): a simulator needs
+botocore, not boto3's clients, and a poll costs it a fraction of a millisecond of CPU.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import quote, urlsplit
 
-from pipeline.registry import manifest as signed
-from pipeline.registry import store
+from needlecue_runtime.registry import manifest as signed
+from needlecue_runtime.registry import store
 
 PUBLISHED_ENV = "NEEDLECUE_PUBLISHED_URL"
 SCHEME = "published+"

@@ -7,13 +7,13 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import pipeline.client.published as published
-from pipeline.client.copies import VERSION_FILE, CachedCopyRefused
-from pipeline.client.verify import Verify
-from pipeline.registry import store
+import needlecue_client.published as published
+from needlecue_client.copies import VERSION_FILE, CachedCopyRefused
+from needlecue_client.verify import Verify
+from needlecue_runtime.registry import store
 
 # One logger for the whole client, named as before it was split into modules (log configs keep working).
-log = logging.getLogger("pipeline.client")
+log = logging.getLogger("needlecue_client")
 
 
 def offline_copy(

@@ -1,4 +1,4 @@
-"""Fetching from a published bucket (`pipeline.client.published`): the lab's signed manifest by
+"""Fetching from a published bucket (`needlecue_client.published`): the lab's signed manifest by
 conditional GET, the files by their hashes, everything verified before it is written and swapped in."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
-import pipeline.client.published as published
-from pipeline.client.copies import (
+import needlecue_client.published as published
+from needlecue_client.copies import (
     MANIFEST_FILE,
     VERSION_FILE,
     ModelNotFound,
@@ -16,9 +16,9 @@ from pipeline.client.copies import (
     staging,
     write_version,
 )
-from pipeline.client.offline import offline_copy
-from pipeline.client.verify import Describe, Verify
-from pipeline.registry import store
+from needlecue_client.offline import offline_copy
+from needlecue_client.verify import Describe, Verify
+from needlecue_runtime.registry import store
 
 
 class PublishedVersion:

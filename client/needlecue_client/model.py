@@ -11,12 +11,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.client.copies import read_version
-from pipeline.client.folder import ONNX_FILE, open_model
-from pipeline.modelling.features import ModelInputs, spec_of
+from needlecue_client.copies import read_version
+from needlecue_client.folder import ONNX_FILE, open_model
+from needlecue_runtime.features import ModelInputs, spec_of
 
 # One logger for the whole client, named as before it was split into modules (log configs keep working).
-log = logging.getLogger("pipeline.client")
+log = logging.getLogger("needlecue_client")
 
 
 class StreamMismatch(ValueError):
@@ -36,7 +36,7 @@ class Model:
 
     @classmethod
     def open(cls, model_dir: Path, unverified: bool = False) -> Model:
-        """Check the folder (`pipeline.client.folder.open_model`: refused unless it is what was
+        """Check the folder (`needlecue_client.folder.open_model`: refused unless it is what was
         registered) and that its graph reads what its description says."""
         model_dir = Path(model_dir)
         metadata, session = open_model(model_dir, unverified=unverified)
@@ -122,8 +122,8 @@ class Model:
         pack = self.cue_pack
         if pack is None:
             return None
-        from pipeline.cues.pack import as_pack, pack_format_problem
-        from pipeline.cues.tracker import CueTracker
+        from needlecue_runtime.cues.pack import as_pack, pack_format_problem
+        from needlecue_runtime.cues.tracker import CueTracker
 
         problem = pack_format_problem(pack)
         if problem:

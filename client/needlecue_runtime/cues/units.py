@@ -1,8 +1,8 @@
 """Which estimator unit the angle estimator reads, and how it knows it: by its training trials in the
 pack, by its calibration insertions, or not at all (`reading_of`); the evidence it reads it by
 (`unit_evidence`, `cue_reading`), and each evidence stage's reading of it (`unit_readings`: its class
-means and how sure they are, `pipeline.cues.reading`). Numpy and pydantic only: the simulator's client
-imports this module.
+means and how sure they are, `needlecue_runtime.cues.reading`). Numpy and pydantic only: the
+simulator's client imports this module.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.cues.evidence import UnitMap
-from pipeline.cues.pack import CuePack, EstimatorStage, as_pack
-from pipeline.cues.reading import Cell, UnitReading, read_unit
+from needlecue_runtime.cues.evidence import UnitMap
+from needlecue_runtime.cues.pack import CuePack, EstimatorStage, as_pack
+from needlecue_runtime.cues.reading import Cell, UnitReading, read_unit
 
 UnitEvidence = Mapping[str, Mapping[str, Any]]  # {angle: {"n": [per stage], "means": [per stage]}}
 
@@ -123,7 +123,7 @@ def unit_readings(
     trained: bool = False,
 ) -> list[UnitReading]:
     """How each evidence stage reads the unit of `evidence` (None: an uncalibrated unit): its class
-    means and their uncertainty (`pipeline.cues.reading.read_unit`), with the stage's
+    means and their uncertainty (`needlecue_runtime.cues.reading.read_unit`), with the stage's
     `template_weight` and `offset_spread`. A unit training did not see (not `trained`) is also
     tested, with the stage's precision, for departing from the training units' layout, and a
     departure is kept at later stages that fewer of the unit's classes reach: a stage's features hold

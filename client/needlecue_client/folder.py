@@ -6,7 +6,7 @@ What is checked (`open_model`):
   a bad one is one line naming the file, the field and what was expected (`ModelFolderError`);
 - the graph is the one the description names: its sha256 is the block's `onnx_sha256`;
 - the description is the one registered with the graph: the graph's own metadata holds the sha256
-  of the block (`pipeline.vocab.description_sha256`), so an input setting, the cue pack or any other
+  of the block (`needlecue_runtime.vocab.description_sha256`), so an input setting, the cue pack or any other
   field edited after registration is found, online or offline.
 
 A folder that fails is refused (`ModelRefused`), unless the caller asks for `unverified`: then only
@@ -23,10 +23,17 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pipeline.registry import store
-from pipeline.vocab import AXES, DEPLOY_FORMAT, DEPLOY_FORMATS, INPUT_NAMES, axes_in_order, description_sha256
+from needlecue_runtime.registry import store
+from needlecue_runtime.vocab import (
+    AXES,
+    DEPLOY_FORMAT,
+    DEPLOY_FORMATS,
+    INPUT_NAMES,
+    axes_in_order,
+    description_sha256,
+)
 
-log = logging.getLogger("pipeline.client")
+log = logging.getLogger("needlecue_client")
 
 MLMODEL = "MLmodel"
 ONNX_FILE = "model.onnx"

@@ -1,9 +1,9 @@
 """The simulator's live force model: `ForceClient` runs one fetched model sample by sample.
 
-A client holds one `Model` (`pipeline.client.model`: a checked folder, its ONNX graph run by
-onnxruntime, nothing unpickled), the unit's calibration decided for it (`pipeline.client.calibration`) and
+A client holds one `Model` (`needlecue_client.model`: a checked folder, its ONNX graph run by
+onnxruntime, nothing unpickled), the unit's calibration decided for it (`needlecue_client.calibration`) and
 the per-insertion state `step` writes into (pre-allocated arrays, the cue tracker when the model
-carries a cue pack). A client made by `from_registry` follows its alias (`pipeline.client.follow`):
+carries a cue pack). A client made by `from_registry` follows its alias (`needlecue_client.follow`):
 `reset()` asks the registry where the alias points at most once every `poll_s` seconds and, if it
 moved, swaps in the new `Model` between insertions (`refresh()` does it on demand); `step()` never
 talks to the registry.
@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.client.cache import poll_alias
-from pipeline.client.calibration import (
+from needlecue_client.cache import poll_alias
+from needlecue_client.calibration import (
     CALIBRATE_FIX,
     NO_UNIT,
     Decision,
@@ -40,14 +40,14 @@ from pipeline.client.calibration import (
     given,
     registered,
 )
-from pipeline.client.copies import ModelNotFound
-from pipeline.client.follow import Follower
-from pipeline.client.model import Model, StreamMismatch, log
-from pipeline.modelling.features import ModelInputs, RestReading, unit_inputs
-from pipeline.registry import store
+from needlecue_client.copies import ModelNotFound
+from needlecue_client.follow import Follower
+from needlecue_client.model import Model, StreamMismatch, log
+from needlecue_runtime.features import ModelInputs, RestReading, unit_inputs
+from needlecue_runtime.registry import store
 
 if TYPE_CHECKING:
-    from pipeline.cues.states import CueState
+    from needlecue_runtime.cues.states import CueState
 
 __all__ = [
     "CALIBRATE_FIX",
@@ -91,7 +91,7 @@ class Frame:
 class ForceClient:
     """One registered force model, run sample by sample on the live estimator stream.
 
-    Attributes of the model (`pipeline.client.model.Model`): `angle_deg` (the preset angle it was
+    Attributes of the model (`needlecue_client.model.Model`): `angle_deg` (the preset angle it was
     trained at), `kind`, `channels` (the order `step` takes volts in), `targets` (the force axes `step`
     gives, in its order: those the reference recorded, e.g. ("fx", "fy", "fz") or ("fz",)), `rate_hz`,
     `window` (samples of history, 1 for ls/fnn), `version` (version.json of a fetched folder: name, version,
@@ -253,7 +253,7 @@ class ForceClient:
         self._feed.update(zip(names[3:], unit, strict=True))
         self._cues_on = self._tracker is not None and (decision.calibrated or self._cues_uncalibrated)
         if self._tracker is not None:  # what the angle estimator knows of this unit, if anything
-            from pipeline.cues.units import cue_reading, reading_of, unit_evidence
+            from needlecue_runtime.cues.units import cue_reading, reading_of, unit_evidence
 
             self._tracker.use_front_end(decision.circuit)
             pack = self._model.cue_pack
@@ -376,7 +376,7 @@ class ForceClient:
 
     def poll_soon(self) -> None:
         """Have the next `reset()` ask the registry at once, whatever `poll_s` says: a registry webhook
-        said an alias moved (`pipeline.client.webhook`). The swap itself still waits for the reset."""
+        said an alias moved (`needlecue_client.webhook`). The swap itself still waits for the reset."""
         if self._follower is not None:
             self._follower.poll_soon()
 
