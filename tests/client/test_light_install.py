@@ -146,7 +146,7 @@ def _register_through(uri: str) -> tuple[dict, dict, str]:
 
 
 @pytest.mark.slow
-def test_a_venv_of_client_requirements_alone_fetches_through_a_server_and_steps(tmp_path: Path) -> None:
+def test_a_venv_of_the_client_distribution_alone_fetches_through_a_server_and_steps(tmp_path: Path) -> None:
     started = time.monotonic()
     server_root = tmp_path / "server"
     server_root.mkdir()
