@@ -51,11 +51,13 @@ def make_copy(root: Path) -> Path:
 
 
 def env_of(root: Path, extra: dict[str, str]) -> dict[str, str]:
-    """This venv first on PATH (stage commands call `python`), the copy's own MLflow store."""
+    """This venv first on PATH (stage commands call `python`), the copy's own MLflow store and its own
+    client/ (the venv's editable install is the checkout's)."""
     return dict(
         os.environ,
         PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
         MLFLOW_TRACKING_URI=f"sqlite:///{root / 'mlflow.db'}",
+        PYTHONPATH=str(root / "client"),
         **extra,
     )
 

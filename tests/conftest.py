@@ -8,6 +8,7 @@ import os
 import shutil
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -26,6 +27,21 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     one (`make test` ended with one worker idle for 68 s before this)."""
     long = ("slow", "xdist_group")
     items.sort(key=lambda item: not any(item.get_closest_marker(m) for m in long))  # stable
+
+
+TIMELINE = "NEEDLECUE_TEST_TIMELINE"  # a file: each test's worker, start and end appended (where time goes)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Iterator[None]:
+    """With NEEDLECUE_TEST_TIMELINE set, one line per test (setup to teardown): the suite's timeline."""
+    path = os.environ.get(TIMELINE)
+    start = time.time()
+    yield
+    if path:
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "master")
+        with open(path, "a") as f:
+            f.write(f"{worker}\t{start:.2f}\t{time.time():.2f}\t{item.nodeid}\n")
 
 
 @pytest.fixture(autouse=True)
