@@ -1,9 +1,6 @@
 """One real team stack (PostgreSQL, SeaweedFS, MLflow with basic auth) on loopback for the tests of this
-folder, on free ports, in a temp folder; stopped and deleted at the end. The tests run in two xdist
-groups, each on one worker, one test after another in file order: "team" (the lab's flow, test_lab_flow)
-and "team-bucket" (the published bucket, access, the servers). A worker starts the stack and builds the
-lab project for itself, so the two groups run side by side on stacks of their own, and a test that
-kills a server or moves an alias disturbs only its own group."""
+folder, on free ports, in a temp folder; stopped and deleted at the end. All run on one xdist worker
+(group "team"), one after another in file order."""
 
 from __future__ import annotations
 
@@ -22,9 +19,7 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     """Under `--dist loadgroup` xdist marks each grouped test's id with its group; without the mark the
     group is ignored and each worker would start a stack and a project of its own (pytest 9.2 with
     xdist 3.8: pytest-xdist issue #1386). Fail before anything starts instead."""
-    if getattr(item.config.option, "loadgroup", False) and not item.nodeid.endswith(
-        ("@team", "@team-bucket")
-    ):
+    if getattr(item.config.option, "loadgroup", False) and not item.nodeid.endswith("@team"):
         pytest.fail(f"{item.nodeid}: xdist did not keep the team tests on one worker (pytest-xdist #1386)")
 
 

@@ -9,7 +9,7 @@ from needlecue_runtime.registry import store
 from pipeline.team import access
 
 # the real servers, on one xdist worker (their tests share one stack), in file order
-pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team-bucket")]
+pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 SEARCH = "/api/2.0/mlflow/registered-models/search"
 
 

@@ -27,7 +27,7 @@ from needlecue_runtime.registry import manifest as signed
 from needlecue_runtime.registry import store
 from pipeline.team import publish
 
-pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team-bucket")]
+pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 NAME = "needle-force-15"
 UNIT = "est-sim-101"
 # the lab project's models (other team tests register models of their own into the same stack)

@@ -15,7 +15,7 @@ import pytest
 import requests
 
 # the real servers, on one xdist worker (their tests share one stack), in file order
-pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team-bucket")]
+pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 SEARCH = "/api/2.0/mlflow/registered-models/search"
 STALL_S = 8  # longer than uvicorn's default worker health check (5 s)
 

@@ -14,7 +14,7 @@ import pytest
 from pipeline.team.servers.base import Launch, Ports, Server, StackError
 from pipeline.team.stack import free_base_port
 
-pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team-bucket")]
+pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 
 
 @dataclass

@@ -19,7 +19,7 @@ from pipeline.cli import app
 from pipeline.team.services import TARGET, env_file, unit_name, write_units
 from pipeline.team.stack import SERVERS, Stack
 
-pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team-bucket")]
+pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
 needs_systemd = pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="needs systemd-analyze")
 
 
