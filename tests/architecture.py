@@ -19,6 +19,8 @@ CLIENT = "needlecue_client"  # the simulator's client (client/, its own distribu
 RUNTIME = "needlecue_runtime"  # what the client and training share (client/ as well)
 # each import package of the project and the folder that holds it
 ROOTS = {PACKAGE: REPO, CLIENT: REPO / "client", RUNTIME: REPO / "client"}
+# each package's folder as dvc.yaml names it (pipeline, client/needlecue_runtime, ...)
+FOLDERS = tuple((root / package).relative_to(REPO).as_posix() for package, root in ROOTS.items())
 
 
 def package_files(package: str) -> list[Path]:
@@ -128,8 +130,7 @@ def stage_deps(stage_file: Path) -> list[str]:
     modules and the stage's own module as files. The folders first, then the files, each sorted."""
     out = set()
     for dep in code_deps(stage_file):
-        # the package's folder (pipeline/, client/needlecue_runtime/), then the path inside it
-        top = "/".join(dep.split("/")[:2]) if dep.startswith("client/") else dep.split("/")[0]
+        top = next(folder for folder in FOLDERS if dep.startswith(f"{folder}/"))  # the package's folder
         inner = dep[len(top) + 1 :].split("/")
         library = len(inner) > 1 and inner[0] != "stages"
         out.add(f"{top}/{inner[0]}" if library else dep)
@@ -138,10 +139,11 @@ def stage_deps(stage_file: Path) -> list[str]:
 
 def listed_code_deps(stage: dict) -> list[str]:
     """The deps of a dvc.yaml stage that are project code (files and package folders)."""
-    return [d for d in stage.get("deps", []) if str(d).startswith((f"{PACKAGE}/", "client/"))]
+    return [d for d in stage.get("deps", []) if str(d).startswith(tuple(f"{f}/" for f in FOLDERS))]
 
 
-CODE_DEP = re.compile(r"^      - (pipeline|client)/\S*$")  # one code dep of a stage, as dvc.yaml writes it
+# one code dep of a stage, as dvc.yaml writes it
+CODE_DEP = re.compile(rf"^      - ({'|'.join(map(re.escape, FOLDERS))})/\S*$")
 STAGE = re.compile(r"^  (\w+):\s*$")
 
 
