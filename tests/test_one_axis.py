@@ -19,7 +19,9 @@ from pipeline.modelling.prediction_store import Predictions
 from tests.deploy.test_node import node_ready, publish_to, replay_in_node
 from tests.projects import SMALL_SIM, first_external_trial, make_project, run, use_small_models
 
-pytestmark = pytest.mark.slow
+# one worker for the module: the project it builds (about 45 s) is a module fixture, and xdist's loadgroup
+# would build it once on each worker its tests land on
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("one-axis")]
 
 NEW = SMALL_SIM["new_units"][0]  # the new unit, with its calibration batch
 SIM = {**SMALL_SIM, "reference_axes": ["fz"]}

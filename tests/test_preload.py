@@ -139,6 +139,57 @@ def test_a_stage_gets_the_callers_arguments_folder_environment_and_output_and_it
     assert client.returncode == 3
 
 
+def test_copies_of_a_project_on_their_own_import_paths_share_a_server_and_each_runs_its_own_code(
+    warm: dict[str, str], tmp_path: Path
+) -> None:
+    # given: a warm server, and two copies of a project, each with its own package `mine` on its
+    # PYTHONPATH (as each copy of this project puts its own client/ there)
+    (tmp_path / "who_stage.py").write_text("import mine\nprint(mine.WHO)\n")
+    envs = {}
+    for copy in ("a", "b"):
+        (tmp_path / copy / "mine").mkdir(parents=True)
+        (tmp_path / copy / "mine" / "__init__.py").write_text(f"WHO = {copy!r}\n")
+        envs[copy] = {**warm, "PYTHONPATH": os.pathsep.join([str(tmp_path / copy), warm["PYTHONPATH"]])}
+    # when: each runs the stage
+    outs = {}
+    for copy, env in envs.items():
+        done = subprocess.run(
+            [sys.executable, "-c", CLIENT, "who_stage"], cwd=tmp_path, env=env, capture_output=True, text=True
+        )
+        assert done.returncode == 0, f"{done.stderr}\n{server_log(warm)}"
+        outs[copy] = done.stdout.strip()
+    # then: the one server ran both, each with its own copy's code
+    assert preload.socket_path(envs["a"]) == preload.socket_path(envs["b"]) == preload.socket_path(warm)
+    assert outs == {"a": "a", "b": "b"}
+    assert server_log(warm).count("who_stage") == 2
+
+
+def test_a_caller_whose_path_finds_a_preloaded_library_elsewhere_is_refused(tmp_path: Path) -> None:
+    # given: a server that preloaded colorsys, and a caller whose PYTHONPATH has a colorsys of its own
+    sockets = tempfile.mkdtemp(prefix="nc-", dir="/tmp")
+    repo = str(Path(__file__).resolve().parents[1])
+    env = dict(
+        os.environ, NEEDLECUE_PRELOAD_DIR=sockets, NEEDLECUE_PRELOAD_MODULES="colorsys", PYTHONPATH=repo
+    )
+    try:
+        client = [sys.executable, "-c", CLIENT, "json.tool", "--help"]
+        assert subprocess.run(client, env=env, capture_output=True).returncode == 99  # starts the server
+        wait_ready(env)
+        (tmp_path / "shadow").mkdir()
+        (tmp_path / "shadow" / "colorsys.py").write_text("")
+        shadowed = {**env, "PYTHONPATH": os.pathsep.join([str(tmp_path / "shadow"), repo])}
+        # when: each asks the server
+        served = subprocess.run(client, env=env, capture_output=True, text=True)
+        refused = subprocess.run(client, env=shadowed, capture_output=True, text=True)
+        # then: the first is served; the second is refused (a fresh interpreter would load its own
+        # colorsys), and the server says why
+        assert served.returncode == 0, served.stderr
+        assert refused.returncode == 99, refused.stderr
+        assert "its import path finds colorsys elsewhere" in server_log(env)
+    finally:
+        shutil.rmtree(sockets, ignore_errors=True)
+
+
 def test_a_stage_that_raises_prints_its_traceback_and_fails(warm: dict[str, str], tmp_path: Path) -> None:
     client = _client(tmp_path, warm, "--fail")
     _, err = client.communicate(timeout=60)

@@ -18,6 +18,11 @@ in a fresh interpreter. Results are the same bytes either way: the server runs w
 pinned environment of the stages it serves (part of its key, as is everything a library could read
 when it loads), has run no numeric code, and started no thread but the allocator's.
 
+The import path (PYTHONPATH) is not part of the key: copies of a project each put their own client/ on
+it, and one server serves them all. The caller sends the path a fresh interpreter would have
+(`fresh_path`), the stage imports with it, and the server serves only a caller whose path finds every
+library the server loaded where the server found it.
+
 One server per user, Python and environment key, in a private folder (`socket_dir`; its log beside
 the socket); it exits after `IDLE_S` without a stage. `NEEDLECUE_PRELOAD=0` turns it off (every
 stage a fresh interpreter).
@@ -40,14 +45,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-PROTOCOL = "needlecue-preload/2"
-REFUSED = "refused"  # the server's answer to a caller whose identity is not its own
+PROTOCOL = "needlecue-preload/3"
+# the server's answer to a caller with another identity, or whose import path finds its libraries elsewhere
+REFUSED = "refused"
 OFF = "NEEDLECUE_PRELOAD"  # "0": no server, every stage a fresh interpreter
 DIR_ENV = "NEEDLECUE_PRELOAD_DIR"  # where the sockets live (default: a private folder in the temp dir)
 # read by the stages when they run, never by a library as it loads: they may differ between the
 # callers of one server (each stage gets the caller's whole environment)
 RUNTIME_PREFIXES = ("MLFLOW_", "AWS_", "PYTEST_", "DVC_", "GIT_", "NEEDLECUE_")
 RUNTIME_NAMES = frozenset({"PWD", "OLDPWD", "SHLVL", "_", "COLUMNS", "LINES"})
+PATH_VAR = "PYTHONPATH"  # not keyed on (but where `fresh_path` cannot tell): the request holds the path
 MAX_LOG_BYTES = 1 << 20  # a server's log (a line per stage) starts over past this
 MAX_SOCKET_PATH = 100  # bytes: Linux takes 107 (macOS 103) in a Unix socket's address
 CODE_FILES = ("preload.py", "preload_server.py")  # the caller's side and the server's: part of the key
@@ -89,14 +96,32 @@ def identity_differences(mine: Mapping[str, str], theirs: Mapping[str, str]) -> 
 
 def key(env: Mapping[str, str]) -> str:
     """What a server must share with its callers: this Python and its installed packages, the code of
-    both its sides (CODE_FILES), every environment variable a library could read as it loads, and the
-    caller's identity (a stage runs as its caller)."""
+    both its sides (CODE_FILES), every environment variable a library could read as it loads (but the
+    import path where the caller can send it: the server checks that one), and the caller's identity
+    (a stage runs as its caller)."""
     loading = {k: v for k, v in env.items() if k not in RUNTIME_NAMES and not k.startswith(RUNTIME_PREFIXES)}
+    if fresh_path(env) is not None:  # sent with the request, and checked by the server
+        loading.pop(PATH_VAR, None)
     # an install or upgrade changes its site-packages folder: a new server, never a stale library
     installed = [os.stat(p).st_mtime_ns for p in site.getsitepackages() if os.path.isdir(p)]
     code = [Path(__file__).with_name(name).read_text() for name in CODE_FILES]
     doc = [PROTOCOL, sys.executable, sys.version, installed, code, sorted(loading.items()), identity()]
     return hashlib.sha256(json.dumps(doc).encode()).hexdigest()[:32]
+
+
+def fresh_path(env: Mapping[str, str]) -> list[str] | None:
+    """The import path (`sys.path`) of a fresh `python -m` with `env` in this folder: this process's
+    own, with env's PYTHONPATH in place of ours (as Python builds it: absolute, each folder once). None
+    where ours cannot be told apart from the interpreter's own folders."""
+    ours = _entries(os.environ.get(PATH_VAR, ""))
+    if sys.path[1 : 1 + len(ours)] != ours or any(p.startswith((sys.prefix, sys.base_prefix)) for p in ours):
+        return None
+    base = sys.path[1 + len(ours) :]
+    return [os.getcwd(), *dict.fromkeys([*_entries(env.get(PATH_VAR, "")), *base])]
+
+
+def _entries(pythonpath: str) -> list[str]:
+    return list(dict.fromkeys(os.path.abspath(p) for p in pythonpath.split(os.pathsep))) if pythonpath else []
 
 
 def socket_path(env: Mapping[str, str]) -> Path | None:
@@ -139,7 +164,8 @@ def ask(path: Path, argv: list[str], env: Mapping[str, str]) -> int | str | None
     conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         conn.connect(str(path))
-        request = {"argv": argv, "cwd": os.getcwd(), "env": dict(env), "cpus": _cpus()}
+        path = fresh_path(env)  # None: the server's own (the key holds the PYTHONPATH)
+        request = {"argv": argv, "cwd": os.getcwd(), "env": dict(env), "cpus": _cpus(), "path": path}
         payload = json.dumps(request).encode()
         socket.send_fds(conn, [struct.pack("!I", len(payload)) + payload], [0, 1, 2])
         answer = _read_line(conn)
