@@ -1,6 +1,6 @@
-"""End to end, a unit swap: train on units A, B, C; calibrate D from one insertion per angle; score
-D's held-out batch through its calibration; a client for D applies it; a client for a unit without
-one gives force but no cues."""
+"""End to end, a unit swap: train on the small rig's units; calibrate its new unit from one insertion per
+angle; score the new unit's held-out batch through its calibration; a client for it applies it; a client
+for a unit without one gives force but no cues."""
 
 from __future__ import annotations
 
@@ -14,20 +14,23 @@ import pytest
 from needlecue_client import ForceClient, UncalibratedUnit
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
-from tests.projects import SWAP_SIM, A, B, C, D, first_external_trial, make_project, run, use_small_models
+from tests.projects import SMALL_SIM, copy_project, first_external_trial, run
 
 pytestmark = pytest.mark.slow
 
+TRAINING, D = SMALL_SIM["units"], SMALL_SIM["new_units"][0]  # D: the new unit, with its calibration batch
 
-def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
-    # Given a project whose simulator records with units A, B, C, and D (new) with a calibration batch
-    root = make_project(tmp_path / "proj", SWAP_SIM)
-    use_small_models(root)
-    # When the whole pipeline runs
+
+def test_a_new_unit_is_calibrated_scored_and_served(tiny_built, tmp_path, monkeypatch):
+    # Given the small project (the simulator records with the training units, and D with a calibration
+    # batch), built through every stage (shared: tests/conftest.py)
+    root, _ = copy_project(tiny_built, tmp_path / "proj")
+    # When the whole pipeline runs (what the copy lacks: register)
     run(root, "dvc", "repro")
     # Then D's calibration trials are in no split, only in processed/calibration
     manifest = json.loads((root / "data" / "processed" / "manifest.json").read_text())
-    assert manifest["units"][D]["role"] == "new" and manifest["units"][A]["role"] == "training"
+    assert manifest["units"][D]["role"] == "new"
+    assert {manifest["units"][u]["role"] for u in TRAINING} == {"training"}
     for angle in ("15", "45"):
         cal = pd.read_parquet(root / "data" / "processed" / "calibration" / f"{angle}.parquet")
         assert set(cal.unit_id) == {D} and len(cal)
@@ -37,7 +40,7 @@ def test_a_new_unit_is_calibrated_scored_and_served(tmp_path, monkeypatch):
     # And D's held-out batch is scored as a calibrated unit, next to the training units
     metrics = read_evaluation(root / "reports" / "evaluation.json")
     assert metrics.by_unit[D].calibrated is True
-    assert {metrics.by_unit[u].role for u in (A, B, C) if u in metrics.by_unit} == {"training"}
+    assert {metrics.by_unit[u].role for u in TRAINING if u in metrics.by_unit} == {"training"}
     assert set(metrics.calibration[D].angles_used) == {"15", "45"}
     assert metrics.unit_transfer["champion"].new_calibrated is not None
     # And the report has the section

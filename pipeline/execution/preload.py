@@ -185,12 +185,14 @@ def _cpus() -> list[int]:
 
 
 def _read_line(conn: socket.socket) -> str:
+    """One line of the server's, read a byte at a time: a stage that ends at once has its status line
+    right behind its pid line, and that is the next read's."""
     data = b""
     while not data.endswith(b"\n"):
-        chunk = conn.recv(64)
-        if not chunk:
+        byte = conn.recv(1)
+        if not byte:
             raise ConnectionError("the preload server closed the connection")
-        data += chunk
+        data += byte
     return data.decode().strip()
 
 

@@ -31,12 +31,16 @@ PRELOAD = (
     "scipy.linalg",
     "scipy.signal",
     "torch",
+    "torch._dynamo",  # torch.optim loads it at an optimizer's first step: 1.3 s of each calibrate
+    "torch.onnx",
     "typer",
     "pydantic",
     "yaml",
     "matplotlib",
+    "matplotlib.pyplot",
     "sklearn.covariance",
     "mlflow",
+    "mlflow.store.tracking.sqlalchemy_store",
     "great_expectations",
 )
 
