@@ -216,9 +216,13 @@ def _run_count(team) -> int:
     return len(found.get("runs", []))
 
 
-def test_fifty_simulators_fetch_the_champion_at_once(team, lab, as_role, tmp_path):
-    # Given 50 simulators, each with its own cache, all with read-only credentials
+def test_fifty_simulators_fetch_the_champion_at_once(team, lab, as_role, tmp_path, monkeypatch):
+    # Given 50 simulators, each with its own cache, all with read-only credentials, and the patience a
+    # simulator may set for a busy server (the client's 10 s default is a latency bound: on 2 cores
+    # shared with the other test worker, a request queued behind 49 others has taken longer, twice in
+    # fresh clones' make test; the storm's latency is benchmarks/bench_team.py's)
     as_role("simulator")
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "120")
     uri = team.tracking_uri
 
     def one(i: int) -> float:
