@@ -68,6 +68,7 @@ def estimate_offset(
     lowpass_order: int = 4,
     *,
     shared_clock: bool = False,
+    memo: dict | None = None,
 ) -> OffsetEstimate:
     """Clock offset that best explains the reference forces by the estimator channels.
 
@@ -88,6 +89,10 @@ def estimate_offset(
     every COARSE_STEP_S, then every `step_s` around the best; the best lag is refined by a
     parabola through the score's peak. `lags_s`/`score` hold the lags actually scored.
 
+    `memo`: a dict the caller passes to every call on the same estimator stream (`t_fsr_s`, `volts`)
+    and reference forces (`force_n`), their stamps shifted (`trial.wider`): the estimator's rate and
+    the low-passed reference are computed once, the same values as computed anew.
+
     Raises SetAside when the streams overlap too little or the channels carry no signal.
     """
     t_fsr_s = np.asarray(t_fsr_s, dtype=np.float64)
@@ -96,12 +101,19 @@ def estimate_offset(
     force_n = np.asarray(force_n, dtype=np.float64).reshape(t_ref_s.size, -1)
     n_half = 0 if shared_clock else max(1, round(max_offset_s / step_s))
 
+    memo = {} if memo is None else memo
     fs_ref = median_rate(t_ref_s)
-    fs_fsr = median_rate(t_fsr_s)
+    if "fs_fsr" not in memo:
+        memo["fs_fsr"] = median_rate(t_fsr_s)
+    fs_fsr = memo["fs_fsr"]
     if fs_ref > FASTER_MARGIN * fs_fsr:
         # A faster reference is low-passed to the estimator's band (zero phase: no bias),
         # so its noise does not swamp the differences; its sharp events stay sharp enough.
-        force_n = lowpass(force_n, fs_ref, CUTOFF_FRACTION * 0.5 * fs_fsr, lowpass_order)
+        # (Keyed by the exact rates: a shifted copy of the stamps may give a rate a bit apart.)
+        key = ("lowpass", fs_ref, fs_fsr, lowpass_order)
+        if key not in memo:
+            memo[key] = lowpass(force_n, fs_ref, CUTOFF_FRACTION * 0.5 * fs_fsr, lowpass_order)
+        force_n = memo[key]
     # The reference on a fine uniform grid at the lag step: a lag is then a shift by whole
     # fine samples (exact: linear interpolation of a piecewise-linear signal).
     n_fine = math.floor((t_ref_s[-1] - t_ref_s[0]) / step_s) + 1
@@ -138,7 +150,9 @@ def estimate_offset(
     s_coarse = _lag_scores(coarse, base, frac, fine, basis, span)
     centre = int(coarse[np.argmax(s_coarse)])
     near = np.arange(max(-n_half, centre - 2 * k), min(n_half, centre + 2 * k) + 1)
-    s_near = _lag_scores(near, base, frac, fine, basis, span)
+    # one clock (lag 0 only, as `trial.wider` asks ~500 times per low-quality trial): nothing finer to score
+    same = np.array_equal(near, coarse)
+    s_near = s_coarse if same else _lag_scores(near, base, frac, fine, basis, span)
     idx = np.r_[coarse, near]
     idx, first = np.unique(idx, return_index=True)
     lags, score = idx * step_s, np.r_[s_coarse, s_near][first]

@@ -112,6 +112,7 @@ def wider(streams: Streams, p: ResampleParams) -> pairing.Shift | None:
     lags = np.arange(-window, window + WIDE_STEP_S / 2, WIDE_STEP_S)
     scores = np.full(lags.size, np.nan)
     t_fsr = streams.t_fsr_s
+    memo: dict = {}  # the same streams at every lag: their rates and low-passed forces once
     for i, lag in enumerate(lags):
         t_ref = streams.t_ref_s + lag
         if np.mean((t_fsr >= t_ref[0]) & (t_fsr <= t_ref[-1])) < 0.5:
@@ -126,6 +127,7 @@ def wider(streams: Streams, p: ResampleParams) -> pairing.Shift | None:
                 p.offset_step_s,
                 p.lowpass_order,
                 shared_clock=True,
+                memo=memo,
             ).quality
         except SetAside:
             continue

@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from pipeline.cli import app
 from pipeline.live import board as bd
 from pipeline.live.recording import unescape
 from pipeline.live.wire import Sample, parse_banner, parse_line
@@ -38,13 +40,13 @@ def recorded_lines(session: Path) -> list[tuple[float, bytes]]:
 
 
 def replayed_cues(trial: Path, model: LiveModel, env: dict[str, str], tmp_path: Path) -> list[str]:
-    """The cue sequence `needlecue replay` gives the trial's file."""
-    done = subprocess.run(
-        [*NEEDLECUE, "replay", str(trial), "--model-dir", str(model.model_dir), "--unit-id", UNIT,
-         "--out", str(tmp_path / f"{trial.stem}.png")],
-        env=env, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stdout + done.stderr
+    """The cue sequence `needlecue replay` gives the trial's file (the command in this process, on the
+    registry and model cache live used: a process of its own would only import the stack again)."""
+    args = ["replay", str(trial), "--model-dir", str(model.model_dir), "--unit-id", UNIT,
+            "--out", str(tmp_path / f"{trial.stem}.png")]  # fmt: skip
+    keys = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "NEEDLECUE_MODEL_CACHE")
+    done = CliRunner().invoke(app, args, env={k: env[k] for k in keys})
+    assert done.exit_code == 0, done.output
     return [m.group(1) for line in done.stdout.splitlines() if (m := CUE_LINE.match(line))]
 
 

@@ -5,14 +5,15 @@ from __future__ import annotations
 
 import csv
 import shutil
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
+from pipeline.cli import app
 from tests.live.conftest import UNIT, LiveModel
-from tests.live.processes import NEEDLECUE, rig_and_live
+from tests.live.processes import rig_and_live
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = pytest.mark.xdist_group("live")  # one real-time session at a time
@@ -73,12 +74,9 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
         ("i003", "wait none stop", "end"),
     ]
     assert (session / "i001.fsr.csv").read_text().startswith("t_ms,fsr1,fsr2,fsr3,board_ms\n")
-    replayed = subprocess.run(
-        [*NEEDLECUE, "replay", str(session), "--model-dir", str(live_model.model_dir), "--unit-id", UNIT],
-        env=run.env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+    # (the command in this process, on live's registry and model cache: a process would only import again)
+    keys = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "NEEDLECUE_MODEL_CACHE")
+    args = ["replay", str(session), "--model-dir", str(live_model.model_dir), "--unit-id", UNIT]
+    replayed = CliRunner().invoke(app, args, env={k: run.env[k] for k in keys})
+    assert replayed.exit_code == 0, replayed.output
     assert "insertion 3 (i003): wait -> none -> stop (as live)" in replayed.stdout
