@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -12,8 +13,10 @@ from pathlib import Path
 
 import pytest
 from mlflow import MlflowClient
+from typer.testing import CliRunner
 
 from pipeline import retrain
+from pipeline.cli import app
 from pipeline.config import IngestParams
 from pipeline.execution.dvc_api import Busy
 from tests.helpers import tree_hash
@@ -153,9 +156,13 @@ def retrain_cli(root: Path) -> subprocess.CompletedProcess[str]:
 
 
 def new_cast(root: Path, batch_id: str, angle: int) -> None:
-    """A lab drops one new simulated tissue cast (4 trials at one angle) into data/raw."""
-    cli = [sys.executable, "-m", "pipeline.cli", "simulate-batch", "data/raw", batch_id]
-    run(root, *cli, "--angles", str(angle), "--trials", "4")
+    """A lab drops one new simulated tissue cast (4 trials at one angle) into data/raw (`needlecue
+    simulate-batch` in the project's folder, in this process: the retrains are what runs as cron would)."""
+    with contextlib.chdir(root):
+        done = CliRunner().invoke(
+            app, ["simulate-batch", "data/raw", batch_id, "--angles", str(angle), "--trials", "4"]
+        )
+    assert done.exit_code == 0, done.output
 
 
 @pytest.mark.slow
