@@ -9,13 +9,13 @@ import shutil
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 from filelock import FileLock
 
-from tests.projects import build_tiny_project
+from tests.projects import Registered, build_tiny_project, copy_project, register_into
 
 LAB_BENCH_A = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
 
@@ -84,21 +84,41 @@ def mlflow_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.M
         mlflow.set_registry_uri(None)
 
 
+def _built_once(
+    factory: pytest.TempPathFactory, worker_id: str, name: str, build: Callable[[Path], object]
+) -> Path:
+    """The folder `name` that `build` makes, made once per test session and shared by the xdist workers
+    (the first makes it, the others wait for it)."""
+    base = factory.getbasetemp()
+    shared = base if worker_id == "master" else base.parent  # xdist: the folder every worker's temp is in
+    root = shared / name
+    with FileLock(shared / f"{name}.lock"):
+        if not (shared / f"{name}.done").exists():
+            shutil.rmtree(root, ignore_errors=True)  # what a failed worker left half done
+            build(root)
+            (shared / f"{name}.done").touch()
+    return root
+
+
 @pytest.fixture(scope="session")
 def tiny_built(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
-    """The small simulated project reproduced through every stage but register, built once per test
-    session and shared by the xdist workers (the first builds it, the others wait); never write into
-    it: take a copy with `tests.projects.copy_project`."""
-    base = tmp_path_factory.getbasetemp()
-    shared = base if worker_id == "master" else base.parent  # xdist: the folder every worker's temp is in
-    root = shared / "tiny-built"
-    with FileLock(shared / "tiny-built.lock"):
-        if not (shared / "tiny-built.done").exists():
-            if root.exists():
-                shutil.rmtree(root)  # a build a failed worker left half done
-            build_tiny_project(root)
-            (shared / "tiny-built.done").touch()
-    return root
+    """The small simulated project reproduced through every stage but register, shared by the tests of
+    a session; never write into it: take a copy with `tests.projects.copy_project`."""
+    return _built_once(tmp_path_factory, worker_id, "tiny-built", build_tiny_project)
+
+
+@pytest.fixture(scope="session")
+def tiny_registered(tiny_built: Path, tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Registered:
+    """`tiny_built` registered into a store of its own, shared by the tests of a session; never write
+    into either."""
+
+    def build(root: Path) -> None:
+        root.mkdir()
+        copy_project(tiny_built, root / "project")
+        register_into(root / "project", root / "store")
+
+    root = _built_once(tmp_path_factory, worker_id, "tiny-registered", build)
+    return Registered(root / "project", root / "store")
 
 
 class _Answers(http.server.BaseHTTPRequestHandler):

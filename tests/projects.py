@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import os
 import shutil
+import sqlite3
 import subprocess
 import sys
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -111,6 +114,57 @@ def build_tiny_project(root: Path) -> Path:
 def built_stages(root: Path) -> list[str]:
     """The stages `build_tiny_project` runs: all but register."""
     return [s for s in run(root, "dvc", "stage", "list", "--name-only").split() if s != "register"]
+
+
+@dataclass(frozen=True)
+class Registered:
+    """A reproduced project with register run too (`project`), and the MLflow store it registered into
+    (`store`, a folder): the `tiny_registered` fixture; a test takes a copy with `copy_registered`."""
+
+    project: Path
+    store: Path
+
+
+def copy_registered(registered: Registered, to: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, dict]:
+    """A copy of the registered project at `to`/proj and of its store at `to`/store, which MLflow's
+    environment (MLFLOW_TRACKING_URI and MLFLOW_REGISTRY_URI) names for the rest of the test.
+    Returns the project's folder and its params."""
+    uri = copy_store(registered.store, to / "store")
+    for key in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI"):
+        monkeypatch.setenv(key, uri)
+    return copy_project(registered.project, to / "proj")
+
+
+def store_uri(store: Path) -> str:
+    """The MLflow tracking URI of the sqlite store in folder `store` (its artifacts beside it)."""
+    return f"sqlite:///{store / 'mlflow.db'}"
+
+
+def register_into(root: Path, store: Path) -> None:
+    """`dvc repro` of a copy of the tiny build (what it lacks: register), into a new MLflow store in
+    folder `store`."""
+    store.mkdir()
+    uri = store_uri(store)
+    run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": uri, "MLFLOW_REGISTRY_URI": uri})
+
+
+def copy_store(store: Path, to: Path) -> str:
+    """A copy of the MLflow store in folder `store` at `to`; returns its URI. MLflow keeps absolute
+    paths (where each run's and version's artifacts are): every one under `store` is moved to `to`."""
+    shutil.copytree(store, to)
+    old, new = str(store), str(to)
+    with sqlite3.connect(to / "mlflow.db") as db:
+        tables = [t for (t,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+        for table in tables:
+            for _, column, kind, *_ in db.execute(f'PRAGMA table_info("{table}")').fetchall():
+                if any(word in kind.upper() for word in ("CHAR", "TEXT", "CLOB")):
+                    db.execute(
+                        f'UPDATE "{table}" SET "{column}" = replace("{column}", ?, ?) '
+                        f'WHERE instr("{column}", ?) > 0',
+                        (old, new, old),
+                    )
+    db.close()
+    return store_uri(to)
 
 
 def copy_project(built: Path, root: Path) -> tuple[Path, dict]:

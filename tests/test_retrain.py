@@ -21,7 +21,7 @@ from pipeline.config import IngestParams
 from pipeline.execution.dvc_api import Busy
 from tests.helpers import tree_hash
 from tests.metrics.documents import evaluation
-from tests.projects import LAB_BATCH, copy_project, run
+from tests.projects import LAB_BATCH, Registered, copy_registered
 
 
 def test_lock_refuses_a_second_holder_and_names_the_first(tmp_path: Path) -> None:
@@ -166,10 +166,11 @@ def new_cast(root: Path, batch_id: str, angle: int) -> None:
 
 
 @pytest.mark.slow
-def test_retrain_follows_a_new_batch_and_nothing_else(tiny_built: Path, tmp_path: Path) -> None:
-    # Given a small project trained and registered end to end
-    root, _params = copy_project(tiny_built, tmp_path / "proj")
-    run(root, "dvc", "repro")
+def test_retrain_follows_a_new_batch_and_nothing_else(
+    tiny_registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Given a small project trained and registered end to end (shared: tests/conftest.py)
+    root, _params = copy_registered(tiny_registered, tmp_path, monkeypatch)
     client = MlflowClient()
     champion_15 = client.get_model_version_by_alias("needle-force-15", "champion")
     champion_45 = client.get_model_version_by_alias("needle-force-45", "champion")

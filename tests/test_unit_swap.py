@@ -14,19 +14,17 @@ import pytest
 from needlecue_client import ForceClient, UncalibratedUnit
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
-from tests.projects import SMALL_SIM, copy_project, first_external_trial, run
+from tests.projects import SMALL_SIM, copy_registered, first_external_trial
 
 pytestmark = pytest.mark.slow
 
 TRAINING, D = SMALL_SIM["units"], SMALL_SIM["new_units"][0]  # D: the new unit, with its calibration batch
 
 
-def test_a_new_unit_is_calibrated_scored_and_served(tiny_built, tmp_path, monkeypatch):
+def test_a_new_unit_is_calibrated_scored_and_served(tiny_registered, tmp_path, monkeypatch):
     # Given the small project (the simulator records with the training units, and D with a calibration
-    # batch), built through every stage (shared: tests/conftest.py)
-    root, _ = copy_project(tiny_built, tmp_path / "proj")
-    # When the whole pipeline runs (what the copy lacks: register)
-    run(root, "dvc", "repro")
+    # batch), built through every stage and registered (shared: tests/conftest.py)
+    root, _ = copy_registered(tiny_registered, tmp_path, monkeypatch)
     # Then D's calibration trials are in no split, only in processed/calibration
     manifest = json.loads((root / "data" / "processed" / "manifest.json").read_text())
     assert manifest["units"][D]["role"] == "new"
@@ -47,7 +45,7 @@ def test_a_new_unit_is_calibrated_scored_and_served(tiny_built, tmp_path, monkey
     assert "## Estimator units" in (root / "reports" / "report.md").read_text()
 
     # When a simulator asks for the 15° champion for unit D
-    monkeypatch.chdir(root)  # the store is the project's (MLFLOW_TRACKING_URI from the test fixture)
+    monkeypatch.chdir(root)  # the store is the copy's (MLFLOW_TRACKING_URI: copy_registered)
     cache = tmp_path / "cache"
     client = ForceClient.from_registry(15, unit_id=D, cache_dir=cache, poll_s=None)
     # Then it is calibrated and gives the force the pipeline scored for D's held-out trial

@@ -14,7 +14,7 @@ import pytest
 from mlflow import MlflowClient
 
 from needlecue_runtime.registry import store
-from tests.projects import copy_project, run
+from tests.projects import Registered, copy_registered
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ROWS = """() => {
@@ -37,13 +37,12 @@ def _free_port() -> int:
 
 @pytest.mark.slow
 def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
-    tiny_built: Path, tmp_path: Path
+    tiny_registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from playwright.sync_api import sync_playwright
 
     # given: the small project registered (two angles, three kinds)
-    root, params = copy_project(tiny_built, tmp_path / "proj")
-    run(root, "dvc", "repro", "register")
+    root, params = copy_registered(tiny_registered, tmp_path, monkeypatch)
     client = MlflowClient()
     runs = client.search_runs([client.get_experiment_by_name(store.EXPERIMENT).experiment_id])
     expected = {r.info.run_name: r.data.metrics["external_nrmse_pct_mean"] for r in runs}
