@@ -18,7 +18,8 @@ Exit codes (also in docs/retraining.md):
 A run killed half way leaves `data/raw` untouched (the pipeline never writes there), the
 registry as it was unless `register` had started (it is idempotent and finishes an interrupted
 decision next time), and DVC's outputs consistent with `dvc.lock` stage by stage, so the next
-run picks up where it stopped. The lock is an OS file lock: it dies with its process.
+run picks up where it stopped, and reports the batches the killed run took (`UNFINISHED`). The lock
+is an OS file lock: it dies with its process.
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ EXIT_NOTHING, EXIT_FAILED, EXIT_RETRAINED, EXIT_SET_ASIDE, EXIT_BUSY = 0, 1, 2, 
 LOCK_FILE = Path(".dvc/tmp/needlecue-retrain.lock")
 INGESTED = Path("data/interim/ingested")
 REPORT_DIR = Path("reports/retrain")
+# the batches a run took, until its `dvc repro` succeeds: a run killed after ingest took them still
+# has them reported (and set aside ones still counted) by the run that finishes its job
+UNFINISHED = REPORT_DIR / "unfinished.json"
 LEDGER = Path("reports/ledger/ledger.json")  # the ledger stage's output (dvc.yaml)
 MAX_LISTED = 50  # trials listed per batch in the report; the ledger has them all
 logger = logging.getLogger(__name__)
@@ -107,6 +111,22 @@ def pending_batches(
         if known != fingerprint(batch, params, source_dir=name)["fingerprint"]:
             out.append(Pending(batch.name, str(batch), "changed"))
     return out
+
+
+def with_unfinished(pending: list[Pending], root: Path) -> list[Pending]:
+    """`pending` and, after them, the batches of a run whose `dvc repro` did not finish (`UNFINISHED`)
+    that are not among them and are still there: its ingest may have taken them, so they no longer
+    differ from the ingest cache, but no report has said what became of them yet."""
+    path = root / UNFINISHED
+    if not path.is_file():
+        return pending
+    try:
+        left = [Pending(**entry) for entry in json.loads(path.read_text())]
+    except (OSError, ValueError, TypeError) as e:
+        logger.warning("ignoring %s: %s", path, e)
+        return pending
+    known = {p.batch_id for p in pending}
+    return pending + [p for p in left if p.batch_id not in known and Path(p.path).exists()]
 
 
 def check_pending(pending: list[Pending], params: IngestParams) -> list[Pending]:
@@ -295,7 +315,7 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
     stage_raw_dir = load_section(DataParams, "data", params_file).raw_dir
     raw_dir = root / stage_raw_dir
     ingest_params = load_section(IngestParams, "ingest", params_file)
-    pending = pending_batches(raw_dir, root / INGESTED, ingest_params, stage_raw_dir)
+    pending = with_unfinished(pending_batches(raw_dir, root / INGESTED, ingest_params, stage_raw_dir), root)
     changed = dvc_changed(root, log)
     if not changed:  # DVC decides: a batch "changed" only for the ingest cache (a library upgrade) is not new
         if pending:
@@ -318,7 +338,12 @@ def _retrain_locked(root: Path, params_path: Path, started: str, log: Log) -> tu
             log(f"    {problem}")
     before = _read_evaluation(root / "reports" / EVALUATION_FILE)
     log(f"dvc repro ({len(changed)} stage(s) out of date)")
+    taken = [{"batch_id": p.batch_id, "path": p.path, "status": p.status} for p in pending]
+    (root / UNFINISHED).parent.mkdir(parents=True, exist_ok=True)
+    (root / UNFINISHED).write_text(json.dumps(taken, indent=2) + "\n")
     code, ran, tail = dvc_repro(root, log)
+    if code == 0:
+        (root / UNFINISHED).unlink()
     report = summarise(
         pending,
         ran,

@@ -54,6 +54,27 @@ def test_pending_batches_are_the_new_and_the_changed(tmp_path: Path) -> None:
     assert [(p.batch_id, p.status) for p in pending] == [("lab-bench-a", "changed"), ("lab-bench-b", "new")]
 
 
+def test_the_batches_of_a_run_that_did_not_finish_are_the_next_runs_too(tmp_path: Path) -> None:
+    # given: a run that took three batches and did not finish: one is still pending (changed again),
+    # one was ingested (no longer pending), one was deleted since
+    for name in ("cast-1", "cast-2"):
+        (tmp_path / "data" / "raw" / name).mkdir(parents=True)
+    taken = [
+        {"batch_id": b, "path": str(tmp_path / "data" / "raw" / b), "status": "new"}
+        for b in ("cast-1", "cast-2", "gone")
+    ]
+    (tmp_path / retrain.UNFINISHED).parent.mkdir(parents=True)
+    (tmp_path / retrain.UNFINISHED).write_text(json.dumps(taken))
+    pending = [retrain.Pending("cast-1", str(tmp_path / "data" / "raw" / "cast-1"), "changed")]
+    # when: the next run looks for what it has to report
+    merged = retrain.with_unfinished(pending, tmp_path)
+    # then: the pending batches, then the ingested one the killed run took; not the one deleted
+    assert [(p.batch_id, p.status) for p in merged] == [("cast-1", "changed"), ("cast-2", "new")]
+    # and a file it cannot read changes nothing
+    (tmp_path / retrain.UNFINISHED).write_text("[{")
+    assert retrain.with_unfinished(pending, tmp_path) == pending
+
+
 def _nrmse(value: float) -> dict:
     return {"rmse": None, "nrmse_pct": value}
 
@@ -180,24 +201,50 @@ def test_retrain_follows_a_new_batch_and_nothing_else(
     assert idle.returncode == retrain.EXIT_NOTHING, idle.stderr
     assert "nothing to do" in idle.stderr
 
-    # When a new 15° cast and a broken batch arrive
+    # When a new 15° cast and a broken batch arrive, and the retrain that takes them is killed half
+    # way (during training)
     new_cast(root, "cast-7", 15)
     (root / "data" / "raw" / "broken").mkdir()
     (root / "data" / "raw" / "broken" / "batch.yaml").write_text("format: rig-log/1\nbatch_id: [\n")
-    done = retrain_cli(root)
+    raw_before = tree_hash(root / "data" / "raw")
+    killed = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.cli", "retrain"],
+        cwd=root,
+        env=retrain_env(),
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    assert killed.stderr is not None
+    said = []
+    for line in killed.stderr:
+        said.append(line)
+        if "Running stage 'train@15" in line:
+            os.killpg(killed.pid, signal.SIGKILL)
+            break
+    killed.wait(timeout=60)
+    # Then the registry and the raw data are as they were
+    assert killed.returncode == -signal.SIGKILL, "".join(said)
+    assert len(client.search_model_versions("name = 'needle-force-15'")) == 1
+    assert tree_hash(root / "data" / "raw") == raw_before
+    # and it had parsed only the new batches; the known ones came from the ingest cache
+    ingest_lines = [line for line in said if line.startswith("ingest [")]
+    # 7 simulated batches (2 training casts-by-unit, 2 held-out, 2 new-unit held-out, 1 calibration)
+    # + the two new ones
+    assert len(ingest_lines) == 9, "".join(said)
+    for line in ingest_lines:
+        assert (": parsed" in line) == ("cast-7" in line or "broken" in line), line
 
-    # Then it retrained, with the broken batch set aside and reported (exit 3)
+    # When the next run resumes the job (its ingest already done: the new batches no longer differ
+    # from the ingest cache)
+    done = retrain_cli(root)
+    # Then it retrained, with the broken batch set aside and reported (exit 3): the killed run's
+    # batches are this run's
     assert done.returncode == retrain.EXIT_SET_ASIDE, done.stderr
     report = json.loads((root / "reports" / "retrain" / "latest.json").read_text())
     assert sorted(b["batch_id"] for b in report["batches"]) == ["broken", "cast-7"]
     assert report["batches_set_aside"] == ["broken"]
-    # only the new batches were parsed; the known ones came from the ingest cache
-    ingest_lines = [line for line in done.stderr.splitlines() if line.startswith("ingest [")]
-    # 7 simulated batches (2 training casts-by-unit, 2 held-out, 2 new-unit held-out, 1 calibration)
-    # + the two new ones
-    assert len(ingest_lines) == 9, done.stderr
-    for line in ingest_lines:
-        assert (": parsed" in line) == ("cast-7" in line or "broken" in line), line
+    assert not (root / retrain.UNFINISHED).exists()
     # only the angle with new data retrained
     assert report["angles_retrained"] == ["15"]
     assert {s for s in report["stages_run"] if s.startswith("train@")} == {
@@ -228,35 +275,6 @@ def test_retrain_follows_a_new_batch_and_nothing_else(
         busy = retrain_cli(root)
     assert busy.returncode == retrain.EXIT_BUSY
     assert "another retrain is running" in busy.stderr
-
-    # When a retrain for a new 45° cast is killed half way (during training)
-    new_cast(root, "cast-8", 45)
-    raw_before = tree_hash(root / "data" / "raw")
-    killed = subprocess.Popen(
-        [sys.executable, "-m", "pipeline.cli", "retrain"],
-        cwd=root,
-        env=retrain_env(),
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    assert killed.stderr is not None
-    for line in killed.stderr:
-        if "Running stage 'train@45" in line:
-            os.killpg(killed.pid, signal.SIGKILL)
-            break
-    killed.wait(timeout=60)
-    # Then the registry and the raw data are as they were
-    assert killed.returncode == -signal.SIGKILL
-    assert len(client.search_model_versions("name = 'needle-force-45'")) == 2
-    assert tree_hash(root / "data" / "raw") == raw_before
-    # And the next run completes the job
-    resumed = retrain_cli(root)
-    assert resumed.returncode == retrain.EXIT_RETRAINED, resumed.stderr
-    report = json.loads((root / "reports" / "retrain" / "latest.json").read_text())
-    # (15° registers too: its candidate comes back with the pack that learned from the 45° cast)
-    assert report["angles_retrained"] == ["45"] and sorted(report["registered"]) == ["15", "45"]
-    assert len(client.search_model_versions("name = 'needle-force-45'")) == 3
 
 
 def test_a_new_batch_that_split_sets_aside_makes_retrain_exit_3(tmp_path: Path) -> None:
