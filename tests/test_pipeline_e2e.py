@@ -146,16 +146,12 @@ def test_a_single_angle_lab_follows_the_readme_with_params_only(tmp_path):
     assert int(champion.version) == 1
     # And the lab's folder is exactly as it was
     assert tree_hash(share) == before
-
-    # When a second batch arrives
-    _recording(share, "lab-bench-b", angle=30, variant=3)
-    out = run(root, "dvc", "repro")
-    # Then only the new batch is parsed; the first ones are reused from the ingest cache
-    assert "lab-bench-b: parsed" in out, out
-    assert "lab-bench-a: reused" in out, out
-    # And the ledger has all nine trials used
+    # And the ledger has all six trials used
     ledger = json.loads((root / "reports" / "ledger" / "ledger.json").read_text())
-    assert ledger["counts"]["trials"] == ledger["counts"]["used"] == 9, ledger["counts"]
+    assert ledger["counts"]["trials"] == ledger["counts"]["used"] == 6, ledger["counts"]
+    # (A second batch, then: only it is parsed, the others reused from the ingest cache, every new trial
+    # placed. tests/rig/test_ingest.py checks that on this lab batch, and tests/test_retrain.py through
+    # `dvc repro` on a project, the ledger's report included.)
 
 
 def changed_stages(root: Path) -> set[str]:

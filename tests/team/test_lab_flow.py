@@ -8,6 +8,7 @@ The tests share one small project and run in file order (one xdist group)."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -23,12 +24,14 @@ import mlflow
 import pytest
 import requests
 import yaml
+from typer.testing import CliRunner
 
 from needlecue_client import ForceClient, fetch
 from needlecue_client.cache import poll_alias
 from needlecue_client.copies import ModelNotFound
 from needlecue_client.webhook import AliasListener, signature
 from needlecue_runtime.registry import store
+from pipeline.cli import app
 from pipeline.team import access
 from tests.projects import run
 from tests.team.conftest import lab_env as _env
@@ -91,10 +94,12 @@ def test_the_lab_calibrates_a_new_unit_on_the_server_and_a_simulator_may_not(tea
     # Given a short calibration batch recorded by a new unit at 15° (outside the project's raw folder)
     cli, params = (sys.executable, "-m", "pipeline.cli"), str(lab / "params.yaml")
     batch = tmp_path / "raw" / "cal-201"
-    run(
-        lab, *cli, "simulate-batch", str(batch.parent), batch.name, "--purpose", "calibration",
-        "--unit", "est-sim-201", "--angles", "15", "--trials", "1", "--params", params,
-    )  # fmt: skip
+    with contextlib.chdir(lab):  # in this process: a local command, no credentials
+        made = CliRunner().invoke(app, [
+            "simulate-batch", str(batch.parent), batch.name, "--purpose", "calibration",
+            "--unit", "est-sim-201", "--angles", "15", "--trials", "1", "--params", params,
+        ])  # fmt: skip
+    assert made.exit_code == 0, made.output
     # When a simulator tries to calibrate it, then the server refuses before anything is registered
     refused = subprocess.run(
         [*cli, "calibrate", str(batch), "--params", params],
