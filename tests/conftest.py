@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
-from tests.projects import Registered, build_tiny_project, copy_project, register_into
+from tests.projects import Registered, build_tiny_project, copy_project, register_into, store_uri
 
 LAB_BENCH_A = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
 
@@ -73,7 +73,7 @@ def raw_dir(tmp_path: Path) -> Path:
 @pytest.fixture(autouse=True)
 def mlflow_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
     """Every test's MLflow store is a fresh sqlite file in a temp folder, never the project's mlflow.db."""
-    uri = f"sqlite:///{tmp_path_factory.mktemp('mlflow') / 'mlflow.db'}"
+    uri = store_uri(tmp_path_factory.mktemp("mlflow"))
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     monkeypatch.setenv("MLFLOW_REGISTRY_URI", uri)
     yield uri

@@ -160,6 +160,9 @@ def test_outcome_is_retrained_only_when_every_new_trial_was_used() -> None:
     assert "  - data/raw/ghost: no batch.yaml" in text
 
 
+RETRAIN = [sys.executable, "-m", "pipeline.cli", "retrain"]  # as cron runs it, in the project's folder
+
+
 def retrain_env() -> dict[str, str]:
     return dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
 
@@ -167,7 +170,7 @@ def retrain_env() -> dict[str, str]:
 def retrain_cli(root: Path) -> subprocess.CompletedProcess[str]:
     """`needlecue retrain` in the project copy, as cron would run it."""
     return subprocess.run(
-        [sys.executable, "-m", "pipeline.cli", "retrain"],
+        RETRAIN,
         cwd=root,
         env=retrain_env(),
         capture_output=True,
@@ -208,7 +211,7 @@ def test_retrain_follows_a_new_batch_and_nothing_else(
     (root / "data" / "raw" / "broken" / "batch.yaml").write_text("format: rig-log/1\nbatch_id: [\n")
     raw_before = tree_hash(root / "data" / "raw")
     killed = subprocess.Popen(
-        [sys.executable, "-m", "pipeline.cli", "retrain"],
+        RETRAIN,
         cwd=root,
         env=retrain_env(),
         stderr=subprocess.PIPE,

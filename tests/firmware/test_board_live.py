@@ -16,15 +16,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
-from pipeline.cli import app
 from pipeline.live import board as bd
 from pipeline.live.recording import unescape
 from pipeline.live.wire import Sample, parse_banner, parse_line
 from tests.firmware.conftest import Built, write_pins
 from tests.live.conftest import UNIT, LiveModel
-from tests.live.processes import NEEDLECUE, rig_and_live, watch_problems
+from tests.live.processes import NEEDLECUE, Running, rig_and_live, watch_problems
 
 pytestmark = pytest.mark.xdist_group("live")  # one real-time session at a time
 CUE_LINE = re.compile(r"^\s*-?\d+\.\d+ s  (\w+)")
@@ -39,14 +37,10 @@ def recorded_lines(session: Path) -> list[tuple[float, bytes]]:
         return [(float(r["host_s"]), unescape(r["text"])) for r in csv.DictReader(f) if r["kind"] == "line"]
 
 
-def replayed_cues(trial: Path, model: LiveModel, env: dict[str, str], tmp_path: Path) -> list[str]:
-    """The cue sequence `needlecue replay` gives the trial's file (the command in this process, on the
-    registry and model cache live used: a process of its own would only import the stack again)."""
-    args = ["replay", str(trial), "--model-dir", str(model.model_dir), "--unit-id", UNIT,
-            "--out", str(tmp_path / f"{trial.stem}.png")]  # fmt: skip
-    keys = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "NEEDLECUE_MODEL_CACHE")
-    done = CliRunner().invoke(app, args, env={k: env[k] for k in keys})
-    assert done.exit_code == 0, done.output
+def replayed_cues(run: Running, trial: Path, model: LiveModel, tmp_path: Path) -> list[str]:
+    """The cue sequence `needlecue replay` gives the trial's file."""
+    out = tmp_path / f"{trial.stem}.png"
+    done = run.replay(str(trial), "--model-dir", str(model.model_dir), "--unit-id", UNIT, "--out", str(out))
     return [m.group(1) for line in done.stdout.splitlines() if (m := CUE_LINE.match(line))]
 
 
@@ -77,7 +71,7 @@ def test_live_on_the_emulated_board_gives_the_cues_replay_gives_at_the_declared_
         recorded = list(csv.DictReader(f))
     assert [r["ended"] for r in recorded] == ["end"] * 3, out
     live_cues = [r["cues"].split() for r in recorded]
-    replay_cues = [replayed_cues(trial, live_model, run.env, tmp_path) for trial in run.files]
+    replay_cues = [replayed_cues(run, trial, live_model, tmp_path) for trial in run.files]
     print("live", live_cues, "replay", replay_cues)
     assert live_cues == replay_cues
     assert [cues[-1] for cues in live_cues] == ["continue", "correct", "stop"]

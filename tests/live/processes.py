@@ -16,6 +16,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from typer.testing import CliRunner, Result
+
+from pipeline.cli import app
 from tests.live.conftest import ADC_BITS, UNIT, LiveModel, write_trials
 
 NEEDLECUE = [sys.executable, "-m", "pipeline.cli"]
@@ -28,14 +31,23 @@ class Running:
     files: list[Path]  # the trials the rig plays
     url: str  # the trainee page
     session: Path  # the recording's folder
-    env: dict[str, str]  # the environment both run in (the model's store, a cache of their own)
+    settings: dict[str, str]  # what both run with on top of this environment: the model's store, a cache
+
+    def replay(self, *args: str) -> Result:
+        """`needlecue replay ARGS` with the session's settings, in this process (a process of its own
+        would only import the stack again); it must succeed."""
+        done = CliRunner().invoke(app, ["replay", *args], env=self.settings)
+        assert done.exit_code == 0, done.output
+        return done
 
 
-def env_for(model: LiveModel, tmp_path: Path) -> dict[str, str]:
-    env = dict(os.environ)
-    env.update(MLFLOW_TRACKING_URI=model.uri, MLFLOW_REGISTRY_URI=model.uri)
-    env["NEEDLECUE_MODEL_CACHE"] = str(tmp_path / "cache")
-    return env
+def settings_for(model: LiveModel, tmp_path: Path) -> dict[str, str]:
+    """The model's store and a model cache of the test's own, as environment variables."""
+    return {
+        "MLFLOW_TRACKING_URI": model.uri,
+        "MLFLOW_REGISTRY_URI": model.uri,
+        "NEEDLECUE_MODEL_CACHE": str(tmp_path / "cache"),
+    }
 
 
 def display_url(proc: subprocess.Popen[str], limit_s: float = 60) -> str:
@@ -67,7 +79,8 @@ def rig_and_live(
     on the way out if still running."""
     files = write_trials(tmp_path / "held", angles, adc_bits=adc_bits, withdraw=withdraw)
     link, session = tmp_path / "rig", tmp_path / "session"
-    env = env_for(model, tmp_path)
+    settings = settings_for(model, tmp_path)
+    env = {**os.environ, **settings}
     board = subprocess.Popen(
         [*NEEDLECUE, rig, *map(str, files), "--link", str(link), "--pause", "2.5", *rig_args],
         env=env,
@@ -88,7 +101,7 @@ def rig_and_live(
             stderr=subprocess.STDOUT,
             text=True,
         )  # fmt: skip
-        yield Running(live, board, files, display_url(live), session, env)
+        yield Running(live, board, files, display_url(live), session, settings)
     finally:
         for proc in (live, board):
             if proc is not None and proc.poll() is None:

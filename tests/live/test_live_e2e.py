@@ -9,9 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from pipeline.cli import app
 from tests.live.conftest import UNIT, LiveModel
 from tests.live.processes import rig_and_live
 
@@ -74,9 +72,5 @@ def test_emulated_rig_to_the_trainee_page_and_the_recording(live_model: LiveMode
         ("i003", "wait none stop", "end"),
     ]
     assert (session / "i001.fsr.csv").read_text().startswith("t_ms,fsr1,fsr2,fsr3,board_ms\n")
-    # (the command in this process, on live's registry and model cache: a process would only import again)
-    keys = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "NEEDLECUE_MODEL_CACHE")
-    args = ["replay", str(session), "--model-dir", str(live_model.model_dir), "--unit-id", UNIT]
-    replayed = CliRunner().invoke(app, args, env={k: run.env[k] for k in keys})
-    assert replayed.exit_code == 0, replayed.output
+    replayed = run.replay(str(session), "--model-dir", str(live_model.model_dir), "--unit-id", UNIT)
     assert "insertion 3 (i003): wait -> none -> stop (as live)" in replayed.stdout
