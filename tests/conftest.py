@@ -15,7 +15,14 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
-from tests.projects import Registered, build_tiny_project, copy_project, register_into, store_uri
+from tests.projects import (
+    Registered,
+    build_tiny_project,
+    copy_project,
+    make_empty_store,
+    new_store,
+    register_into,
+)
 
 LAB_BENCH_A = Path(__file__).parent / "fixtures" / "rig-log" / "lab-bench-a"
 
@@ -71,17 +78,35 @@ def raw_dir(tmp_path: Path) -> Path:
 
 
 @pytest.fixture(autouse=True)
-def mlflow_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
-    """Every test's MLflow store is a fresh sqlite file in a temp folder, never the project's mlflow.db."""
-    uri = store_uri(tmp_path_factory.mktemp("mlflow"))
+def mlflow_store(
+    empty_store: Path, tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[str]:
+    """Every test's MLflow store is a new, empty sqlite store in a temp folder (a copy of `empty_store`),
+    never the project's mlflow.db. A copy the test left as it was is removed after it (the suite would
+    keep about 1 MB per test)."""
+    folder = tmp_path_factory.mktemp("mlflow")
+    uri = new_store(empty_store, folder)
+    made = _sqlite_version(folder / "mlflow.db")
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     monkeypatch.setenv("MLFLOW_REGISTRY_URI", uri)
     yield uri
+    if _sqlite_version(folder / "mlflow.db") == made and [p.name for p in folder.iterdir()] == ["mlflow.db"]:
+        (folder / "mlflow.db").unlink()
     # registry.connect() sets MLflow's process-wide URIs, which win over the environment: forget them
     if "mlflow" in sys.modules:
         mlflow = sys.modules["mlflow"]
         mlflow.set_tracking_uri(None)
         mlflow.set_registry_uri(None)
+
+
+def _sqlite_version(db: Path) -> tuple[int, bytes] | None:
+    """A sqlite file's size and its header's change counter (bytes 24-27, which every committed write
+    moves), None when it is gone: the same twice means nothing was written in between."""
+    try:
+        with db.open("rb") as f:
+            return db.stat().st_size, f.read(28)[24:]
+    except FileNotFoundError:
+        return None
 
 
 def _built_once(
@@ -98,6 +123,13 @@ def _built_once(
             build(root)
             (shared / f"{name}.done").touch()
     return root
+
+
+@pytest.fixture(scope="session")
+def empty_store(tmp_path_factory: pytest.TempPathFactory, worker_id: str) -> Path:
+    """A folder with an empty MLflow sqlite store, its tables made once per session: take a copy with
+    `tests.projects.new_store` (every test's `mlflow_store` is one)."""
+    return _built_once(tmp_path_factory, worker_id, "empty-store", make_empty_store)
 
 
 @pytest.fixture(scope="session")

@@ -3,6 +3,7 @@ simulated rig, with their own DVC repo; `run` drives dvc or python in one."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import sqlite3
@@ -142,18 +143,45 @@ def store_uri(store: Path) -> str:
 
 def register_into(root: Path, store: Path) -> None:
     """`dvc repro` of a copy of the tiny build (what it lacks: register), into a new MLflow store in
-    folder `store`."""
+    folder `store` (MLflow makes its tables: no `new_store` here, so one end-to-end run does that)."""
     store.mkdir()
     uri = store_uri(store)
     run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": uri, "MLFLOW_REGISTRY_URI": uri})
 
 
+def make_empty_store(folder: Path) -> None:
+    """An MLflow sqlite store in `folder` (new) with its tables made and nothing in them: what
+    `new_store` copies. Made with `folder` as the working directory, where MLflow puts the default
+    experiment's artifacts (`./mlruns`), so that a copy moves them with it."""
+    from mlflow import MlflowClient
+
+    folder.mkdir()
+    with contextlib.chdir(folder):
+        MlflowClient(store_uri(folder)).search_experiments()
+
+
+def new_store(empty: Path, folder: Path) -> str:
+    """A new MLflow store in `folder` (made if missing), a copy of the empty store in folder `empty`
+    (`make_empty_store`, the `empty_store` fixture): MLflow makes a store's tables by running its
+    migrations, about 1.5 s a store, which the suite would pay some 60 times. Returns its URI."""
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copy(empty / "mlflow.db", folder / "mlflow.db")
+    _move_paths(folder / "mlflow.db", empty, folder)
+    return store_uri(folder)
+
+
 def copy_store(store: Path, to: Path) -> str:
-    """A copy of the MLflow store in folder `store` at `to`; returns its URI. MLflow keeps absolute
-    paths (where each run's and version's artifacts are): every one under `store` is moved to `to`."""
+    """A copy of the MLflow store in folder `store` at `to`; returns its URI."""
     shutil.copytree(store, to)
+    _move_paths(to / "mlflow.db", store, to)
+    return store_uri(to)
+
+
+def _move_paths(path: Path, store: Path, to: Path) -> None:
+    """MLflow keeps absolute paths in its sqlite file `path` (where each experiment's, run's and
+    version's artifacts are): every one under folder `store` is moved to folder `to`."""
     old, new = str(store), str(to)
-    with sqlite3.connect(to / "mlflow.db") as db:
+    with sqlite3.connect(path) as db:
         tables = [t for (t,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
         for table in tables:
             for _, column, kind, *_ in db.execute(f'PRAGMA table_info("{table}")').fetchall():
@@ -164,7 +192,6 @@ def copy_store(store: Path, to: Path) -> str:
                         (old, new, old),
                     )
     db.close()
-    return store_uri(to)
 
 
 def copy_project(built: Path, root: Path) -> tuple[Path, dict]:

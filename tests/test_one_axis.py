@@ -17,7 +17,7 @@ from needlecue_client import ForceClient
 from pipeline.metrics.document import read_evaluation
 from pipeline.modelling.prediction_store import Predictions
 from tests.deploy.test_node import node_ready, publish_to, replay_in_node
-from tests.projects import SMALL_SIM, first_external_trial, make_project, run, use_small_models
+from tests.projects import SMALL_SIM, first_external_trial, make_project, new_store, run, use_small_models
 
 # one worker for the module: the project it builds (about 45 s) is a module fixture, and xdist's loadgroup
 # would build it once on each worker its tests land on
@@ -28,11 +28,11 @@ SIM = {**SMALL_SIM, "reference_axes": ["fz"]}
 
 
 @pytest.fixture(scope="module")
-def fz_project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def fz_project(empty_store: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The small rig with a one-axis reference, reproduced through register into its own MLflow store."""
     root = make_project(tmp_path_factory.mktemp("fz") / "proj", SIM)
     use_small_models(root)
-    run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": f"sqlite:///{root / 'mlflow.db'}"})
+    run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": new_store(empty_store, root)})
     return root
 
 

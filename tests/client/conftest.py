@@ -15,14 +15,15 @@ from pipeline.config import CuesParams
 from pipeline.cues.packs import build_cue_pack
 from pipeline.modelling.fit import fit
 from tests.client.builders import TINY, Clock, Registered, cue_predictions, cue_trials, register
+from tests.projects import new_store
 
 
 @pytest.fixture(scope="package")
-def registered(tmp_path_factory: pytest.TempPathFactory) -> Registered:
+def registered(empty_store: Path, tmp_path_factory: pytest.TempPathFactory) -> Registered:
     """A tiny 30° LSTM and its cue pack (from four angles' training trials), registered once for the
     client's tests in a store of its own."""
     root = tmp_path_factory.mktemp("registry")
-    uri = f"sqlite:///{root / 'mlflow.db'}"
+    uri = new_store(empty_store, root)
     train = {a: cue_trials(a, 3, "b1") for a in (0, 15, 30, 45)}
     train = {a: pd.concat([f, cue_trials(a, 3, "b2", seed=1)], ignore_index=True) for a, f in train.items()}
     checkpoint = fit("lstm", TINY["lstm"], train[30]).checkpoint

@@ -14,6 +14,7 @@ import pytest
 import needlecue_client as fc
 from pipeline.modelling.predictor import Predictor
 from tests.client.builders import CHANNELS, UNREACHABLE, Clock, Registered, cue_trials, register
+from tests.projects import new_store
 
 pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
@@ -175,11 +176,11 @@ def test_an_unreachable_registry_keeps_the_model_warns_once_and_retries_after_th
     clock: Clock,
     registry_calls: list[str | None],
     caplog: pytest.LogCaptureFixture,
+    empty_store: Path,
 ) -> None:
     # given: a client following v1 of a store that then goes away (its folder moved), v2 champion there
     store = tmp_path / "store"
-    store.mkdir()
-    uri = f"sqlite:///{store / 'mlflow.db'}"
+    uri = new_store(empty_store, store)
     register(uri, store, ls_models["a"])
     client = fc.ForceClient.from_registry(30, cache_dir=tmp_path / "cache", tracking_uri=uri, poll_s=60)
     register(uri, store, ls_models["b"])

@@ -17,16 +17,17 @@ from pipeline.cli import app
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
 from tests.client.builders import CHANNELS, TINY, Registered, cue_trials, keep_axes, register
+from tests.projects import new_store
 
 pytestmark = pytest.mark.filterwarnings("ignore::needlecue_client.force.UncalibratedUnit")
 
 
 @pytest.fixture(scope="module")
-def fz_folder(registered: Registered, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def fz_folder(registered: Registered, empty_store: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The registered LSTM as the model of fz alone (its very fz weights), registered without a cue
     pack in a store of its own and fetched."""
     root = tmp_path_factory.mktemp("fz-registry")
-    uri = f"sqlite:///{root / 'mlflow.db'}"
+    uri = new_store(empty_store, root)
     register(uri, root, keep_axes(registered.checkpoint, ("fz",)))
     return fc.fetch(30, cache_dir=root / "cache", tracking_uri=uri)
 
@@ -73,11 +74,11 @@ def test_replay_command_of_a_model_of_fz_reports_fz(fz_folder: Path, tmp_path: P
 
 
 def test_a_cue_pack_profiling_other_axes_than_the_model_gives_force_without_cues(
-    registered: Registered, tmp_path: Path, caplog: pytest.LogCaptureFixture
+    registered: Registered, mlflow_store: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     # given: the model of fz alone registered with the three-axis model's cue pack (its standard
     # profile is of fx, fy, fz)
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = mlflow_store
     register(uri, tmp_path, keep_axes(registered.checkpoint, ("fz",)), registered.pack)
     # when: the client loads it and steps
     with caplog.at_level("WARNING", logger="needlecue_client"):
@@ -136,11 +137,13 @@ def test_a_description_naming_other_axes_than_its_graph_gives_is_refused(
 
 
 @pytest.mark.parametrize("kind", ["ls", "lstm"])
-def test_a_model_trained_on_fz_alone_is_registered_and_run_as_one_force(kind: str, tmp_path: Path) -> None:
+def test_a_model_trained_on_fz_alone_is_registered_and_run_as_one_force(
+    kind: str, mlflow_store: str, tmp_path: Path
+) -> None:
     # given: a model trained on trials whose reference recorded fz alone, registered and fetched
     train = cue_trials(30, 3).drop(columns=["fx", "fy"])
     checkpoint = fit(kind, TINY[kind], train).checkpoint
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = mlflow_store
     register(uri, tmp_path, checkpoint)
     client = fc.ForceClient.from_registry(30, cache_dir=tmp_path / "cache", tracking_uri=uri)
     # when: the client steps through a held-out trial

@@ -32,11 +32,10 @@ class Champion:
     trial: pd.DataFrame  # a held-out trial of the unit
 
 
-def registered_champion(root: Path, axes: tuple[str, ...] | None = None) -> Champion:
-    """A 30° LSTM on rest-relative volts as needle-force-30@champion in a sqlite store under `root`,
+def registered_champion(uri: str, root: Path, axes: tuple[str, ...] | None = None) -> Champion:
+    """A 30° LSTM on rest-relative volts as needle-force-30@champion in store `uri` (artifacts under `root`),
     a unit calibrated with it on its FSRs' conductance, and a held-out trial of that unit. `axes`: the
     model of those axes alone (`keep_axes`: a reference that recorded only them), else of all three."""
-    uri = f"sqlite:///{root / 'mlflow.db'}"
     inputs = InputParams(kind="rest_volts")
     params = LSTMParams(window=6, hidden=6, max_epochs=3, patience=2, batch_size=64, inputs=inputs)
     checkpoint = fit("lstm", params, cue_trials(30, 3)).checkpoint

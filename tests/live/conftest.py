@@ -26,6 +26,7 @@ from tests.client.builders import (
     register_unit,
     unit_document,
 )
+from tests.projects import new_store
 
 UNIT = "est-live"
 ADC_BITS = 12
@@ -39,9 +40,9 @@ class LiveModel:
 
 
 @pytest.fixture(scope="package")
-def live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
+def live_model(empty_store: Path, tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
     root = tmp_path_factory.mktemp("live-registry")
-    uri = f"sqlite:///{root / 'mlflow.db'}"
+    uri = new_store(empty_store, root)
     angles = (0, 15, 30, 45, 60, 75)
     train = {
         a: pd.concat([cue_trials(a, 3, "b1"), cue_trials(a, 3, "b2", seed=1)], ignore_index=True)
@@ -56,10 +57,10 @@ def live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
 
 
 @pytest.fixture(scope="package")
-def fz_live_model(tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
+def fz_live_model(empty_store: Path, tmp_path_factory: pytest.TempPathFactory) -> LiveModel:
     """The champion of a lab whose reference recorded fz alone (a 30° LS of fz, no cue pack), fetched."""
     root = tmp_path_factory.mktemp("live-fz-registry")
-    uri = f"sqlite:///{root / 'mlflow.db'}"
+    uri = new_store(empty_store, root)
     train = pd.concat([cue_trials(30, 3, "b1"), cue_trials(30, 3, "b2", seed=1)], ignore_index=True)
     register(uri, root, keep_axes(fit("ls", TINY["ls"], train).checkpoint, ("fz",)))
     return LiveModel(uri, fetch(30, cache_dir=root / "cache", tracking_uri=uri))

@@ -93,7 +93,7 @@ def test_a_kind_not_in_the_table_is_refused_by_name() -> None:
 
 
 def test_a_kind_added_to_the_table_alone_trains_evaluates_exports_and_is_served(
-    ridge_kind: None, tmp_path: Path
+    ridge_kind: None, mlflow_store: str, tmp_path: Path
 ) -> None:
     # given: training and unseen trials at 30°
     train = pd.concat([cue_trials(30, 3, "b1"), cue_trials(30, 3, "b2", seed=1)], ignore_index=True)
@@ -110,7 +110,7 @@ def test_a_kind_added_to_the_table_alone_trains_evaluates_exports_and_is_served(
     assert _mean_nrmse(predicted, unseen) < 0.5 * _mean_nrmse(mean_force, unseen)
 
     # when: it is exported, registered as champion and fetched by the simulator's client
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = mlflow_store
     register(uri, tmp_path, result.checkpoint)
     client = fc.ForceClient.from_dir(fc.fetch(30, cache_dir=tmp_path / "cache", tracking_uri=uri))
     trial = unseen[unseen.trial_id == "t00"]
