@@ -142,11 +142,19 @@ def store_uri(store: Path) -> str:
 
 
 def register_into(root: Path, store: Path) -> None:
-    """`dvc repro` of a copy of the tiny build (what it lacks: register), into a new MLflow store in
-    folder `store` (MLflow makes its tables: no `new_store` here, so one end-to-end run does that)."""
+    """`dvc repro` of a copy of the tiny build, into a new MLflow store in folder `store` (MLflow makes
+    its tables: no `new_store` here, so one end-to-end run does that). It fails unless the one stage it
+    runs is register: the build's dvc.lock (`needlecue repro`'s, a stage at a time) leaves every other
+    stage up to date for plain `dvc repro`."""
     store.mkdir()
     uri = store_uri(store)
-    run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": uri, "MLFLOW_REGISTRY_URI": uri})
+    out = run(root, "dvc", "repro", env={"MLFLOW_TRACKING_URI": uri, "MLFLOW_REGISTRY_URI": uri})
+    assert reran_stages(out) == {"register"}, out
+
+
+def reran_stages(dvc_output: str) -> set[str]:
+    """The stages `dvc repro` ran, from what it printed."""
+    return {line.split("'")[1] for line in dvc_output.splitlines() if line.startswith("Running stage")}
 
 
 def make_empty_store(folder: Path) -> None:

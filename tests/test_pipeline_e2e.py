@@ -11,21 +11,28 @@ import yaml
 from mlflow import MlflowClient
 
 from tests.helpers import tree_hash
-from tests.projects import LAB_BATCH, copy_project, make_project, run, use_small_models
+from tests.projects import (
+    LAB_BATCH,
+    Registered,
+    copy_registered,
+    make_project,
+    reran_stages,
+    run,
+    use_small_models,
+)
 from tests.rig.batches import copy_batch
 
 pytestmark = pytest.mark.slow
 
 
-def test_repro_builds_per_angle_datasets_then_reruns_only_what_a_change_touches(tiny_built, tmp_path):
-    # Given a project on a small simulated rig (few-epoch networks: this is about the DAG), built through
-    # every stage but register (shared with other tests: tests/conftest.py)
-    root, params = copy_project(tiny_built, tmp_path / "proj")
-    # When the pipeline runs
-    out = run(root, "dvc", "repro")
-    # Then only the register stage runs (the copy has the rest up to date)
-    assert reran_stages(out) == {"register"}
-    # And every angle has its four splits, and no trial is in two of them
+def test_repro_builds_per_angle_datasets_then_reruns_only_what_a_change_touches(
+    tiny_registered: Registered, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    # Given a project on a small simulated rig (few-epoch networks: this is about the DAG), reproduced
+    # through register (shared with other tests, tests/conftest.py: `needlecue repro` of every stage
+    # but register, then `dvc repro`, which ran register alone), and its MLflow store
+    root, params = copy_registered(tiny_registered, tmp_path, monkeypatch)
+    # Then every angle has its four splits, and no trial is in two of them
     manifest = json.loads((root / "data" / "processed" / "manifest.json").read_text())
     assert sorted(manifest["angles"]) == ["15", "45"]
     for angle in ("15", "45"):
@@ -91,11 +98,6 @@ def test_repro_builds_per_angle_datasets_then_reruns_only_what_a_change_touches(
         "report",
         "register",
     }, out
-
-
-def reran_stages(dvc_output: str) -> set[str]:
-    """The stages `dvc repro` ran, from what it printed."""
-    return {line.split("'")[1] for line in dvc_output.splitlines() if line.startswith("Running stage")}
 
 
 def _recording(share: Path, name: str, *, angle: int, variant: int) -> Path:
