@@ -245,6 +245,24 @@ def fabricate_tactile(
     return _tactile(rng, t, push, shear, offset_s, duration_s, rate_hz)
 
 
+TACTILE = ["left", "right", "top", "bottom"]  # the tactile sensor's channels
+
+
+def tactile_batch(seeds: range) -> dict[str, Fabricated]:
+    """A batch of `fabricate_tactile` trials, one per seed (`t<seed>`), each with its own reference
+    at an offset within ±0.2 s: the sensor's own lag (creep, backlash) adds up to about 0.2 s."""
+    return {
+        f"t{s:03d}": fabricate_tactile(s, float(np.random.default_rng(s).uniform(-0.2, 0.2))) for s in seeds
+    }
+
+
+def swap_references(trials: dict[str, Fabricated], a: str, b: str) -> None:
+    """Trials `a` and `b` with each other's reference file (in place)."""
+    ta, tb = trials[a], trials[b]
+    trials[a] = Fabricated(ta.t_ms, ta.counts, tb.t_s, tb.force, tb.offset_s, ta.bounds)
+    trials[b] = Fabricated(tb.t_ms, tb.counts, ta.t_s, ta.force, ta.offset_s, tb.bounds)
+
+
 def fabricate_presses(
     seed: int, offset_s: float, *, start_s: float = 0.0, duration_s: float = 8.0
 ) -> Fabricated:
