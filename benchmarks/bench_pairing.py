@@ -24,29 +24,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.signals.resample import process_batch  # noqa: E402
-from tests.signals.fabricate import PARAMS, TACTILE, swap_references, tactile_batch, write_ingested  # noqa: E402
+from tests.signals.fabricate import (  # noqa: E402
+    PARAMS,
+    TACTILE,
+    statuses,
+    swap_references,
+    tactile_batch,
+    write_ingested,
+)
 
 TRIALS = 8
 DRAW_STEP = 100  # draw k is the batch of seeds 100 k .. 100 k + 7 (the suite's test: draw 0)
-
-
-def statuses(trials: dict, folder: Path, name: str) -> dict[str, dict]:
-    """Each trial's row of the resample stage's offsets table, for the batch `trials` written to `folder`."""
-    _, _, rows = process_batch(write_ingested(folder, name, trials, channels=TACTILE), PARAMS)
-    return {r["trial_id"]: r for r in rows}
 
 
 def draw(k: int, folder: Path) -> tuple[bool, bool, bool, str]:
     """Draw k: (every right trial kept, exactly the swapped pair set aside, each naming the other,
     what happened)."""
     trials = tactile_batch(range(DRAW_STEP * k, DRAW_STEP * k + TRIALS))
-    right = statuses(trials, folder / "right", "tactile")
+    right = statuses(write_ingested(folder / "right", "tactile", trials, channels=TACTILE))
     aside = sorted(t for t, r in right.items() if r["status"] != "ok")
     low = sum(float(r["quality"]) < PARAMS.min_quality for r in right.values())
     a, _, b = list(trials)[:3]
     swap_references(trials, a, b)
-    swapped = statuses(trials, folder / "swapped", "tactile")
+    swapped = statuses(write_ingested(folder / "swapped", "tactile", trials, channels=TACTILE))
     named = {t: r["status"] for t, r in swapped.items() if r["status"] != "ok"}
     caught = set(named) == {a, b}
     each_other = caught and all(

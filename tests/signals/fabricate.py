@@ -256,6 +256,15 @@ def tactile_batch(seeds: range) -> dict[str, Fabricated]:
     }
 
 
+def statuses(folder: Path) -> dict[str, dict]:
+    """Each trial's row of the resample stage's offsets table for the ingested batch in `folder`
+    (`write_ingested`), by trial id."""
+    from pipeline.signals.resample import process_batch
+
+    _, _, rows = process_batch(folder, PARAMS)
+    return {r["trial_id"]: r for r in rows}
+
+
 def swap_references(trials: dict[str, Fabricated], a: str, b: str) -> None:
     """Trials `a` and `b` with each other's reference file (in place)."""
     ta, tb = trials[a], trials[b]

@@ -16,6 +16,7 @@ from tests.signals.fabricate import (
     fabricate,
     fabricate_presses,
     fabricate_tactile,
+    statuses,
     swap_references,
     tactile_batch,
     write_ingested,
@@ -36,11 +37,6 @@ def _cuts(first: int, clock: str | None) -> dict[str, Fabricated]:
     }
 
 
-def _statuses(folder) -> dict[str, dict]:
-    _, _, rows = process_batch(folder, PARAMS)
-    return {r["trial_id"]: r for r in rows}
-
-
 # These two hold on other draws of the batch too: benchmarks/bench_pairing.py runs them on ten.
 def test_a_nonlinear_noisy_sensor_with_the_right_files_keeps_every_trial(tmp_path):
     # Given a batch of a saturating, lagging, noisy 4-channel sensor pressed by hand (not an
@@ -48,7 +44,7 @@ def test_a_nonlinear_noisy_sensor_with_the_right_files_keeps_every_trial(tmp_pat
     trials = tactile_batch(range(8))
     folder = write_ingested(tmp_path, "tactile", trials, channels=TACTILE)
     # When the batch is resampled
-    rows = _statuses(folder)
+    rows = statuses(folder)
     # Then no trial is set aside: their own reference explains them better than any other does
     assert {t: r["status"] for t, r in rows.items()} == dict.fromkeys(trials, "ok")
     low = [r for r in rows.values() if float(r["quality"]) < PARAMS.min_quality]
@@ -63,7 +59,7 @@ def test_swapped_reference_files_of_the_same_sensor_are_set_aside_naming_each_ot
     swap_references(trials, a, b)
     folder = write_ingested(tmp_path, "tactile", trials, channels=TACTILE)
     # When it is resampled
-    rows = _statuses(folder)
+    rows = statuses(folder)
     # Then exactly those two are set aside, each naming the trial whose reference it matches
     aside = {t: r["status"] for t, r in rows.items() if r["status"] != "ok"}
     assert set(aside) == {a, b}
@@ -76,7 +72,7 @@ def test_swapped_insertions_of_the_simulator_like_rig_are_still_set_aside(tmp_pa
     trials = {f"a30-t{k:02d}": fabricate(seed=40 + k, offset_s=0.05 * k - 0.15) for k in range(6)}
     swap_references(trials, "a30-t01", "a30-t04")
     folder = write_ingested(tmp_path, "sim-like", trials, channels=["fsr1", "fsr2", "fsr3"])
-    rows = _statuses(folder)
+    rows = statuses(folder)
     # Then those two are set aside as swapped, the rest kept
     assert [t for t, r in rows.items() if r["status"] != "ok"] == ["a30-t01", "a30-t04"]
     assert all("swapped?" in rows[t]["status"] for t in ("a30-t01", "a30-t04"))
@@ -86,13 +82,13 @@ def test_a_shared_clock_estimates_no_offset(tmp_path):
     # Given a batch whose two streams were stamped by one clock (no offset between them)
     trials = {f"t{s:03d}": fabricate_tactile(s, 0.0) for s in range(3)}
     folder = write_ingested(tmp_path, "one-clock", trials, channels=TACTILE, clock="shared")
-    rows = _statuses(folder)
+    rows = statuses(folder)
     # Then every trial is aligned at an offset of exactly 0 and kept
     assert all(r["status"] == "ok" and float(r["offset_s"]) == 0.0 for r in rows.values())
     assert all(abs(float(r["error_s"])) == 0.0 for r in rows.values())
     # while the same batch on separate clocks has the sensor's lag estimated as an offset
     folder = write_ingested(tmp_path / "b", "two-clocks", trials, channels=TACTILE)
-    assert any(abs(float(r["offset_s"])) > 0.05 for r in _statuses(folder).values())
+    assert any(abs(float(r["offset_s"])) > 0.05 for r in statuses(folder).values())
 
 
 @pytest.mark.parametrize("clock", [None, "shared"])
@@ -104,7 +100,7 @@ def test_steady_presses_of_a_hysteretic_sensor_keep_every_trial_flagged(tmp_path
     trials = _cuts(first, clock)
     folder = write_ingested(tmp_path, "presses", trials, channels=TACTILE, clock=clock)
     # When the batch is resampled
-    rows = _statuses(folder)
+    rows = statuses(folder)
     # Then every trial is kept, and each one below the gate is flagged with why it was kept
     assert {t: r["status"] for t, r in rows.items()} == dict.fromkeys(trials, "ok")
     assert all(float(r["quality"]) < PARAMS.min_quality for r in rows.values())
@@ -123,7 +119,7 @@ def test_a_shifted_clock_is_named_as_one(tmp_path):
         trials[moved] = _shifted(trials[moved], 2.0)
         channels = ["fsr1", "fsr2", "fsr3"] if name == "sim-like" else TACTILE
         # When each is resampled
-        rows = _statuses(write_ingested(tmp_path, name, trials, channels=channels, clock=clock))
+        rows = statuses(write_ingested(tmp_path, name, trials, channels=channels, clock=clock))
         # Then only that trial is set aside, as a shifted clock
         assert [t for t, r in rows.items() if r["status"] != "ok"] == [moved], name
         assert rows[moved]["status"].startswith("set aside: shifted clock: "), name
@@ -139,7 +135,7 @@ def test_a_reference_from_another_recording_is_set_aside_for_its_stamps(tmp_path
     c = trials["c3"]
     trials["c3"] = Fabricated(c.t_ms, c.counts, other.t_s, other.force, 0.0, c.bounds)
     # When resampled
-    rows = _statuses(write_ingested(tmp_path, "presses", trials, channels=TACTILE, clock="shared"))
+    rows = statuses(write_ingested(tmp_path, "presses", trials, channels=TACTILE, clock="shared"))
     # Then it alone is set aside, the stamps of both files named
     assert [t for t, r in rows.items() if r["status"] != "ok"] == ["c3"]
     assert (
@@ -189,7 +185,7 @@ def test_a_copied_estimator_file_is_set_aside_naming_the_trial_it_copies(tmp_pat
     trials = {f"a30-t{k:02d}": fabricate(seed=60 + k, offset_s=0.05 * k - 0.15) for k in range(4)}
     first, third = trials["a30-t00"], trials["a30-t02"]
     trials["a30-t02"] = Fabricated(first.t_ms, first.counts, third.t_s, third.force, 0.0, first.bounds)
-    rows = _statuses(write_ingested(tmp_path, "copy", trials, channels=["fsr1", "fsr2", "fsr3"]))
+    rows = statuses(write_ingested(tmp_path, "copy", trials, channels=["fsr1", "fsr2", "fsr3"]))
     # Then the copy is set aside, naming the trial it copies; the original is kept
     assert [t for t, r in rows.items() if r["status"] != "ok"] == ["a30-t02"]
     assert "the estimator stream of a30-t02 is a30-t00's: the same values" in rows["a30-t02"]["status"]
@@ -232,7 +228,7 @@ def test_on_one_clock_a_trial_fitting_apart_from_its_batch_is_a_shifted_clock(tm
     # Given insertions stamped by one clock, one reference whose stamps run 0.4 s behind what it
     # recorded (inside the window; its files still start and end with the estimator's)
     trials = {f"a30-t{k:02d}": fabricate(seed=70 + k, offset_s=0.4 if k == 2 else 0.0) for k in range(5)}
-    rows = _statuses(
+    rows = statuses(
         write_ingested(tmp_path, "one-clock", trials, channels=["fsr1", "fsr2", "fsr3"], clock="shared")
     )
     # Then that trial alone is set aside, as a shifted clock against its batch
@@ -259,8 +255,8 @@ def test_pairing_judges_a_reference_of_one_or_two_axes_on_the_axes_it_records(tm
     swap_references(trials, "a30-t01", "a30-t04")
     folder = write_ingested(tmp_path, "load-cell", trials, channels=["fsr1", "fsr2", "fsr3"], axes=axes)
     # When the batch is resampled
-    info, table, statuses = process_batch(folder, PARAMS)
-    rows = {r["trial_id"]: r for r in statuses}
+    info, table, listed = process_batch(folder, PARAMS)
+    rows = {r["trial_id"]: r for r in listed}
     # Then the alignment and the pairing work on those axes: the two are set aside for their pairing,
     # the others aligned to their true offsets, and the table holds only the recorded axes. (One axis
     # tells insertions of one shape apart less well than three: the reason may name another trial's
