@@ -9,6 +9,8 @@ import signal
 import subprocess
 from pathlib import Path
 
+import psutil
+
 
 def tree_hash(root: Path) -> dict[str, str]:
     """SHA-256 of every file under `root`, by relative path: equal iff the trees are byte-identical."""
@@ -30,3 +32,12 @@ def stop_group(proc: subprocess.Popen, grace_s: float = 15) -> None:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=grace_s)
+
+
+def descendants(pid: int) -> list[str]:
+    """The command line of every process under `pid` (its children, theirs, ...)."""
+    lines = []
+    for child in psutil.Process(pid).children(recursive=True):
+        with contextlib.suppress(psutil.NoSuchProcess, psutil.AccessDenied):  # gone while listed
+            lines.append(" ".join(child.cmdline()))
+    return lines

@@ -63,8 +63,7 @@ def make_project(root: Path, simulate: dict) -> Path:
         params["train"]["angles"] = simulate["angles_deg"]
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     (root / "data" / "raw").mkdir(parents=True)
-    run(root, "dvc", "init", "--no-scm", "-q")
-    run(root, "dvc", "config", "core.analytics", "false")
+    run(root, "dvc", "init", "--no-scm", "-q")  # DVC's analytics: off for the suite (pyproject.toml)
     return root
 
 
@@ -220,13 +219,12 @@ def first_external_trial(root: Path, angle: str, unit: str) -> pd.DataFrame:
 
 
 def make_repo(root: Path) -> None:
-    """An empty git + DVC project at `root` (new), DVC's analytics off and its config committed."""
+    """An empty git + DVC project at `root` (new), its DVC config committed."""
     root.mkdir()
     run(root, "git", "init", "-q")
     for key, value in (("user.name", "needlecue test"), ("user.email", "test@example.invalid")):
         run(root, "git", "config", key, value)
     run(root, "git", "config", "commit.gpgsign", "false")
     run(root, "dvc", "init", "-q")
-    run(root, "dvc", "config", "core.analytics", "false")
     run(root, "git", "add", "-A")
     run(root, "git", "commit", "-q", "-m", "dvc init")

@@ -49,7 +49,7 @@ def ui(
     import urllib.request
 
     from needlecue_runtime.registry import mlflow_env, store
-    from pipeline.registry.ui import is_server, runs_link, server_command
+    from pipeline.registry.ui import SERVER_ENV, is_server, runs_link, server_command
 
     uri = store.tracking_uri()
     try:
@@ -61,8 +61,13 @@ def ui(
             link = runs_link(client, f"http://{host}:{port}")
     except store.RegistryUnreachable as e:
         raise fail(str(e), 2) from e
-    # in a process group of its own, stopped whole: mlflow server runs uvicorn and job workers under it
-    server = subprocess.Popen(server_command(uri, host, port), stdout=sys.stderr, start_new_session=True)
+    # in a process group of its own, stopped whole: mlflow server runs uvicorn's workers under it
+    server = subprocess.Popen(
+        server_command(uri, host, port),
+        stdout=sys.stderr,
+        start_new_session=True,
+        env={**os.environ, **SERVER_ENV},
+    )
     # `kill` (SIGTERM) ends the UI as Ctrl-C does: through the `finally` below, which stops the server
     # (by default Python would die at once and leave the server running, orphaned)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))

@@ -32,6 +32,7 @@ from pipeline.modelling import export
 from pipeline.modelling.fit import fit
 from pipeline.modelling.predictor import Predictor
 from pipeline.registry import calibrations
+from pipeline.registry.ui import SERVER_ENV
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
 from tests.helpers import stop_group
 
@@ -101,7 +102,7 @@ def mlflow_server(root: Path) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
         stdout=log,
         stderr=subprocess.STDOUT,
         start_new_session=True,  # its own process group: the workers it forks are stopped with it
-        env={k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")},
+        env={**{k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}, **SERVER_ENV},
     )
     try:
         yield f"http://127.0.0.1:{port}", proc

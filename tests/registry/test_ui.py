@@ -14,6 +14,7 @@ import pytest
 from mlflow import MlflowClient
 
 from needlecue_runtime.registry import store
+from tests.helpers import descendants
 from tests.projects import Registered, copy_registered
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -66,6 +67,7 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
             ready = f"() => ({ROWS})().length >= {len(expected)} && {named}"
             page.wait_for_function(ready, timeout=60_000)
             rows = page.evaluate(ROWS)
+            serving = descendants(ui.pid)
             shown = page.locator("body").inner_text()
             page.screenshot(path=str(tmp_path / "ui.png"))
             browser.close()
@@ -75,6 +77,9 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
     # then: killed (SIGTERM), `needlecue ui` stopped the server it started: nothing answers on its port
     with socket.socket() as sock:
         assert sock.connect_ex(("127.0.0.1", port)) != 0, "the MLflow server outlived `needlecue ui`"
+    # and: the server ran without MLflow's job runner (huey consumers for GenAI jobs, a registry runs none)
+    assert any(" server " in line for line in serving), serving
+    assert not [line for line in serving if "huey" in line], serving
     # and the page is the model-training view of needle-force's runs, one row per angle and kind,
     # each with its run's external NRMSE, best first
     assert "Model training" in shown and store.EXPERIMENT in shown

@@ -1,6 +1,6 @@
 """The team's MLflow server on a loaded machine: a worker that cannot answer for a while (no CPU for it:
 the pipeline and the tests share 2 cores) is waited for, instead of being killed with the requests it
-holds."""
+holds; and the server runs nothing a registry does not need."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ from concurrent.futures import ThreadPoolExecutor
 import psutil
 import pytest
 import requests
+
+from tests.helpers import descendants
 
 # the real servers, on one xdist worker (their tests share one stack), in file order
 pytestmark = [pytest.mark.team, pytest.mark.xdist_group("team")]
@@ -60,3 +62,15 @@ def test_a_worker_that_stalls_longer_than_uvicorns_health_check_is_not_replaced(
     finally:
         _resume(workers)
     assert _workers(team) == workers
+
+
+def test_the_server_runs_its_workers_and_no_job_runner(team):
+    # Given the team's MLflow server, answering
+    pid = team.status()["mlflow"]["pid"]
+    assert pid is not None, "the team's MLflow server is not running"
+    # When its processes are listed
+    running = descendants(pid)
+    # Then its uvicorn workers are there, and none of MLflow's job runner (huey consumers for GenAI jobs:
+    # eight processes, 1.9 GB, that a model registry never uses)
+    assert _workers(team) and any("uvicorn" in line for line in running), running
+    assert not [line for line in running if "huey" in line], running

@@ -8,6 +8,7 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+from pipeline.registry.ui import SERVER_ENV
 from pipeline.team.servers.base import Launch, Server, write_private
 
 # uvicorn kills a worker that leaves its health ping unanswered for 5 s (its default), and a worker busy
@@ -27,6 +28,7 @@ class MLflow(Server):
         """Its environment: where the artifacts go, the auth config, the secrets."""
         s = self.stack.settings
         return {
+            **SERVER_ENV,
             "MLFLOW_BACKEND_STORE_URI": self.stack.database_uri("mlflow"),  # in the environment: not in `ps`
             "MLFLOW_S3_ENDPOINT_URL": self.stack.s3_endpoint,
             "AWS_ACCESS_KEY_ID": s["s3"]["access_key"],
