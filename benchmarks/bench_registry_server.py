@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -29,19 +28,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipeline.registry.ui import SERVER_ENV, server_command  # noqa: E402
+from tests.helpers import free_port  # noqa: E402
 
 SETTINGS = {"MLflow's default": {}, "SERVER_ENV": SERVER_ENV}
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def start(uri: str, extra: dict[str, str], settle_s: float) -> tuple[float, int, float]:
     """Seconds to answer, processes, resident MB of one server start; the server is stopped after."""
-    port = _free_port()
+    port = free_port()
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}, **extra}
     t0 = time.perf_counter()
     proc = subprocess.Popen(

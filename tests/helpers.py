@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import os
 import signal
+import socket
 import subprocess
 from pathlib import Path
 
@@ -21,6 +22,13 @@ def tree_hash(root: Path) -> dict[str, str]:
     }
 
 
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (the OS's pick), for a server a test or benchmark starts."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 def stop_group(proc: subprocess.Popen, grace_s: float = 15) -> None:
     """Stop a server started in a session of its own, with every worker it forked: SIGTERM, then
     SIGKILL after `grace_s`."""
@@ -34,10 +42,10 @@ def stop_group(proc: subprocess.Popen, grace_s: float = 15) -> None:
         proc.wait(timeout=grace_s)
 
 
-def descendants(pid: int) -> list[str]:
-    """The command line of every process under `pid` (its children, theirs, ...)."""
-    lines = []
+def descendants(pid: int) -> dict[int, str]:
+    """The command line of every process under `pid` (its children, theirs, ...), by pid."""
+    lines = {}
     for child in psutil.Process(pid).children(recursive=True):
         with contextlib.suppress(psutil.NoSuchProcess, psutil.AccessDenied):  # gone while listed
-            lines.append(" ".join(child.cmdline()))
+            lines[child.pid] = " ".join(child.cmdline())
     return lines

@@ -12,7 +12,6 @@ import contextlib
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -34,7 +33,7 @@ from pipeline.modelling.predictor import Predictor
 from pipeline.registry import calibrations
 from pipeline.registry.ui import SERVER_ENV
 from tests.client.builders import TINY, cue_predictions, cue_trials, unit_document
-from tests.helpers import stop_group
+from tests.helpers import free_port, stop_group
 
 ROOT = Path(__file__).resolve().parents[2]
 CLIENT = ROOT / "client"  # the client's distribution (client/pyproject.toml)
@@ -68,12 +67,6 @@ print(json.dumps({
 """
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _run(
     cmd: list[str], timeout: float, env: dict[str, str] | None = None, cwd: Path | None = None
 ) -> subprocess.CompletedProcess[str]:
@@ -89,7 +82,7 @@ def _run(
 def mlflow_server(root: Path) -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
     """`mlflow server` (the project's venv) on a sqlite store in `root`, serving its artifacts from
     `root/artifacts`, on 127.0.0.1 only; started in a session of its own, stopped with all its workers."""
-    port = _free_port()
+    port = free_port()
     log = (root / "server.log").open("wb")
     proc = subprocess.Popen(
         [

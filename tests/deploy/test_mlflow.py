@@ -7,7 +7,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -21,7 +20,7 @@ import pytest
 
 from needlecue_runtime.features import unit_inputs
 from tests.deploy.builders import Champion, client_forces, pyfunc_champion, raw_feed
-from tests.helpers import stop_group
+from tests.helpers import free_port, stop_group
 
 SERVE_START_S = 120.0
 
@@ -56,16 +55,10 @@ def test_pyfunc_reads_adc_counts_as_their_volts(champion: Champion) -> None:
     np.testing.assert_allclose(got[0], got[1], rtol=0, atol=1e-6)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @contextlib.contextmanager
 def served(uri: str, root: Path) -> Iterator[str]:
     """`mlflow models serve` of the champion on 127.0.0.1 (local env), stopped with its workers."""
-    port = _free_port()
+    port = free_port()
     log_path = root / "serve.log"
     env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
     env |= {"MLFLOW_TRACKING_URI": uri, "MLFLOW_REGISTRY_URI": uri}

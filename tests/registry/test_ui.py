@@ -14,7 +14,7 @@ import pytest
 from mlflow import MlflowClient
 
 from needlecue_runtime.registry import store
-from tests.helpers import descendants
+from tests.helpers import descendants, free_port
 from tests.projects import Registered, copy_registered
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -27,13 +27,6 @@ ROWS = """() => {
   return Object.keys(rows).sort((a, b) => a - b).map(i => rows[i]);
 }"""
 NAME, NRMSE = "attributes.`Run Name`", "metrics.`external_nrmse_pct_mean`"
-
-
-def _free_port() -> int:
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.mark.slow
@@ -51,7 +44,7 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
     assert set(expected) == {f"{a:g}°-{k}" for a in angles for k in kinds}
     # when: `needlecue ui` serves the store and a browser opens the link it prints
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    port = _free_port()
+    port = free_port()
     cmd = [sys.executable, "-m", "pipeline.cli", "ui", "--port", str(port)]
     ui = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, text=True, start_new_session=True)
     try:
@@ -67,7 +60,7 @@ def test_the_ui_opens_on_every_angle_and_kind_with_its_external_nrmse(
             ready = f"() => ({ROWS})().length >= {len(expected)} && {named}"
             page.wait_for_function(ready, timeout=60_000)
             rows = page.evaluate(ROWS)
-            serving = descendants(ui.pid)
+            serving = list(descendants(ui.pid).values())
             shown = page.locator("body").inner_text()
             page.screenshot(path=str(tmp_path / "ui.png"))
             browser.close()

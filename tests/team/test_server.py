@@ -10,7 +10,6 @@ import signal
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-import psutil
 import pytest
 import requests
 
@@ -22,17 +21,16 @@ SEARCH = "/api/2.0/mlflow/registered-models/search"
 STALL_S = 8  # longer than uvicorn's default worker health check (5 s)
 
 
-def _workers(team) -> set[int]:
-    """The pids of the uvicorn worker processes serving the team's MLflow."""
+def _server_pid(team) -> int:
     pid = team.status()["mlflow"]["pid"]
     assert pid is not None, "the team's MLflow server is not running"
-    workers = set()
-    for child in psutil.Process(pid).children(recursive=True):
-        with contextlib.suppress(psutil.NoSuchProcess, psutil.AccessDenied):  # gone while listed
-            # multiprocessing's spawned children (uvicorn's resource tracker is started another way)
-            if "spawn_main" in " ".join(child.cmdline()):
-                workers.add(child.pid)
-    return workers
+    return pid
+
+
+def _workers(team) -> set[int]:
+    """The pids of the uvicorn worker processes serving the team's MLflow."""
+    # multiprocessing's spawned children (uvicorn's resource tracker is started another way)
+    return {child for child, line in descendants(_server_pid(team)).items() if "spawn_main" in line}
 
 
 def _resume(workers: set[int]) -> None:
@@ -66,10 +64,8 @@ def test_a_worker_that_stalls_longer_than_uvicorns_health_check_is_not_replaced(
 
 def test_the_server_runs_its_workers_and_no_job_runner(team):
     # Given the team's MLflow server, answering
-    pid = team.status()["mlflow"]["pid"]
-    assert pid is not None, "the team's MLflow server is not running"
     # When its processes are listed
-    running = descendants(pid)
+    running = list(descendants(_server_pid(team)).values())
     # Then its uvicorn workers are there, and none of MLflow's job runner (huey consumers for GenAI jobs:
     # eight processes, 1.9 GB, that a model registry never uses)
     assert _workers(team) and any("uvicorn" in line for line in running), running
